@@ -1,0 +1,212 @@
+//! What an operator is given when it runs.
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+use std::sync::Arc;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context as _, bail};
+use serde_json::Value;
+
+/// Where an operator should put its tensors.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Device {
+    #[default]
+    Cpu,
+    Cuda(usize),
+}
+
+impl FromStr for Device {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> anyhow::Result<Device> {
+        match s {
+            "cpu" => Ok(Device::Cpu),
+            "cuda" => Ok(Device::Cuda(0)),
+            _ => match s.strip_prefix("cuda:").map(str::parse) {
+                Some(Ok(n)) => Ok(Device::Cuda(n)),
+                _ => bail!("unknown device `{s}`; valid: cpu, cuda, cuda:N"),
+            },
+        }
+    }
+}
+
+impl fmt::Display for Device {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Device::Cpu => write!(f, "cpu"),
+            Device::Cuda(n) => write!(f, "cuda:{n}"),
+        }
+    }
+}
+
+/// Receives an operator's progress and events; the engine decides where they go (a progress bar
+/// in the parent process, the run's JSON event log).
+pub trait Reporter: Send + Sync {
+    fn progress(&self, position: u64, length: u64, message: &str);
+    fn event(&self, name: &str, data: Value);
+}
+
+/// A reporter that drops everything (unit tests of operators).
+pub struct Silent;
+impl Reporter for Silent {
+    fn progress(&self, _: u64, _: u64, _: &str) {}
+    fn event(&self, _: &str, _: Value) {}
+}
+
+/// One upstream artifact: the producing instance's label (e.g. `pretrain[alpha4]`) and its
+/// directory. Artifact directories are read-only.
+#[derive(Clone, Debug)]
+pub struct Input {
+    pub label: String,
+    pub path: PathBuf,
+}
+
+/// The operator's view of one run of one stage instance.
+pub struct Context {
+    /// The stage instance, e.g. `pretrain[alpha4]`, for messages.
+    pub stage: String,
+    inputs: BTreeMap<String, Vec<Input>>,
+    /// Empty on entry; everything written here becomes the stage's output artifact.
+    pub output_dir: PathBuf,
+    /// Survives a crash or kill of this action and is handed to the next attempt of the same
+    /// action key; removed once the action commits.
+    pub checkpoint_dir: PathBuf,
+    pub seed: u64,
+    /// Threads the scheduler granted; use no more.
+    pub threads: usize,
+    pub device: Device,
+    reporter: Arc<dyn Reporter>,
+}
+
+impl Context {
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        stage: String,
+        inputs: BTreeMap<String, Vec<Input>>,
+        output_dir: PathBuf,
+        checkpoint_dir: PathBuf,
+        seed: u64,
+        threads: usize,
+        device: Device,
+        reporter: Arc<dyn Reporter>,
+    ) -> Context {
+        Context { stage, inputs, output_dir, checkpoint_dir, seed, threads, device, reporter }
+    }
+
+    /// The directory of the single artifact bound to `slot`.
+    pub fn input(&self, slot: &str) -> anyhow::Result<&Path> {
+        self.optional_input(slot)
+            .with_context(|| format!("stage {} has no `{slot}` input", self.stage))
+    }
+
+    pub fn optional_input(&self, slot: &str) -> Option<&Path> {
+        self.inputs.get(slot).and_then(|v| v.first()).map(|i| i.path.as_path())
+    }
+
+    /// Every artifact gathered into `slot` (for slots of arity `All`), in a stable order.
+    pub fn gathered(&self, slot: &str) -> &[Input] {
+        self.inputs.get(slot).map(Vec::as_slice).unwrap_or(&[])
+    }
+
+    /// A progress handle for `length` units of work.
+    pub fn progress(&self, length: u64, message: &str) -> Progress {
+        Progress {
+            reporter: self.reporter.clone(),
+            length,
+            message: message.to_owned(),
+            state: Mutex::new((0, None)),
+        }
+    }
+
+    /// Records a structured event in the run's JSON event log.
+    pub fn event(&self, name: &str, data: Value) {
+        self.reporter.event(name, data);
+    }
+}
+
+/// Reports the position of one piece of long work, at most ten times a second.
+pub struct Progress {
+    reporter: Arc<dyn Reporter>,
+    length: u64,
+    message: String,
+    /// Position, and when it was last reported.
+    state: Mutex<(u64, Option<Instant>)>,
+}
+
+impl Progress {
+    const INTERVAL: Duration = Duration::from_millis(100);
+
+    pub fn inc(&self, delta: u64) {
+        let mut state = self.state.lock().unwrap();
+        state.0 += delta;
+        self.maybe_report(&mut state, false);
+    }
+
+    pub fn set_position(&self, position: u64) {
+        let mut state = self.state.lock().unwrap();
+        state.0 = position;
+        self.maybe_report(&mut state, false);
+    }
+
+    pub fn finish(&self) {
+        let mut state = self.state.lock().unwrap();
+        self.maybe_report(&mut state, true);
+    }
+
+    fn maybe_report(&self, state: &mut (u64, Option<Instant>), force: bool) {
+        let now = Instant::now();
+        if force || state.1.is_none_or(|last| now - last >= Self::INTERVAL) {
+            state.1 = Some(now);
+            self.reporter.progress(state.0, self.length, &self.message);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn devices_parse_and_print() {
+        for s in ["cpu", "cuda:0", "cuda:3"] {
+            assert_eq!(s.parse::<Device>().unwrap().to_string(), s);
+        }
+        assert_eq!("cuda".parse::<Device>().unwrap(), Device::Cuda(0));
+        assert!("tpu".parse::<Device>().unwrap_err().to_string().contains("valid: cpu"));
+    }
+
+    struct Count(Mutex<Vec<u64>>);
+    impl Reporter for Count {
+        fn progress(&self, position: u64, _: u64, _: &str) {
+            self.0.lock().unwrap().push(position);
+        }
+        fn event(&self, _: &str, _: Value) {}
+    }
+
+    #[test]
+    fn progress_is_throttled_but_finish_always_reports() {
+        let reporter = Arc::new(Count(Mutex::new(Vec::new())));
+        let ctx = Context::new(
+            "s".into(),
+            BTreeMap::new(),
+            "/o".into(),
+            "/c".into(),
+            0,
+            1,
+            Device::Cpu,
+            reporter.clone(),
+        );
+        let p = ctx.progress(1000, "work");
+        for _ in 0..1000 {
+            p.inc(1);
+        }
+        p.finish();
+        let seen = reporter.0.lock().unwrap().clone();
+        assert_eq!(seen.first(), Some(&1));
+        assert_eq!(seen.last(), Some(&1000));
+        assert!(seen.len() < 10, "reported {} times", seen.len());
+    }
+}

@@ -1,0 +1,113 @@
+//! Stage kinds: what a stage consumes and produces, independent of how (the operator).
+
+/// How many upstream artifacts an input slot takes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Arity {
+    /// Exactly one upstream instance; the stage fans out over the upstream's variants.
+    One,
+    /// Every instance of every providing stage (the report gathers variants side by side).
+    All,
+}
+
+/// Whether a stage can run without the input.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Need {
+    Required,
+    Optional,
+}
+
+/// One named input of a stage kind.
+#[derive(Clone, Copy, Debug)]
+pub struct Slot {
+    pub name: &'static str,
+    /// The artifact type the slot accepts, e.g. `Scenes`.
+    pub artifact: &'static str,
+    pub need: Need,
+    pub arity: Arity,
+}
+
+impl Slot {
+    pub const fn one(name: &'static str, artifact: &'static str) -> Slot {
+        Slot { name, artifact, need: Need::Required, arity: Arity::One }
+    }
+    pub const fn optional(name: &'static str, artifact: &'static str) -> Slot {
+        Slot { name, artifact, need: Need::Optional, arity: Arity::One }
+    }
+    pub const fn gather(name: &'static str, artifact: &'static str) -> Slot {
+        Slot { name, artifact, need: Need::Optional, arity: Arity::All }
+    }
+}
+
+/// A stage kind: a named transformation from input artifacts to one output artifact.
+#[derive(Clone, Copy, Debug)]
+pub struct StageKind {
+    pub name: &'static str,
+    pub produces: &'static str,
+    pub inputs: &'static [Slot],
+}
+
+impl StageKind {
+    pub fn slot(&self, name: &str) -> Option<&Slot> {
+        self.inputs.iter().find(|s| s.name == name)
+    }
+}
+
+/// The set of stage kinds a registry knows.
+#[derive(Clone, Debug, Default)]
+pub struct Catalog {
+    pub kinds: Vec<StageKind>,
+}
+
+impl Catalog {
+    pub fn get(&self, name: &str) -> Option<&StageKind> {
+        self.kinds.iter().find(|k| k.name == name)
+    }
+
+    /// The stage kinds of the paper's pipeline (see DESIGN.md, "The stage graph").
+    pub fn paper() -> Catalog {
+        Catalog { kinds: PAPER_KINDS.to_vec() }
+    }
+}
+
+const SCENES: &str = "Scenes";
+const LABELS: &str = "Labels";
+const CAPTIONS: &str = "Captions";
+const TOKENS: &str = "Tokens";
+const ENCODER: &str = "Encoder";
+
+const PAPER_KINDS: &[StageKind] = &[
+    StageKind { name: "scenes", produces: SCENES, inputs: &[] },
+    StageKind { name: "labels", produces: LABELS, inputs: &[Slot::one("scenes", SCENES)] },
+    StageKind { name: "captions", produces: CAPTIONS, inputs: &[Slot::one("labels", LABELS)] },
+    StageKind { name: "tokens", produces: TOKENS, inputs: &[Slot::one("captions", CAPTIONS)] },
+    StageKind {
+        name: "pretrain",
+        produces: ENCODER,
+        inputs: &[Slot::one("scenes", SCENES), Slot::one("labels", LABELS), Slot::one("tokens", TOKENS)],
+    },
+    StageKind {
+        name: "probe",
+        produces: "ProbeReport",
+        inputs: &[
+            Slot::one("encoder", ENCODER),
+            Slot::one("scenes", SCENES),
+            Slot::one("labels", LABELS),
+            Slot::one("tokens", TOKENS),
+        ],
+    },
+    StageKind {
+        name: "segment",
+        produces: "SegReport",
+        inputs: &[Slot::optional("encoder", ENCODER), Slot::one("scenes", SCENES), Slot::one("labels", LABELS)],
+    },
+    StageKind {
+        name: "report",
+        produces: "Report",
+        inputs: &[
+            Slot::gather("probe", "ProbeReport"),
+            Slot::gather("segment", "SegReport"),
+            Slot::gather("encoder", ENCODER),
+            Slot::gather("scenes", SCENES),
+        ],
+    },
+];

@@ -1,0 +1,20 @@
+//! The contracts between rlmflow's engine and its operators.
+//!
+//! * [`kind`]: stage kinds and the artifact types they consume and produce, as data. The paper's
+//!   pipeline is one [`Catalog`]; tests add their own kinds.
+//! * [`operator`]: the [`Operator`] trait (one implementation of a stage kind), its typed
+//!   [`Settings`], and the type-erased [`DynOperator`] the engine stores in its registry.
+//! * [`context`]: what an operator is given when it runs: input paths, an output directory, a
+//!   checkpoint directory that survives a crash, the seed, a thread budget and a progress handle.
+//!
+//! Nothing here knows about scheduling, caching or processes; nothing here knows machine learning.
+
+pub mod context;
+pub mod kind;
+pub mod operator;
+
+pub use context::{Context, Device, Input, Progress, Reporter};
+pub use kind::{Arity, Catalog, Need, Slot, StageKind};
+pub use operator::{
+    DynOperator, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings,
+};

@@ -1,0 +1,270 @@
+//! The Operator contract: one implementation of a stage kind, configured by a plain settings struct.
+
+use std::fmt;
+
+use serde::Serialize;
+use serde::de::DeserializeOwned;
+use serde_json::Value;
+
+use crate::context::Context;
+use crate::kind::{Catalog, StageKind};
+
+/// An operator's settings: a plain struct with defaults (`#[serde(default, deny_unknown_fields)]`).
+pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'static {
+    /// Settings that cannot change the result (thread counts, logging cadence). They are left out
+    /// of the action key, so changing them reuses cached results.
+    const NON_RESULT: &'static [&'static str] = &[];
+
+    /// Checks that types cannot express ("impossible settings"). The error names the key.
+    fn check(&self) -> Result<(), SettingError> {
+        Ok(())
+    }
+}
+
+/// A setting that is invalid: its dotted key (relative to the stage table) and what is valid.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SettingError {
+    pub key: String,
+    pub message: String,
+    /// Valid names for the key, when the key itself is unknown (used to suggest the nearest).
+    pub valid: Vec<String>,
+}
+
+impl SettingError {
+    pub fn new(key: impl Into<String>, message: impl Into<String>) -> Self {
+        SettingError { key: key.into(), message: message.into(), valid: Vec::new() }
+    }
+}
+
+impl fmt::Display for SettingError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}: {}", self.key, self.message)
+    }
+}
+
+/// What identifies an operator to the engine.
+#[derive(Clone, Copy, Debug)]
+pub struct OperatorSpec {
+    /// The name `pipeline.toml` selects it by, e.g. `highway-env`.
+    pub name: &'static str,
+    /// The stage kind it implements, e.g. `scenes`.
+    pub kind: &'static str,
+    /// Bumped by hand whenever the operator's results change for the same settings and inputs;
+    /// part of every action key.
+    pub version: u32,
+    /// The kind's input slots it reads; `None` means all of them. A baseline that ignores an
+    /// optional input lists the others, so it does not fan out over that input's variants.
+    pub inputs: Option<&'static [&'static str]>,
+    /// One line for `--help`-style listings.
+    pub summary: &'static str,
+}
+
+/// What an operator asks of the machine.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Resources {
+    /// The most threads the operator can use; the scheduler grants up to this many.
+    pub threads: usize,
+    pub gpu: bool,
+}
+
+impl Default for Resources {
+    fn default() -> Self {
+        Resources { threads: 1, gpu: false }
+    }
+}
+
+/// What a finished operator reports besides its output files.
+#[derive(Clone, Debug, Default)]
+pub struct Outcome {
+    /// Stored in the action record and shown by `rlmflow show`.
+    pub metrics: Value,
+    /// One line for the run summary.
+    pub summary: String,
+}
+
+/// One implementation of a stage kind. Operators know nothing of scheduling or caching: they read
+/// the context's inputs and write files into its output directory.
+pub trait Operator: Send + Sync + 'static {
+    type Settings: Settings;
+
+    fn spec(&self) -> OperatorSpec;
+
+    fn resources(&self, _settings: &Self::Settings) -> Resources {
+        Resources::default()
+    }
+
+    fn run(&self, settings: &Self::Settings, ctx: &mut Context) -> anyhow::Result<Outcome>;
+}
+
+/// An [`Operator`] with its settings type erased, as the engine's registry stores it. Settings
+/// travel as JSON objects.
+pub trait DynOperator: Send + Sync {
+    fn spec(&self) -> OperatorSpec;
+    /// Fills in defaults and checks a stage's settings; returns every setting, canonical.
+    fn settings(&self, raw: Value) -> Result<Value, SettingError>;
+    fn non_result_keys(&self) -> &'static [&'static str];
+    fn resources(&self, settings: &Value) -> Resources;
+    fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome>;
+}
+
+impl<O: Operator> DynOperator for O {
+    fn spec(&self) -> OperatorSpec {
+        Operator::spec(self)
+    }
+
+    fn settings(&self, raw: Value) -> Result<Value, SettingError> {
+        let typed = parse_settings::<O::Settings>(raw)?;
+        Ok(serde_json::to_value(&typed).expect("settings serialise to JSON"))
+    }
+
+    fn non_result_keys(&self) -> &'static [&'static str] {
+        O::Settings::NON_RESULT
+    }
+
+    fn resources(&self, settings: &Value) -> Resources {
+        match parse_settings::<O::Settings>(settings.clone()) {
+            Ok(typed) => Operator::resources(self, &typed),
+            Err(_) => Resources::default(),
+        }
+    }
+
+    fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        let typed = parse_settings::<O::Settings>(settings.clone())
+            .map_err(|e| anyhow::anyhow!("invalid settings: {e}"))?;
+        Operator::run(self, &typed, ctx)
+    }
+}
+
+fn parse_settings<S: Settings>(raw: Value) -> Result<S, SettingError> {
+    let typed: S = serde_path_to_error::deserialize(raw).map_err(|e| {
+        let key = e.path().to_string();
+        let message = e.inner().to_string();
+        match unknown_field(&message) {
+            Some((field, valid)) => {
+                SettingError { key, message: format!("unknown setting `{field}`"), valid }
+            }
+            None => SettingError::new(if key == "." { String::new() } else { key }, message),
+        }
+    })?;
+    typed.check()?;
+    Ok(typed)
+}
+
+/// Picks apart serde's "unknown field `x`, expected one of `a`, `b`" (its stable wording).
+fn unknown_field(message: &str) -> Option<(String, Vec<String>)> {
+    let rest = message.strip_prefix("unknown field `")?;
+    let (field, expected) = rest.split_once('`')?;
+    let valid = expected.split('`').skip(1).step_by(2).map(str::to_owned).collect();
+    Some((field.to_owned(), valid))
+}
+
+/// The stage kinds and operators an rlmflow binary knows.
+#[derive(Default)]
+pub struct Registry {
+    pub catalog: Catalog,
+    operators: Vec<Box<dyn DynOperator>>,
+}
+
+impl Registry {
+    pub fn new(catalog: Catalog) -> Self {
+        Registry { catalog, operators: Vec::new() }
+    }
+
+    /// Adds an operator. Panics if its kind is unknown or its name taken: both are programming
+    /// errors in the binary that builds the registry, caught by its first test.
+    pub fn add(&mut self, op: impl DynOperator + 'static) -> &mut Self {
+        let spec = op.spec();
+        let kind = self.catalog.get(spec.kind).unwrap_or_else(|| {
+            panic!("operator `{}` implements unknown stage kind `{}`", spec.name, spec.kind)
+        });
+        for slot in spec.inputs.unwrap_or(&[]) {
+            assert!(kind.slot(slot).is_some(), "operator `{}` reads unknown slot `{slot}`", spec.name);
+        }
+        assert!(self.get(spec.name).is_none(), "operator `{}` registered twice", spec.name);
+        self.operators.push(Box::new(op));
+        self
+    }
+
+    pub fn get(&self, name: &str) -> Option<&dyn DynOperator> {
+        self.operators.iter().find(|o| o.spec().name == name).map(|o| o.as_ref())
+    }
+
+    pub fn kind(&self, name: &str) -> Option<&StageKind> {
+        self.catalog.get(name)
+    }
+
+    /// Operators implementing a stage kind, in registration order.
+    pub fn operators_of(&self, kind: &str) -> impl Iterator<Item = &dyn DynOperator> {
+        self.operators.iter().filter(move |o| o.spec().kind == kind).map(|o| o.as_ref())
+    }
+
+    pub fn operators(&self) -> impl Iterator<Item = &dyn DynOperator> {
+        self.operators.iter().map(|o| o.as_ref())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde::Deserialize;
+
+    #[derive(Serialize, Deserialize, Default)]
+    #[serde(default, deny_unknown_fields)]
+    struct Demo {
+        alpha: f64,
+        threads: usize,
+        nested: Nested,
+    }
+
+    #[derive(Serialize, Deserialize, Default)]
+    #[serde(default, deny_unknown_fields)]
+    struct Nested {
+        image: u32,
+    }
+
+    impl Settings for Demo {
+        const NON_RESULT: &'static [&'static str] = &["threads"];
+        fn check(&self) -> Result<(), SettingError> {
+            if self.alpha < 0.0 {
+                return Err(SettingError::new("alpha", "must be >= 0"));
+            }
+            Ok(())
+        }
+    }
+
+    struct DemoOp;
+    impl Operator for DemoOp {
+        type Settings = Demo;
+        fn spec(&self) -> OperatorSpec {
+            OperatorSpec { name: "demo", kind: "scenes", version: 1, inputs: None, summary: "" }
+        }
+        fn run(&self, _: &Demo, _: &mut Context) -> anyhow::Result<Outcome> {
+            Ok(Outcome::default())
+        }
+    }
+
+    #[test]
+    fn settings_fill_defaults_and_canonicalise_numbers() {
+        let v = DemoOp.settings(serde_json::json!({"alpha": 4})).unwrap();
+        assert_eq!(v, serde_json::json!({"alpha": 4.0, "threads": 0, "nested": {"image": 0}}));
+    }
+
+    #[test]
+    fn unknown_keys_name_the_key_and_list_valid_ones() {
+        let e = DemoOp.settings(serde_json::json!({"alpah": 1.0})).unwrap_err();
+        assert_eq!(e.key, "alpah");
+        assert_eq!(e.valid, vec!["alpha", "threads", "nested"]);
+        let e = DemoOp.settings(serde_json::json!({"nested": {"imag": 3}})).unwrap_err();
+        assert_eq!(e.key, "nested.imag");
+        assert_eq!(e.valid, vec!["image"]);
+    }
+
+    #[test]
+    fn type_errors_and_checks_name_the_key() {
+        let e = DemoOp.settings(serde_json::json!({"nested": {"image": "big"}})).unwrap_err();
+        assert_eq!(e.key, "nested.image");
+        assert!(e.message.contains("invalid type"), "{}", e.message);
+        let e = DemoOp.settings(serde_json::json!({"alpha": -1.0})).unwrap_err();
+        assert_eq!((e.key.as_str(), e.message.as_str()), ("alpha", "must be >= 0"));
+    }
+}
