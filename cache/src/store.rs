@@ -1,0 +1,524 @@
+use std::collections::BTreeMap;
+use std::fs;
+use std::io::{self, Write};
+use std::os::unix::fs::PermissionsExt;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::SystemTime;
+
+use anyhow::{Context, bail};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+use crate::digest::Digest;
+use crate::lock::Lock;
+use crate::preimage::Preimage;
+use crate::tree::{TreeInfo, damaged_files, hash_tree};
+
+const STORE_FORMAT: &str = "rlmflow-store 1\n";
+
+/// What a finished action left: written last, so it exists only if its output does.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ActionRecord {
+    pub key: Digest,
+    pub preimage: Preimage,
+    pub output: Digest,
+    pub files: u64,
+    pub bytes: u64,
+    /// RFC 3339, UTC.
+    pub started: String,
+    pub duration_s: f64,
+    pub metrics: Value,
+    pub summary: String,
+}
+
+/// Everything `rlmflow exec` needs to run an action, stored before it runs so that the same
+/// entry point works in a child process here or on another machine.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ActionRequest {
+    pub key: Digest,
+    /// The stage instance that asked, e.g. `pretrain[alpha4]` (for messages only).
+    pub stage: String,
+    pub preimage: Preimage,
+    /// Every setting, including those left out of the key (`threads`, `log_every`).
+    pub settings: Value,
+}
+
+/// One stage instance in a run's plan.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PlanEntry {
+    pub label: String,
+    pub stage: String,
+    /// Unknown until its inputs exist; filled in as the run goes.
+    pub key: Option<Digest>,
+}
+
+/// `runs/<id>/plan.json`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RunPlan {
+    pub run: String,
+    pub pipeline: String,
+    pub started: String,
+    pub instances: Vec<PlanEntry>,
+}
+
+/// An object whose files no longer match their digest.
+#[derive(Clone, Debug)]
+pub struct Corruption {
+    pub digest: Digest,
+    pub files: Vec<String>,
+}
+
+/// A content-addressed store rooted at one directory. See the crate docs for the layout.
+#[derive(Clone, Debug)]
+pub struct Store {
+    root: PathBuf,
+}
+
+/// A new run id: UTC time to the millisecond and the process id, so ids sort by start time.
+pub fn run_id() -> String {
+    let t = humantime::format_rfc3339_millis(SystemTime::now()).to_string();
+    let compact: String = t.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
+    format!("{compact}-{}", std::process::id())
+}
+
+pub fn now_rfc3339() -> String {
+    humantime::format_rfc3339_seconds(SystemTime::now()).to_string()
+}
+
+impl Store {
+    /// Opens the store at `root`, creating it if needed.
+    pub fn open(root: &Path) -> anyhow::Result<Store> {
+        let store = Store { root: root.to_path_buf() };
+        let version = root.join("VERSION");
+        match fs::read_to_string(&version) {
+            Ok(v) if v == STORE_FORMAT => {}
+            Ok(v) => bail!(
+                "{} holds a store of format `{}`; this rlmflow reads `{}`",
+                root.display(),
+                v.trim(),
+                STORE_FORMAT.trim()
+            ),
+            Err(e) if e.kind() == io::ErrorKind::NotFound => {
+                for dir in ["objects", "actions", "requests", "checkpoints", "runs", "refs/pipelines", "refs/pins", "locks", "tmp", "quarantine"] {
+                    fs::create_dir_all(root.join(dir))
+                        .with_context(|| format!("creating the store at {}", root.display()))?;
+                }
+                atomic_write(&store, &version, STORE_FORMAT.as_bytes())?;
+            }
+            Err(e) => return Err(e).with_context(|| format!("reading {}", version.display())),
+        }
+        Ok(store)
+    }
+
+    /// Opens an existing store without creating anything (`--dry-run`, `status`); `None` if
+    /// there is none yet.
+    pub fn open_existing(root: &Path) -> anyhow::Result<Option<Store>> {
+        if root.join("VERSION").exists() { Store::open(root).map(Some) } else { Ok(None) }
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    // ---- objects ----
+
+    pub fn object_dir(&self, digest: &Digest) -> PathBuf {
+        self.root.join("objects").join(digest.shard()).join(digest.hex())
+    }
+
+    pub(crate) fn manifest_path(&self, digest: &Digest) -> PathBuf {
+        self.root.join("objects").join(digest.shard()).join(format!("{}.tree", digest.hex()))
+    }
+
+    pub fn has_object(&self, digest: &Digest) -> bool {
+        self.manifest_path(digest).is_file() && self.object_dir(digest).is_dir()
+    }
+
+    /// Moves a finished output directory into `objects/` (files made read-only). If an equal
+    /// object exists already, the new copy is dropped.
+    pub fn commit_tree(&self, dir: &Path) -> anyhow::Result<TreeInfo> {
+        let info = hash_tree(dir)?;
+        if self.has_object(&info.digest) {
+            remove_tree(dir)?;
+            return Ok(info);
+        }
+        make_read_only(dir)?;
+        let target = self.object_dir(&info.digest);
+        fs::create_dir_all(target.parent().unwrap())?;
+        if target.exists() {
+            // A manifest-less leftover of an interrupted commit: it was never served.
+            remove_tree(&target)?;
+        }
+        fs::rename(dir, &target).with_context(|| format!("moving output to {}", target.display()))?;
+        atomic_write(self, &self.manifest_path(&info.digest), info.manifest.as_bytes())?;
+        Ok(info)
+    }
+
+    /// Re-hashes one object. `Ok(None)` when it matches its digest.
+    pub fn check_object(&self, digest: &Digest) -> anyhow::Result<Option<Corruption>> {
+        let manifest = fs::read_to_string(self.manifest_path(digest))
+            .with_context(|| format!("object {} has no manifest", digest.short()))?;
+        let actual = hash_tree(&self.object_dir(digest))?;
+        if actual.digest == *digest && crate::Digest::of(manifest.as_bytes()) == *digest {
+            return Ok(None);
+        }
+        let files = damaged_files(&self.object_dir(digest), &manifest)?;
+        Ok(Some(Corruption { digest: *digest, files }))
+    }
+
+    /// Moves a damaged object out of `objects/`, so every record naming it becomes a miss.
+    pub fn quarantine(&self, digest: &Digest) -> anyhow::Result<PathBuf> {
+        let dest = self.root.join("quarantine").join(format!("{}-{}", digest.hex(), run_id()));
+        fs::create_dir_all(&dest)?;
+        for (from, name) in [(self.object_dir(digest), "data"), (self.manifest_path(digest), "manifest")] {
+            if from.exists() {
+                fs::rename(&from, dest.join(name))?;
+            }
+        }
+        Ok(dest)
+    }
+
+    /// Every object digest in the store.
+    pub fn objects(&self) -> anyhow::Result<Vec<Digest>> {
+        let mut out = Vec::new();
+        for shard in read_dir_sorted(&self.root.join("objects"))? {
+            for entry in read_dir_sorted(&shard)? {
+                let name = entry.file_name().unwrap().to_string_lossy().into_owned();
+                if let Some(hex) = name.strip_suffix(".tree") {
+                    if let Ok(d) = hex.parse() {
+                        out.push(d);
+                    }
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// Re-hashes every object; damaged ones are quarantined and returned.
+    pub fn verify(&self, mut on_object: impl FnMut(&Digest)) -> anyhow::Result<Vec<Corruption>> {
+        let mut damaged = Vec::new();
+        for digest in self.objects()? {
+            on_object(&digest);
+            if let Some(c) = self.check_object(&digest)? {
+                self.quarantine(&digest)?;
+                damaged.push(c);
+            }
+        }
+        Ok(damaged)
+    }
+
+    // ---- actions ----
+
+    pub(crate) fn record_path(&self, key: &Digest) -> PathBuf {
+        self.root.join("actions").join(key.shard()).join(format!("{}.json", key.hex()))
+    }
+
+    pub(crate) fn request_path(&self, key: &Digest) -> PathBuf {
+        self.root.join("requests").join(key.shard()).join(format!("{}.json", key.hex()))
+    }
+
+    pub fn record(&self, key: &Digest) -> anyhow::Result<Option<ActionRecord>> {
+        read_json(&self.record_path(key))
+    }
+
+    /// The record of `key` if its output is present: a cache hit.
+    pub fn fresh(&self, key: &Digest) -> anyhow::Result<Option<ActionRecord>> {
+        Ok(self.record(key)?.filter(|r| self.has_object(&r.output)))
+    }
+
+    /// Publishes a finished action. Call only after its output is committed.
+    pub fn write_record(&self, record: &ActionRecord) -> anyhow::Result<()> {
+        assert!(self.has_object(&record.output), "record written before its output");
+        atomic_write(self, &self.record_path(&record.key), &serde_json::to_vec_pretty(record)?)
+    }
+
+    pub fn write_request(&self, request: &ActionRequest) -> anyhow::Result<()> {
+        atomic_write(self, &self.request_path(&request.key), &serde_json::to_vec_pretty(request)?)
+    }
+
+    pub fn request(&self, key: &Digest) -> anyhow::Result<Option<ActionRequest>> {
+        read_json(&self.request_path(key))
+    }
+
+    /// Every action record's key.
+    pub fn record_keys(&self) -> anyhow::Result<Vec<Digest>> {
+        keys_in(&self.root.join("actions"))
+    }
+
+    pub fn request_keys(&self) -> anyhow::Result<Vec<Digest>> {
+        keys_in(&self.root.join("requests"))
+    }
+
+    // ---- checkpoints, work directories and locks ----
+
+    pub fn checkpoint_dir(&self, key: &Digest) -> PathBuf {
+        self.root.join("checkpoints").join(key.hex())
+    }
+
+    /// A fresh work directory for one attempt at `key`. Its name starts with the key, so the
+    /// sweep can tell whether its owner is still alive (it holds the key's lock).
+    pub fn work_dir(&self, key: &Digest) -> anyhow::Result<PathBuf> {
+        static COUNTER: AtomicU64 = AtomicU64::new(0);
+        let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+        let dir = self.root.join("tmp").join(format!("{}.{}.{n}", key.hex(), std::process::id()));
+        fs::create_dir_all(&dir)?;
+        Ok(dir)
+    }
+
+    /// Blocks until this process alone may compute `key`.
+    pub fn lock_action(&self, key: &Digest) -> io::Result<Lock> {
+        Lock::exclusive(&self.lock_path(key))
+    }
+
+    pub fn try_lock_action(&self, key: &Digest) -> io::Result<Option<Lock>> {
+        Lock::try_exclusive(&self.lock_path(key))
+    }
+
+    fn lock_path(&self, key: &Digest) -> PathBuf {
+        self.root.join("locks").join(format!("{}.lock", key.hex()))
+    }
+
+    /// Held (shared) by every run and exec; held exclusively by `gc`.
+    pub fn lock_shared(&self) -> io::Result<Lock> {
+        Lock::shared(&self.root.join("locks/store.lock"))
+    }
+
+    pub fn lock_exclusive(&self) -> io::Result<Lock> {
+        Lock::exclusive(&self.root.join("locks/store.lock"))
+    }
+
+    /// Removes work directories whose owner died (their key is not locked), and the work
+    /// directories of `key` itself when the caller holds its lock. Returns how many.
+    pub fn sweep_tmp(&self, held: Option<&Digest>) -> anyhow::Result<usize> {
+        let mut swept = 0;
+        for dir in read_dir_sorted(&self.root.join("tmp"))? {
+            let name = dir.file_name().unwrap().to_string_lossy().into_owned();
+            let Some(key) = name.split('.').next().and_then(|k| k.parse::<Digest>().ok()) else {
+                continue; // atomic_write's files: short-lived, owned by a live writer
+            };
+            let dead = if held == Some(&key) { true } else { self.try_lock_action(&key)?.is_some() };
+            if dead {
+                remove_tree(&dir)?;
+                swept += 1;
+            }
+        }
+        Ok(swept)
+    }
+
+    // ---- runs and refs ----
+
+    pub fn run_dir(&self, run: &str) -> PathBuf {
+        self.root.join("runs").join(run)
+    }
+
+    /// Run ids, oldest first.
+    pub fn runs(&self) -> anyhow::Result<Vec<String>> {
+        Ok(read_dir_sorted(&self.root.join("runs"))?
+            .into_iter()
+            .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
+            .collect())
+    }
+
+    pub fn write_plan(&self, plan: &RunPlan) -> anyhow::Result<()> {
+        let dir = self.run_dir(&plan.run);
+        fs::create_dir_all(dir.join("logs"))?;
+        atomic_write(self, &dir.join("plan.json"), &serde_json::to_vec_pretty(plan)?)
+    }
+
+    pub fn plan(&self, run: &str) -> anyhow::Result<Option<RunPlan>> {
+        read_json(&self.run_dir(run).join("plan.json"))
+    }
+
+    fn pipeline_ref(&self, pipeline: &str) -> PathBuf {
+        self.root.join("refs/pipelines").join(format!("{}.json", sanitize(pipeline)))
+    }
+
+    /// The key each stage instance of `pipeline` had in its latest run.
+    pub fn last_keys(&self, pipeline: &str) -> anyhow::Result<BTreeMap<String, Digest>> {
+        Ok(read_json(&self.pipeline_ref(pipeline))?.unwrap_or_default())
+    }
+
+    /// Records the keys a run resolved, keeping entries for instances it did not touch.
+    pub fn update_last_keys(&self, pipeline: &str, keys: &BTreeMap<String, Digest>) -> anyhow::Result<()> {
+        let mut all = self.last_keys(pipeline)?;
+        all.extend(keys.iter().map(|(k, v)| (k.clone(), *v)));
+        atomic_write(self, &self.pipeline_ref(pipeline), &serde_json::to_vec_pretty(&all)?)
+    }
+
+    /// Pins keys under a name, so `gc` keeps them and everything they used.
+    pub fn pin(&self, name: &str, keys: &BTreeMap<String, Digest>) -> anyhow::Result<PathBuf> {
+        let path = self.root.join("refs/pins").join(format!("{}.json", sanitize(name)));
+        atomic_write(self, &path, &serde_json::to_vec_pretty(keys)?)?;
+        Ok(path)
+    }
+
+    pub(crate) fn ref_files(&self) -> anyhow::Result<Vec<PathBuf>> {
+        let mut files = read_dir_sorted(&self.root.join("refs/pipelines"))?;
+        files.extend(read_dir_sorted(&self.root.join("refs/pins"))?);
+        Ok(files)
+    }
+}
+
+fn sanitize(name: &str) -> String {
+    name.chars().map(|c| if c.is_ascii_alphanumeric() || "-_.".contains(c) { c } else { '_' }).collect()
+}
+
+fn keys_in(dir: &Path) -> anyhow::Result<Vec<Digest>> {
+    let mut out = Vec::new();
+    for shard in read_dir_sorted(dir)? {
+        for file in read_dir_sorted(&shard)? {
+            let name = file.file_name().unwrap().to_string_lossy().into_owned();
+            if let Some(key) = name.strip_suffix(".json").and_then(|h| h.parse().ok()) {
+                out.push(key);
+            }
+        }
+    }
+    Ok(out)
+}
+
+pub(crate) fn read_dir_sorted(dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
+    let mut out = match fs::read_dir(dir) {
+        Ok(rd) => rd.map(|e| e.map(|e| e.path())).collect::<io::Result<Vec<_>>>()?,
+        Err(e) if e.kind() == io::ErrorKind::NotFound => Vec::new(),
+        Err(e) => return Err(e).with_context(|| format!("reading {}", dir.display())),
+    };
+    out.sort();
+    Ok(out)
+}
+
+fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> anyhow::Result<Option<T>> {
+    match fs::read(path) {
+        Ok(bytes) => serde_json::from_slice(&bytes)
+            .map(Some)
+            .with_context(|| format!("{} is not valid; remove it or run `rlmflow verify`", path.display())),
+        Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(e).with_context(|| format!("reading {}", path.display())),
+    }
+}
+
+/// Writes `bytes` to a temporary file in the store's `tmp/` and renames it over `path`.
+fn atomic_write(store: &Store, path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+    let tmp = store.root.join("tmp").join(format!("write-{}-{n}", std::process::id()));
+    fs::create_dir_all(tmp.parent().unwrap())?;
+    let mut f = fs::File::create(&tmp).with_context(|| format!("writing {}", tmp.display()))?;
+    f.write_all(bytes)?;
+    f.sync_data()?;
+    drop(f);
+    fs::create_dir_all(path.parent().unwrap())?;
+    fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))?;
+    Ok(())
+}
+
+fn make_read_only(dir: &Path) -> io::Result<()> {
+    for entry in fs::read_dir(dir)? {
+        let entry = entry?;
+        if entry.file_type()?.is_dir() {
+            make_read_only(&entry.path())?;
+        } else {
+            let mut perms = entry.metadata()?.permissions();
+            perms.set_mode(perms.mode() & !0o222);
+            fs::set_permissions(entry.path(), perms)?;
+        }
+    }
+    Ok(())
+}
+
+pub(crate) fn remove_tree(path: &Path) -> io::Result<()> {
+    match fs::remove_dir_all(path) {
+        Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(()),
+        other => other,
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::preimage::InputDigest;
+    use crate::tree::tests::tempdir;
+
+    pub(crate) fn record_for(store: &Store, seed: u64, content: &[u8]) -> ActionRecord {
+        let preimage = Preimage {
+            operator: "op".into(),
+            operator_version: 1,
+            config: serde_json::json!({}),
+            seed,
+            inputs: Vec::<InputDigest>::new(),
+        };
+        let key = preimage.key();
+        let work = store.work_dir(&key).unwrap();
+        fs::create_dir_all(work.join("out")).unwrap();
+        fs::write(work.join("out/data.txt"), content).unwrap();
+        let info = store.commit_tree(&work.join("out")).unwrap();
+        let record = ActionRecord {
+            key,
+            preimage,
+            output: info.digest,
+            files: info.files,
+            bytes: info.bytes,
+            started: now_rfc3339(),
+            duration_s: 0.1,
+            metrics: Value::Null,
+            summary: String::new(),
+        };
+        store.write_record(&record).unwrap();
+        record
+    }
+
+    #[test]
+    fn committed_actions_are_fresh_until_their_object_is_damaged() {
+        let store = Store::open(&tempdir("store-commit")).unwrap();
+        let record = record_for(&store, 1, b"payload");
+        assert!(store.fresh(&record.key).unwrap().is_some());
+        let file = store.object_dir(&record.output).join("data.txt");
+        assert!(fs::metadata(&file).unwrap().permissions().readonly());
+        assert!(store.check_object(&record.output).unwrap().is_none());
+
+        // Flip a byte behind the store's back.
+        fs::set_permissions(&file, fs::Permissions::from_mode(0o644)).unwrap();
+        fs::write(&file, b"pAyload").unwrap();
+        let damaged = store.verify(|_| {}).unwrap();
+        assert_eq!(damaged.len(), 1);
+        assert_eq!(damaged[0].files, ["data.txt"]);
+        assert!(store.fresh(&record.key).unwrap().is_none(), "a damaged object is never served");
+        assert!(!store.quarantine_is_empty());
+    }
+
+    #[test]
+    fn equal_outputs_share_one_object() {
+        let store = Store::open(&tempdir("store-dedup")).unwrap();
+        let a = record_for(&store, 1, b"same");
+        let b = record_for(&store, 2, b"same");
+        assert_ne!(a.key, b.key);
+        assert_eq!(a.output, b.output);
+        assert_eq!(store.objects().unwrap(), [a.output]);
+    }
+
+    #[test]
+    fn sweep_removes_only_dead_work_dirs() {
+        let store = Store::open(&tempdir("store-sweep")).unwrap();
+        let (live, dead) = (Digest::of(b"live"), Digest::of(b"dead"));
+        let _held = store.lock_action(&live).unwrap();
+        let live_dir = store.work_dir(&live).unwrap();
+        let dead_dir = store.work_dir(&dead).unwrap();
+        // Our own lock is per open file: take it on another descriptor to simulate another process.
+        assert_eq!(store.sweep_tmp(None).unwrap(), 1);
+        assert!(live_dir.exists() && !dead_dir.exists());
+    }
+
+    #[test]
+    fn a_store_of_another_format_is_refused() {
+        let dir = tempdir("store-format");
+        fs::write(dir.join("VERSION"), "rlmflow-store 99\n").unwrap();
+        let err = Store::open(&dir).unwrap_err().to_string();
+        assert!(err.contains("rlmflow-store 99"), "{err}");
+    }
+
+    impl Store {
+        fn quarantine_is_empty(&self) -> bool {
+            read_dir_sorted(&self.root.join("quarantine")).unwrap().is_empty()
+        }
+    }
+}

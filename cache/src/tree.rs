@@ -1,0 +1,129 @@
+//! Content digests of artifact directories.
+
+use std::fs;
+use std::io;
+use std::os::unix::fs::PermissionsExt;
+use std::path::Path;
+
+use anyhow::{Context, bail};
+
+use crate::digest::Digest;
+
+/// The digest of an artifact directory and its manifest.
+#[derive(Clone, Debug)]
+pub struct TreeInfo {
+    pub digest: Digest,
+    pub files: u64,
+    pub bytes: u64,
+    /// One line per file, sorted by path: `<blake3> <size> <x|-> <path>`. The tree digest is the
+    /// BLAKE3 of this text, so a manifest on disk can be checked against its name.
+    pub manifest: String,
+}
+
+const MANIFEST_HEADER: &str = "rlmflow-tree 1\n";
+
+/// BLAKE3 of a file's contents (memory-mapped when large).
+pub fn hash_file(path: &Path) -> io::Result<Digest> {
+    let mut hasher = blake3::Hasher::new();
+    hasher.update_mmap(path)?;
+    Ok(hasher.finalize().into())
+}
+
+/// Hashes every regular file below `root`. Symbolic links and non-UTF-8 names are errors: an
+/// artifact must mean the same bytes on every machine.
+pub fn hash_tree(root: &Path) -> anyhow::Result<TreeInfo> {
+    let mut files = Vec::new();
+    collect(root, "", &mut files)?;
+    files.sort();
+    let mut manifest = String::from(MANIFEST_HEADER);
+    let mut bytes = 0;
+    for rel in &files {
+        let path = root.join(rel);
+        let meta = fs::metadata(&path)?;
+        let digest = hash_file(&path).with_context(|| format!("hashing {}", path.display()))?;
+        let exec = if meta.permissions().mode() & 0o111 != 0 { 'x' } else { '-' };
+        manifest.push_str(&format!("{digest} {} {exec} {rel}\n", meta.len()));
+        bytes += meta.len();
+    }
+    Ok(TreeInfo { digest: Digest::of(manifest.as_bytes()), files: files.len() as u64, bytes, manifest })
+}
+
+fn collect(dir: &Path, prefix: &str, out: &mut Vec<String>) -> anyhow::Result<()> {
+    for entry in fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
+        let entry = entry?;
+        let name = entry.file_name();
+        let Some(name) = name.to_str() else {
+            bail!("{}: file names in artifacts must be UTF-8", entry.path().display());
+        };
+        if name.contains('\n') {
+            bail!("{}: file names in artifacts cannot contain newlines", entry.path().display());
+        }
+        let rel = if prefix.is_empty() { name.to_owned() } else { format!("{prefix}/{name}") };
+        let kind = entry.file_type()?;
+        if kind.is_dir() {
+            collect(&entry.path(), &rel, out)?;
+        } else if kind.is_file() {
+            out.push(rel);
+        } else {
+            bail!("{}: artifacts may hold only regular files and directories", entry.path().display());
+        }
+    }
+    Ok(())
+}
+
+/// Files whose content no longer matches `manifest`, or that are missing or extra.
+pub(crate) fn damaged_files(root: &Path, manifest: &str) -> anyhow::Result<Vec<String>> {
+    let actual = hash_tree(root)?;
+    let lines = |m: &str| -> Vec<(String, String)> {
+        m.lines()
+            .skip(1)
+            .filter_map(|l| l.splitn(4, ' ').nth(3).map(|p| (p.to_owned(), l.to_owned())))
+            .collect()
+    };
+    let expected = lines(manifest);
+    let found = lines(&actual.manifest);
+    let mut damaged: Vec<String> = expected.iter().filter(|e| !found.contains(e)).map(|e| e.0.clone()).collect();
+    damaged.extend(found.iter().filter(|f| !expected.iter().any(|e| e.0 == f.0)).map(|f| f.0.clone()));
+    damaged.sort();
+    damaged.dedup();
+    Ok(damaged)
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    #[test]
+    fn tree_digest_depends_on_content_and_names_only() {
+        let a = tempdir("tree-a");
+        let b = tempdir("tree-b");
+        for d in [&a, &b] {
+            fs::create_dir_all(d.join("sub")).unwrap();
+            fs::write(d.join("sub/x.bin"), b"hello").unwrap();
+            fs::write(d.join("y.json"), b"{}").unwrap();
+        }
+        let (ta, tb) = (hash_tree(&a).unwrap(), hash_tree(&b).unwrap());
+        assert_eq!(ta.digest, tb.digest);
+        assert_eq!((ta.files, ta.bytes), (2, 7));
+        fs::write(b.join("y.json"), b"{ }").unwrap();
+        assert_ne!(hash_tree(&b).unwrap().digest, ta.digest);
+        assert_eq!(damaged_files(&b, &ta.manifest).unwrap(), ["y.json"]);
+        fs::write(b.join("extra"), b"").unwrap();
+        assert_eq!(damaged_files(&b, &ta.manifest).unwrap(), ["extra", "y.json"]);
+    }
+
+    #[test]
+    fn symlinks_are_rejected() {
+        let a = tempdir("tree-link");
+        std::os::unix::fs::symlink("/etc/passwd", a.join("l")).unwrap();
+        let err = hash_tree(&a).unwrap_err().to_string();
+        assert!(err.contains("only regular files"), "{err}");
+    }
+
+    pub(crate) fn tempdir(name: &str) -> std::path::PathBuf {
+        let d = std::env::temp_dir().join(format!("rlmflow-cache-{name}-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&d);
+        fs::create_dir_all(&d).unwrap();
+        d
+    }
+}
