@@ -1,0 +1,336 @@
+//! The `rlmflow` command line. A binary builds its operator registry and calls [`main`].
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context as _, bail};
+use clap::{Parser, Subcommand};
+use rlmflow_cache::{Digest, Store, canonical_json};
+use rlmflow_stages::{Device, Registry};
+
+use crate::config::{self, ConfigError, Pipeline};
+use crate::plan::{Freshness, assess, plan};
+use crate::run::{RunOptions, print_status, run};
+
+#[derive(Parser)]
+#[command(name = "rlmflow", version, about = "Declarative data-and-training pipelines for radar-language research")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(clap::Args)]
+struct StoreArg {
+    /// The store directory; default: `[pipeline] cache`, beside the pipeline file.
+    #[arg(long, value_name = "DIR")]
+    cache: Option<PathBuf>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run a pipeline, reusing every stage whose inputs and settings are unchanged.
+    Run {
+        pipeline: PathBuf,
+        /// Print the plan (cached / will run / pending, with reasons) and change nothing.
+        #[arg(long)]
+        dry_run: bool,
+        /// Run only these stages and what they need (repeatable).
+        #[arg(long, value_name = "STAGE")]
+        only: Vec<String>,
+        /// CPU threads shared by concurrently running stages; default: all cores.
+        #[arg(long, short)]
+        jobs: Option<usize>,
+        /// Print the JSON event log on stdout instead of progress.
+        #[arg(long)]
+        json: bool,
+        /// Device for operators that use one: cpu, cuda, cuda:N.
+        #[arg(long, default_value = "cpu")]
+        device: Device,
+        #[command(flatten)]
+        store: StoreArg,
+    },
+    /// Show each stage as cached, will run (and why) or pending.
+    Status {
+        pipeline: PathBuf,
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        store: StoreArg,
+    },
+    /// Show what changed in a stage's preimage since its last run.
+    Explain {
+        pipeline: PathBuf,
+        stage: String,
+        #[command(flatten)]
+        store: StoreArg,
+    },
+    /// Show where a stage's outputs, record and metrics are.
+    Show {
+        pipeline: PathBuf,
+        stage: String,
+        #[command(flatten)]
+        store: StoreArg,
+    },
+    /// Remove what no root reaches: runs beyond the newest N, and the actions and objects only they used.
+    Gc {
+        /// A pipeline whose store to collect (else --cache, else ./.rlmflow).
+        pipeline: Option<PathBuf>,
+        #[arg(long)]
+        dry_run: bool,
+        #[arg(long, default_value_t = 10)]
+        keep_runs: usize,
+        #[command(flatten)]
+        store: StoreArg,
+    },
+    /// Re-hash every object; quarantine and report the damaged ones.
+    Verify {
+        pipeline: Option<PathBuf>,
+        #[command(flatten)]
+        store: StoreArg,
+    },
+    /// Pin the current results of a pipeline under a name, so gc keeps them.
+    Pin {
+        pipeline: PathBuf,
+        name: String,
+        #[command(flatten)]
+        store: StoreArg,
+    },
+    /// List stage kinds and operators with their default settings.
+    Operators,
+    /// Run one action from the store (the engine's child-process entry point).
+    #[command(hide = true)]
+    Exec {
+        key: Digest,
+        #[arg(long)]
+        store: PathBuf,
+        #[arg(long, default_value_t = 1)]
+        threads: usize,
+        #[arg(long, default_value = "cpu")]
+        device: Device,
+    },
+}
+
+pub fn main(registry: Registry) -> ExitCode {
+    let cli = Cli::parse();
+    match dispatch(cli.command, &registry) {
+        Ok(code) => code,
+        Err(e) => {
+            if let Some(config) = e.downcast_ref::<ConfigError>() {
+                eprintln!("{config}");
+                let n = config.diagnostics.len();
+                eprintln!("error: {} in {}; nothing was run", if n == 1 { "1 problem".into() } else { format!("{n} problems") }, config.file.display());
+                return ExitCode::from(2);
+            }
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn store_root(pipeline: &Pipeline, arg: &StoreArg) -> PathBuf {
+    arg.cache.clone().unwrap_or_else(|| pipeline.cache.clone())
+}
+
+fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
+    match command {
+        Command::Run { pipeline, dry_run, only, jobs, json, device, store } => {
+            let p = config::load(&pipeline, registry)?;
+            let plan = plan(&p);
+            let selected = plan.select(&only)?;
+            let root = store_root(&p, &store);
+            if dry_run {
+                let store = Store::open_existing(&root)?;
+                print_status(&plan, registry, store.as_ref(), &selected, json)?;
+                return Ok(ExitCode::SUCCESS);
+            }
+            let jobs = jobs.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())).max(1);
+            let store = Store::open(&root)?;
+            let summary = run(&plan, registry, &store, &selected, &RunOptions { dry_run, only, jobs, json, device })?;
+            Ok(if summary.failed > 0 { ExitCode::FAILURE } else { ExitCode::SUCCESS })
+        }
+        Command::Status { pipeline, json, store } => {
+            let p = config::load(&pipeline, registry)?;
+            let plan = plan(&p);
+            let store = Store::open_existing(&store_root(&p, &store))?;
+            print_status(&plan, registry, store.as_ref(), &vec![true; plan.instances.len()], json)?;
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Explain { pipeline, stage, store } => explain(registry, &pipeline, &stage, &store),
+        Command::Show { pipeline, stage, store } => show(registry, &pipeline, &stage, &store),
+        Command::Gc { pipeline, dry_run, keep_runs, store } => {
+            let store = existing_store(registry, pipeline.as_deref(), &store)?;
+            let report = store.gc(keep_runs, dry_run)?;
+            let verb = if dry_run { "would remove" } else { "removed" };
+            let mut counts: std::collections::BTreeMap<&str, usize> = Default::default();
+            for (what, path, _) in &report.removed {
+                *counts.entry(what).or_default() += 1;
+                if dry_run {
+                    println!("  {verb} {what} {}", path.display());
+                }
+            }
+            let parts: Vec<String> = counts.iter().map(|(w, n)| format!("{n} {w}")).collect();
+            println!(
+                "gc: {verb} {} ({:.1} MB); kept {} objects",
+                if parts.is_empty() { "nothing".into() } else { parts.join(", ") },
+                report.bytes() as f64 / 1e6,
+                report.kept_objects
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Verify { pipeline, store } => {
+            let store = existing_store(registry, pipeline.as_deref(), &store)?;
+            let mut n = 0;
+            let damaged = store.verify(|_| n += 1)?;
+            for c in &damaged {
+                println!("  corrupt object {}: {} (quarantined; stages using it will recompute)", c.digest, c.files.join(", "));
+            }
+            println!("verify: {n} objects, {} damaged", damaged.len());
+            Ok(if damaged.is_empty() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+        }
+        Command::Pin { pipeline, name, store } => {
+            let p = config::load(&pipeline, registry)?;
+            let plan = plan(&p);
+            let store = Store::open_existing(&store_root(&p, &store))?.context("the pipeline has not run yet; nothing to pin")?;
+            let states = assess(&plan, registry, Some(&store))?;
+            let keys: std::collections::BTreeMap<String, Digest> = states
+                .iter()
+                .enumerate()
+                .filter_map(|(i, s)| match s {
+                    Freshness::Cached(r) => Some((plan.instances[i].label.clone(), r.key)),
+                    _ => None,
+                })
+                .collect();
+            let path = store.pin(&name, &keys)?;
+            println!("pinned {} cached stage instances in {}", keys.len(), path.display());
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Operators => {
+            for kind in &registry.catalog.kinds {
+                let inputs: Vec<String> = kind.inputs.iter().map(|s| format!("{}: {}", s.name, s.artifact)).collect();
+                println!("{} ({}) -> {}", kind.name, inputs.join(", "), kind.produces);
+                for op in registry.operators_of(kind.name) {
+                    let spec = op.spec();
+                    let defaults = op.settings(serde_json::json!({})).map(|v| canonical_json(&v)).unwrap_or_default();
+                    println!("  {} v{}: {}\n    defaults: {defaults}", spec.name, spec.version, spec.summary);
+                }
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Exec { key, store, threads, device } => {
+            let code = crate::exec::exec(registry, &store, key, threads, device)?;
+            Ok(ExitCode::from(code as u8))
+        }
+    }
+}
+
+fn existing_store(registry: &Registry, pipeline: Option<&Path>, arg: &StoreArg) -> anyhow::Result<Store> {
+    let root = match (pipeline, &arg.cache) {
+        (_, Some(dir)) => dir.clone(),
+        (Some(file), None) => config::load(file, registry)?.cache,
+        (None, None) => PathBuf::from(".rlmflow"),
+    };
+    Store::open_existing(&root)?.with_context(|| format!("no rlmflow store at {}", root.display()))
+}
+
+fn instances_of<'a>(plan: &'a crate::plan::Plan, stage: &str) -> anyhow::Result<Vec<usize>> {
+    let Some(s) = plan.pipeline.stage(stage) else {
+        let names = plan.pipeline.stage_names();
+        bail!("no stage named `{stage}`; stages: {}{}", names.join(", "), config::suggest(stage, &names));
+    };
+    Ok((0..plan.instances.len()).filter(|&i| plan.instances[i].stage == s).collect())
+}
+
+fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
+    let p = config::load(file, registry)?;
+    let plan = plan(&p);
+    let store = Store::open_existing(&store_root(&p, arg))?;
+    let states = assess(&plan, registry, store.as_ref())?;
+    let last = match &store {
+        Some(s) => s.last_keys(&p.name)?,
+        None => Default::default(),
+    };
+    for i in instances_of(&plan, stage)? {
+        let label = &plan.instances[i].label;
+        println!("{label}");
+        match &states[i] {
+            Freshness::Cached(r) => {
+                println!("  cached: key {} (ran {:.1}s, {})", r.key, r.duration_s, r.started);
+                if last.get(label) != Some(&r.key) {
+                    println!("  (the last run used another key: {})", last.get(label).map_or("none".into(), |k| k.to_string()));
+                }
+                println!("  preimage:\n{}", indent(&serde_json::to_string_pretty(&r.preimage)?));
+            }
+            Freshness::Stale { key, reasons } => {
+                println!("  will run: key {key}");
+                println!("  last run: {}", last.get(label).map_or("none".into(), |k| k.to_string()));
+                for r in reasons {
+                    println!("    {r}");
+                }
+                let preimage = store.as_ref().and_then(|s| s.request(key).ok().flatten()).map(|r| r.preimage);
+                if let Some(preimage) = preimage {
+                    println!("  preimage:\n{}", indent(&serde_json::to_string_pretty(&preimage)?));
+                }
+            }
+            Freshness::Pending { reason } => {
+                println!("  pending: {reason}; its key is known once that input is");
+                if let (Some(s), Some(old)) = (&store, last.get(label)) {
+                    let before = s.record(old)?.map(|r| r.preimage).or(s.request(old)?.map(|r| r.preimage));
+                    if let Some(before) = before {
+                        let unknown = rlmflow_cache::Digest([0; 32]);
+                        let outputs: Vec<Option<Digest>> = states
+                            .iter()
+                            .map(|st| Some(if let Freshness::Cached(r) = st { r.output } else { unknown }))
+                            .collect();
+                        let now = plan.preimage(i, registry, &outputs).unwrap();
+                        for change in now.diff(&before) {
+                            if !matches!(&change, rlmflow_cache::Change::InputChanged { .. }) {
+                                println!("    {}", change_line(&p.stages[plan.instances[i].stage].name, &change));
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn change_line(stage: &str, change: &rlmflow_cache::Change) -> String {
+    match change {
+        rlmflow_cache::Change::Setting { .. } => format!("{stage}.{change}"),
+        _ => change.to_string(),
+    }
+}
+
+fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
+    let p = config::load(file, registry)?;
+    let plan = plan(&p);
+    let store = Store::open_existing(&store_root(&p, arg))?;
+    let states = assess(&plan, registry, store.as_ref())?;
+    for i in instances_of(&plan, stage)? {
+        let label = &plan.instances[i].label;
+        match (&states[i], &store) {
+            (Freshness::Cached(r), Some(s)) => {
+                println!("{label}: cached");
+                println!("  output:  {}", s.object_dir(&r.output).display());
+                println!("  files:   {} ({:.1} MB)", r.files, r.bytes as f64 / 1e6);
+                println!("  key:     {}", r.key);
+                println!("  ran:     {} for {:.1}s", r.started, r.duration_s);
+                if !r.summary.is_empty() {
+                    println!("  summary: {}", r.summary);
+                }
+                if !r.metrics.is_null() {
+                    println!("  metrics: {}", canonical_json(&r.metrics));
+                }
+            }
+            (Freshness::Stale { reasons, .. }, _) => println!("{label}: not computed yet ({})", reasons.join("; ")),
+            (Freshness::Pending { reason }, _) => println!("{label}: not computed yet ({reason})"),
+            (Freshness::Cached(_), None) => unreachable!("cached without a store"),
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn indent(text: &str) -> String {
+    text.lines().map(|l| format!("    {l}")).collect::<Vec<_>>().join("\n")
+}

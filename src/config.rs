@@ -1,0 +1,612 @@
+//! `pipeline.toml`: parsing, validation against the registry, and diagnostics that name the
+//! file, line and key, say what is valid, and suggest the nearest name.
+//!
+//! Everything here runs before any stage does: unknown keys, operators and stage names, bad
+//! setting values, missing or ambiguous inputs, artifact type mismatches and cycles are all
+//! reported together.
+
+use std::collections::{BTreeMap, HashMap};
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use rlmflow_stages::{Arity, Need, Registry, StageKind};
+use serde_json::{Map, Value};
+use toml::de::{DeTable, DeValue};
+
+/// One problem in a pipeline file.
+#[derive(Clone, Debug)]
+pub struct Diagnostic {
+    pub line: usize,
+    pub key: String,
+    pub message: String,
+    pub help: Option<String>,
+}
+
+/// Every problem found in one pipeline file.
+#[derive(Debug)]
+pub struct ConfigError {
+    pub file: PathBuf,
+    pub diagnostics: Vec<Diagnostic>,
+}
+
+impl fmt::Display for ConfigError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, d) in self.diagnostics.iter().enumerate() {
+            if i > 0 {
+                writeln!(f)?;
+            }
+            write!(f, "{}:{}: ", self.file.display(), d.line)?;
+            if !d.key.is_empty() {
+                write!(f, "{}: ", d.key)?;
+            }
+            write!(f, "{}", d.message)?;
+            if let Some(help) = &d.help {
+                write!(f, "\n    {help}")?;
+            }
+        }
+        Ok(())
+    }
+}
+
+impl std::error::Error for ConfigError {}
+
+/// A validated pipeline: stages in dependency order, every input bound.
+#[derive(Debug)]
+pub struct Pipeline {
+    pub file: PathBuf,
+    pub name: String,
+    pub seed: u64,
+    /// The store directory (relative paths in the file are relative to the file).
+    pub cache: PathBuf,
+    pub stages: Vec<Stage>,
+}
+
+#[derive(Debug)]
+pub struct Stage {
+    pub name: String,
+    pub kind: StageKind,
+    pub operator: String,
+    /// One entry per variant; a stage without variants has one unnamed entry.
+    pub variants: Vec<Variant>,
+    pub bindings: Vec<Binding>,
+    pub line: usize,
+}
+
+#[derive(Clone, Debug)]
+pub struct Variant {
+    pub name: Option<String>,
+    /// Every setting, defaults filled in.
+    pub settings: Value,
+}
+
+/// An input slot bound to the stages that provide it (indices into `Pipeline::stages`).
+#[derive(Clone, Debug)]
+pub struct Binding {
+    pub slot: &'static str,
+    pub arity: Arity,
+    pub providers: Vec<usize>,
+}
+
+impl Pipeline {
+    pub fn stage(&self, name: &str) -> Option<usize> {
+        self.stages.iter().position(|s| s.name == name)
+    }
+
+    pub fn stage_names(&self) -> Vec<&str> {
+        self.stages.iter().map(|s| s.name.as_str()).collect()
+    }
+}
+
+const PIPELINE_KEYS: &[&str] = &["name", "seed", "cache", "executor"];
+const STAGE_KEYS: &[&str] = &["kind", "operator", "inputs", "variants"];
+const EXECUTORS: &[&str] = &["local"];
+
+/// Reads and validates a pipeline file.
+pub fn load(file: &Path, registry: &Registry) -> anyhow::Result<Pipeline> {
+    let text = std::fs::read_to_string(file)
+        .map_err(|e| anyhow::anyhow!("cannot read pipeline {}: {e}", file.display()))?;
+    parse(file, &text, registry).map_err(anyhow::Error::new)
+}
+
+/// Validates pipeline text; `file` is used for messages and to resolve the cache path.
+pub fn parse(file: &Path, text: &str, registry: &Registry) -> Result<Pipeline, ConfigError> {
+    let mut cx = Checker { lines: HashMap::new(), line_starts: line_starts(text), errors: Vec::new() };
+    let root = match DeTable::parse(text) {
+        Ok(root) => root,
+        Err(e) => {
+            let line = e.span().map_or(1, |s| cx.line_of(s.start));
+            cx.error(line, "", format!("invalid TOML: {}", e.message()), None);
+            return Err(cx.into_error(file));
+        }
+    };
+    cx.index(&mut Vec::new(), root.get_ref());
+    let root = to_json_table(root.get_ref());
+    let pipeline = cx.check(file, &root, registry);
+    match pipeline {
+        Some(p) if cx.errors.is_empty() => Ok(p),
+        _ => Err(cx.into_error(file)),
+    }
+}
+
+struct Checker {
+    /// Line of every key, by dotted path.
+    lines: HashMap<String, usize>,
+    line_starts: Vec<usize>,
+    errors: Vec<Diagnostic>,
+}
+
+impl Checker {
+    fn into_error(mut self, file: &Path) -> ConfigError {
+        self.errors.sort_by_key(|d| d.line);
+        ConfigError { file: file.to_path_buf(), diagnostics: self.errors }
+    }
+
+    fn error(&mut self, line: usize, key: &str, message: String, help: Option<String>) {
+        self.errors.push(Diagnostic { line, key: key.to_owned(), message, help });
+    }
+
+    fn line_of(&self, offset: usize) -> usize {
+        self.line_starts.partition_point(|&s| s <= offset)
+    }
+
+    /// The line of `path`, or of its nearest ancestor the file spells out.
+    fn line(&self, path: &str) -> usize {
+        let mut p = path;
+        loop {
+            if let Some(&l) = self.lines.get(p) {
+                return l;
+            }
+            match p.rfind('.') {
+                Some(i) => p = &p[..i],
+                None => return 1,
+            }
+        }
+    }
+
+    fn index(&mut self, path: &mut Vec<String>, table: &DeTable<'_>) {
+        for (key, value) in table {
+            path.push(key.get_ref().to_string());
+            let line = self.line_of(key.span().start);
+            self.lines.entry(path.join(".")).or_insert(line);
+            match value.get_ref() {
+                DeValue::Table(t) => self.index(path, t),
+                DeValue::Array(items) => {
+                    for (i, item) in items.iter().enumerate() {
+                        if let DeValue::Table(t) = item.get_ref() {
+                            path.push(i.to_string());
+                            let line = self.line_of(item.span().start);
+                            self.lines.entry(path.join(".")).or_insert(line);
+                            self.index(path, t);
+                            path.pop();
+                        }
+                    }
+                }
+                _ => {}
+            }
+            path.pop();
+        }
+    }
+
+    fn unknown_key(&mut self, path: &str, key: &str, valid: &[&str]) {
+        let help = format!("valid keys: {}{}", valid.join(", "), suggest(key, valid));
+        self.error(self.line(path), path, format!("unknown key `{key}`"), Some(help));
+    }
+
+    fn check(&mut self, file: &Path, root: &Map<String, Value>, registry: &Registry) -> Option<Pipeline> {
+        for key in root.keys() {
+            if key != "pipeline" && key != "stages" {
+                self.unknown_key(key, key, &["pipeline", "stages"]);
+            }
+        }
+        let header = match root.get("pipeline") {
+            None => &Map::new(),
+            Some(Value::Object(t)) => t,
+            Some(_) => {
+                self.error(self.line("pipeline"), "pipeline", "must be a table".into(), None);
+                &Map::new()
+            }
+        };
+        for key in header.keys().filter(|k| !PIPELINE_KEYS.contains(&k.as_str())) {
+            self.unknown_key(&format!("pipeline.{key}"), key, PIPELINE_KEYS);
+        }
+        let stem = file.file_stem().map_or("pipeline".into(), |s| s.to_string_lossy().into_owned());
+        let name = self.string(header, "pipeline", "name").unwrap_or(stem);
+        let seed = match header.get("seed") {
+            None => 0,
+            Some(v) => v.as_u64().unwrap_or_else(|| {
+                let msg = format!("must be a non-negative integer, not {v}");
+                self.error(self.line("pipeline.seed"), "pipeline.seed", msg, None);
+                0
+            }),
+        };
+        let cache = self.string(header, "pipeline", "cache").unwrap_or_else(|| ".rlmflow".into());
+        let cache = file.parent().unwrap_or(Path::new(".")).join(cache);
+        if let Some(executor) = self.string(header, "pipeline", "executor") {
+            if !EXECUTORS.contains(&executor.as_str()) {
+                let help = format!("valid executors: {}{}", EXECUTORS.join(", "), suggest(&executor, EXECUTORS));
+                let msg = format!("unknown executor `{executor}`");
+                self.error(self.line("pipeline.executor"), "pipeline.executor", msg, Some(help));
+            }
+        }
+
+        let stages_table = match root.get("stages") {
+            Some(Value::Object(t)) if !t.is_empty() => t.clone(),
+            Some(Value::Object(_)) | None => {
+                let help = "add one, e.g. [stages.scenes] with operator = \"procedural\"".to_owned();
+                self.error(self.line("stages"), "stages", "the pipeline has no stages".into(), Some(help));
+                return None;
+            }
+            Some(_) => {
+                self.error(self.line("stages"), "stages", "must be a table of stage tables".into(), None);
+                return None;
+            }
+        };
+        let mut stages = Vec::new();
+        let mut explicit_inputs = Vec::new();
+        for (name, table) in &stages_table {
+            let path = format!("stages.{name}");
+            let Value::Object(table) = table else {
+                self.error(self.line(&path), &path, "must be a table".into(), None);
+                continue;
+            };
+            if let Some((stage, inputs)) = self.stage(name, table, registry) {
+                stages.push(stage);
+                explicit_inputs.push(inputs);
+            }
+        }
+        if stages.len() != stages_table.len() {
+            return None;
+        }
+        self.bind(&mut stages, &explicit_inputs, registry);
+        if !self.errors.is_empty() {
+            return None;
+        }
+        let stages = self.topological(stages)?;
+        Some(Pipeline { file: file.to_path_buf(), name, seed, cache, stages })
+    }
+
+    fn string(&mut self, table: &Map<String, Value>, at: &str, key: &str) -> Option<String> {
+        match table.get(key)? {
+            Value::String(s) => Some(s.clone()),
+            other => {
+                let path = format!("{at}.{key}");
+                self.error(self.line(&path), &path, format!("must be a string, not {other}"), None);
+                None
+            }
+        }
+    }
+
+    /// Checks one stage table; returns it with its explicit `inputs` (slot -> stage names).
+    fn stage(
+        &mut self,
+        name: &str,
+        table: &Map<String, Value>,
+        registry: &Registry,
+    ) -> Option<(Stage, BTreeMap<String, Vec<String>>)> {
+        let path = format!("stages.{name}");
+        let line = self.line(&path);
+        let kind_name = self.string(table, &path, "kind").unwrap_or_else(|| name.to_owned());
+        let kinds: Vec<&str> = registry.catalog.kinds.iter().map(|k| k.name).collect();
+        let Some(kind) = registry.kind(&kind_name).copied() else {
+            let key = if table.contains_key("kind") { format!("{path}.kind") } else { path.clone() };
+            let help = format!("valid kinds: {}{}", kinds.join(", "), suggest(&kind_name, &kinds));
+            let msg = if table.contains_key("kind") {
+                format!("unknown stage kind `{kind_name}`")
+            } else {
+                format!("`{name}` is not a stage kind; name the kind with kind = \"...\"")
+            };
+            self.error(self.line(&key), &key, msg, Some(help));
+            return None;
+        };
+        let operators: Vec<&str> = registry.operators_of(kind.name).map(|o| o.spec().name).collect();
+        let Some(op_name) = self.string(table, &path, "operator") else {
+            if !table.contains_key("operator") {
+                let help = format!("operators of kind `{}`: {}", kind.name, operators.join(", "));
+                self.error(line, &path, "missing `operator`".into(), Some(help));
+            }
+            return None;
+        };
+        let op = match registry.get(&op_name) {
+            Some(op) if op.spec().kind == kind.name => op,
+            found => {
+                let key = format!("{path}.operator");
+                let msg = match found {
+                    Some(op) => format!("operator `{op_name}` implements kind `{}`, not `{}`", op.spec().kind, kind.name),
+                    None => format!("unknown operator `{op_name}` for stage kind `{}`", kind.name),
+                };
+                let help = format!("valid: {}{}", operators.join(", "), suggest(&op_name, &operators));
+                self.error(self.line(&key), &key, msg, Some(help));
+                return None;
+            }
+        };
+
+        let mut base = table.clone();
+        for key in STAGE_KEYS {
+            base.remove(*key);
+        }
+        let mut variants = Vec::new();
+        match table.get("variants") {
+            None => variants.push((None, base.clone())),
+            Some(Value::Object(named)) if !named.is_empty() => {
+                for (variant, overrides) in named {
+                    let vpath = format!("{path}.variants.{variant}");
+                    let Value::Object(overrides) = overrides else {
+                        self.error(self.line(&vpath), &vpath, "must be a table of settings".into(), None);
+                        continue;
+                    };
+                    let mut merged = base.clone();
+                    merge(&mut merged, overrides);
+                    variants.push((Some((variant.clone(), overrides.clone())), merged));
+                }
+            }
+            Some(_) => {
+                let key = format!("{path}.variants");
+                let msg = "must be a non-empty table of named setting overrides".into();
+                self.error(self.line(&key), &key, msg, None);
+            }
+        }
+        let mut checked = Vec::new();
+        for (variant, merged) in variants {
+            match op.settings(Value::Object(merged)) {
+                Ok(settings) => checked.push(Variant { name: variant.map(|v| v.0), settings }),
+                Err(e) => {
+                    // Point at the variant's line when the variant set the key.
+                    let top = e.key.split('.').next().unwrap_or_default();
+                    let key = match &variant {
+                        Some((v, overrides)) if overrides.contains_key(top) => format!("{path}.variants.{v}.{}", e.key),
+                        _ if e.key.is_empty() => path.clone(),
+                        _ => format!("{path}.{}", e.key),
+                    };
+                    let help = if e.valid.is_empty() {
+                        None
+                    } else {
+                        let leaf = e.key.rsplit('.').next().unwrap_or_default();
+                        let mut valid: Vec<&str> = e.valid.iter().map(String::as_str).collect();
+                        if !e.key.contains('.') {
+                            valid.extend(STAGE_KEYS);
+                        }
+                        Some(format!("valid keys: {}{}", valid.join(", "), suggest(leaf, &valid)))
+                    };
+                    self.error(self.line(&key), &key, e.message, help);
+                }
+            }
+        }
+
+        let mut inputs = BTreeMap::new();
+        match table.get("inputs") {
+            None => {}
+            Some(Value::Object(map)) => {
+                let readable = operator_slots(registry, &op_name, &kind);
+                for (slot, value) in map {
+                    let key = format!("{path}.inputs.{slot}");
+                    if !readable.contains(&slot.as_str()) {
+                        let help = format!("`{op_name}` reads: {}{}", readable.join(", "), suggest(slot, &readable));
+                        self.error(self.line(&key), &key, format!("unknown input slot `{slot}`"), Some(help));
+                        continue;
+                    }
+                    let names = match value {
+                        Value::String(s) => vec![s.clone()],
+                        Value::Array(items) if items.iter().all(Value::is_string) => {
+                            items.iter().map(|v| v.as_str().unwrap().to_owned()).collect()
+                        }
+                        _ => {
+                            let msg = "must be a stage name or a list of stage names".into();
+                            self.error(self.line(&key), &key, msg, None);
+                            continue;
+                        }
+                    };
+                    inputs.insert(slot.clone(), names);
+                }
+            }
+            Some(_) => {
+                let key = format!("{path}.inputs");
+                let msg = "must be a table: slot = \"stage\"".into();
+                self.error(self.line(&key), &key, msg, None);
+            }
+        }
+        if checked.is_empty() {
+            return None;
+        }
+        let stage = Stage {
+            name: name.to_owned(),
+            kind,
+            operator: op_name,
+            variants: checked,
+            bindings: Vec::new(),
+            line,
+        };
+        Some((stage, inputs))
+    }
+
+    /// Binds every input slot an operator reads: to the stages named in `inputs`, else to the one
+    /// stage producing the slot's artifact type.
+    fn bind(&mut self, stages: &mut [Stage], explicit: &[BTreeMap<String, Vec<String>>], registry: &Registry) {
+        let names: Vec<String> = stages.iter().map(|s| s.name.clone()).collect();
+        let name_refs: Vec<&str> = names.iter().map(String::as_str).collect();
+        for i in 0..stages.len() {
+            let kind = stages[i].kind;
+            let stage = stages[i].name.clone();
+            let path = format!("stages.{stage}");
+            for slot_name in operator_slots(registry, &stages[i].operator, &kind) {
+                let slot = *kind.slot(slot_name).expect("registry checked operator slots");
+                let key = format!("{path}.inputs.{slot_name}");
+                let providers: Vec<usize> = match explicit[i].get(slot_name) {
+                    Some(wanted) => {
+                        let mut found = Vec::new();
+                        for want in wanted {
+                            match names.iter().position(|n| n == want) {
+                                None => {
+                                    let help = format!("stages: {}{}", names.join(", "), suggest(want, &name_refs));
+                                    self.error(self.line(&key), &key, format!("no stage named `{want}`"), Some(help));
+                                }
+                                Some(p) if stages[p].kind.produces != slot.artifact => {
+                                    let msg = format!(
+                                        "stage `{want}` produces {}, but slot `{slot_name}` takes {}",
+                                        stages[p].kind.produces, slot.artifact
+                                    );
+                                    self.error(self.line(&key), &key, msg, None);
+                                }
+                                Some(p) => found.push(p),
+                            }
+                        }
+                        if slot.arity == Arity::One && wanted.len() > 1 {
+                            let msg = format!("slot `{slot_name}` takes one stage, not {}", wanted.len());
+                            self.error(self.line(&key), &key, msg, None);
+                        }
+                        found
+                    }
+                    None => {
+                        let candidates: Vec<usize> = (0..stages.len())
+                            .filter(|&p| p != i && stages[p].kind.produces == slot.artifact)
+                            .collect();
+                        if slot.arity == Arity::One && candidates.len() > 1 {
+                            let list: Vec<&str> = candidates.iter().map(|&p| names[p].as_str()).collect();
+                            let msg = format!(
+                                "ambiguous input `{slot_name}`: stages {} all produce {}",
+                                list.join(", "),
+                                slot.artifact
+                            );
+                            let help = format!("choose one: inputs = {{ {slot_name} = \"{}\" }}", list[0]);
+                            self.error(stages[i].line, &path, msg, Some(help));
+                            continue;
+                        }
+                        candidates
+                    }
+                };
+                if providers.is_empty() {
+                    if slot.need == Need::Required && !explicit[i].contains_key(slot_name) {
+                        let kinds: Vec<&str> = registry
+                            .catalog
+                            .kinds
+                            .iter()
+                            .filter(|k| k.produces == slot.artifact)
+                            .map(|k| k.name)
+                            .collect();
+                        let msg = format!("missing input `{slot_name}`: no stage produces {}", slot.artifact);
+                        let help = format!("add a stage of kind {}", kinds.join(" or "));
+                        self.error(stages[i].line, &path, msg, Some(help));
+                    }
+                    continue;
+                }
+                stages[i].bindings.push(Binding { slot: slot.name, arity: slot.arity, providers });
+            }
+        }
+    }
+
+    /// Orders stages so every provider comes before its consumers; reports a cycle.
+    fn topological(&mut self, stages: Vec<Stage>) -> Option<Vec<Stage>> {
+        let n = stages.len();
+        let mut order = Vec::with_capacity(n);
+        let mut mark = vec![0u8; n]; // 0 new, 1 on the current path, 2 done
+        fn visit(i: usize, stages: &[Stage], mark: &mut [u8], order: &mut Vec<usize>, path: &mut Vec<usize>) -> Option<Vec<usize>> {
+            match mark[i] {
+                2 => return None,
+                1 => {
+                    let start = path.iter().position(|&p| p == i).unwrap();
+                    let mut cycle = path[start..].to_vec();
+                    cycle.push(i);
+                    return Some(cycle);
+                }
+                _ => {}
+            }
+            mark[i] = 1;
+            path.push(i);
+            for b in &stages[i].bindings {
+                for &p in &b.providers {
+                    if let Some(cycle) = visit(p, stages, mark, order, path) {
+                        return Some(cycle);
+                    }
+                }
+            }
+            path.pop();
+            mark[i] = 2;
+            order.push(i);
+            None
+        }
+        for i in 0..n {
+            if let Some(cycle) = visit(i, &stages, &mut mark, &mut order, &mut Vec::new()) {
+                let names: Vec<&str> = cycle.iter().rev().map(|&c| stages[c].name.as_str()).collect();
+                let first = &stages[cycle[0]];
+                let msg = format!("the stages form a cycle: {}", names.join(" -> "));
+                self.error(first.line, &format!("stages.{}", first.name), msg, Some("break it by changing one stage's `inputs`".into()));
+                return None;
+            }
+        }
+        let mut new_index = vec![0; n];
+        for (pos, &old) in order.iter().enumerate() {
+            new_index[old] = pos;
+        }
+        let mut slots: Vec<Option<Stage>> = stages.into_iter().map(Some).collect();
+        let mut sorted: Vec<Stage> = order.iter().map(|&i| slots[i].take().unwrap()).collect();
+        for stage in &mut sorted {
+            for b in &mut stage.bindings {
+                for p in &mut b.providers {
+                    *p = new_index[*p];
+                }
+            }
+        }
+        Some(sorted)
+    }
+}
+
+/// The slots of `kind` that operator `op` reads.
+fn operator_slots(registry: &Registry, op: &str, kind: &StageKind) -> Vec<&'static str> {
+    match registry.get(op).and_then(|o| o.spec().inputs) {
+        Some(slots) => slots.to_vec(),
+        None => kind.inputs.iter().map(|s| s.name).collect(),
+    }
+}
+
+/// Deep-merges `overrides` into `base` (tables merge, everything else replaces).
+fn merge(base: &mut Map<String, Value>, overrides: &Map<String, Value>) {
+    for (k, v) in overrides {
+        match (base.get_mut(k), v) {
+            (Some(Value::Object(b)), Value::Object(o)) => merge(b, o),
+            _ => {
+                base.insert(k.clone(), v.clone());
+            }
+        }
+    }
+}
+
+/// ", did you mean `x`?" for the nearest candidate, if one is close.
+pub fn suggest(word: &str, candidates: &[&str]) -> String {
+    let best = candidates
+        .iter()
+        .map(|c| (strsim::damerau_levenshtein(word, c), *c))
+        .filter(|(d, c)| *d > 0 && *d <= (c.len().max(word.len()) / 3).max(2))
+        .min();
+    best.map_or(String::new(), |(_, c)| format!("; did you mean `{c}`?"))
+}
+
+fn line_starts(text: &str) -> Vec<usize> {
+    std::iter::once(0).chain(text.match_indices('\n').map(|(i, _)| i + 1)).collect()
+}
+
+fn to_json_table(table: &DeTable<'_>) -> Map<String, Value> {
+    table.iter().map(|(k, v)| (k.get_ref().to_string(), to_json(v.get_ref()))).collect()
+}
+
+fn to_json(value: &DeValue<'_>) -> Value {
+    match value {
+        DeValue::String(s) => Value::String(s.to_string()),
+        DeValue::Integer(i) => {
+            let parsed = i64::from_str_radix(&i.as_str().replace('_', ""), i.radix());
+            parsed.map_or_else(|_| Value::String(i.as_str().to_owned()), Value::from)
+        }
+        DeValue::Float(f) => {
+            let text = f.as_str().replace('_', "");
+            let x: f64 = match text.as_str() {
+                "inf" | "+inf" => f64::INFINITY,
+                "-inf" => f64::NEG_INFINITY,
+                "nan" | "+nan" | "-nan" => f64::NAN,
+                t => t.parse().unwrap_or(f64::NAN),
+            };
+            serde_json::Number::from_f64(x).map_or(Value::String(text), Value::Number)
+        }
+        DeValue::Boolean(b) => Value::Bool(*b),
+        DeValue::Datetime(d) => Value::String(d.to_string()),
+        DeValue::Array(items) => Value::Array(items.iter().map(|v| to_json(v.get_ref())).collect()),
+        DeValue::Table(t) => Value::Object(to_json_table(t)),
+    }
+}

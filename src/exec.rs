@@ -1,0 +1,151 @@
+//! `rlmflow exec KEY --store DIR`: runs one action. The engine starts it as a child process, so
+//! an operator crash cannot take a run down; a remote executor can call it the same way.
+//!
+//! It talks to its parent through lines on stdout that start with [`PREFIX`], each a JSON
+//! [`Message`]; other output goes to the stage's log.
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::panic::{AssertUnwindSafe, catch_unwind};
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::Context as _;
+use rlmflow_cache::{ActionRecord, Digest, Store, now_rfc3339};
+use rlmflow_stages::{Context, Device, Input, Registry, Reporter};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+pub const PREFIX: &str = "@rlmflow ";
+
+/// Exit status of an exec whose input object failed verification (quarantined): the engine
+/// recomputes the upstream action and tries again.
+pub const EXIT_CORRUPT_INPUT: i32 = 3;
+
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(tag = "t", rename_all = "snake_case")]
+pub enum Message {
+    /// Another process holds the action's lock.
+    Waiting,
+    /// The action was completed by another process meanwhile.
+    Reused,
+    Progress { position: u64, length: u64, message: String },
+    Event { name: String, data: Value },
+    CorruptInput { digest: Digest, files: Vec<String> },
+    Done { output: Digest },
+    Failed { message: String },
+}
+
+pub fn send(message: &Message) {
+    let line = format!("{PREFIX}{}\n", serde_json::to_string(message).expect("message serialises"));
+    let mut out = std::io::stdout().lock();
+    // A parent that died cannot read us; nothing else to do then.
+    let _ = out.write_all(line.as_bytes()).and_then(|_| out.flush());
+}
+
+struct StdoutReporter;
+
+impl Reporter for StdoutReporter {
+    fn progress(&self, position: u64, length: u64, message: &str) {
+        send(&Message::Progress { position, length, message: message.to_owned() });
+    }
+    fn event(&self, name: &str, data: Value) {
+        send(&Message::Event { name: name.to_owned(), data });
+    }
+}
+
+/// Runs action `key` from `store`; returns the process exit status.
+pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, device: Device) -> anyhow::Result<i32> {
+    let store = Store::open_existing(store)?.with_context(|| format!("no rlmflow store at {}", store.display()))?;
+    let _shared = store.lock_shared()?;
+    let request = store
+        .request(&key)?
+        .with_context(|| format!("the store has no request for action {key}; `rlmflow run` writes it"))?;
+    let _lock = match store.try_lock_action(&key)? {
+        Some(lock) => lock,
+        None => {
+            send(&Message::Waiting);
+            store.lock_action(&key)?
+        }
+    };
+    if store.fresh(&key)?.is_some() {
+        send(&Message::Reused);
+        return Ok(0);
+    }
+    store.sweep_tmp(Some(&key))?;
+    let preimage = &request.preimage;
+    let op = registry
+        .get(&preimage.operator)
+        .with_context(|| format!("this rlmflow has no operator `{}`", preimage.operator))?;
+
+    let mut inputs: BTreeMap<String, Vec<Input>> = BTreeMap::new();
+    for input in &preimage.inputs {
+        let damaged = if store.has_object(&input.digest) { store.check_object(&input.digest)? } else { None };
+        if let Some(corruption) = damaged {
+            store.quarantine(&input.digest)?;
+            send(&Message::CorruptInput { digest: input.digest, files: corruption.files });
+            return Ok(EXIT_CORRUPT_INPUT);
+        }
+        if !store.has_object(&input.digest) {
+            send(&Message::CorruptInput { digest: input.digest, files: Vec::new() });
+            return Ok(EXIT_CORRUPT_INPUT);
+        }
+        let path = store.object_dir(&input.digest);
+        inputs.entry(input.slot.clone()).or_default().push(Input { label: input.label.clone(), path });
+    }
+
+    let work = store.work_dir(&key)?;
+    let output_dir = work.join("out");
+    std::fs::create_dir_all(&output_dir)?;
+    let checkpoint_dir = store.checkpoint_dir(&key);
+    std::fs::create_dir_all(&checkpoint_dir)?;
+    let mut ctx = Context::new(
+        request.stage.clone(),
+        inputs,
+        output_dir.clone(),
+        checkpoint_dir.clone(),
+        preimage.seed,
+        threads.max(1),
+        device,
+        Arc::new(StdoutReporter),
+    );
+
+    let started = now_rfc3339();
+    let clock = Instant::now();
+    let outcome = match catch_unwind(AssertUnwindSafe(|| op.run(&request.settings, &mut ctx))) {
+        Ok(Ok(outcome)) => outcome,
+        Ok(Err(e)) => return Ok(fail(format!("{e:#}"))),
+        Err(panic) => {
+            let text = panic
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_else(|| "unknown panic".into());
+            return Ok(fail(format!("operator `{}` panicked: {text}", preimage.operator)));
+        }
+    };
+    let duration_s = clock.elapsed().as_secs_f64();
+    let tree = store.commit_tree(&output_dir)?;
+    store.write_record(&ActionRecord {
+        key,
+        preimage: preimage.clone(),
+        output: tree.digest,
+        files: tree.files,
+        bytes: tree.bytes,
+        started,
+        duration_s,
+        metrics: outcome.metrics,
+        summary: outcome.summary,
+    })?;
+    let _ = std::fs::remove_dir_all(&checkpoint_dir);
+    let _ = std::fs::remove_dir_all(&work);
+    send(&Message::Done { output: tree.digest });
+    Ok(0)
+}
+
+fn fail(message: String) -> i32 {
+    eprintln!("error: {message}");
+    send(&Message::Failed { message });
+    1
+}

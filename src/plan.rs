@@ -1,0 +1,253 @@
+//! From a validated pipeline to stage instances (variants fanned out), their preimages, and
+//! whether each is cached, will run (and why), or waits for an upstream that will run.
+
+use std::collections::{BTreeMap, HashMap};
+
+use anyhow::bail;
+use rlmflow_cache::{ActionRecord, Change, Digest, InputDigest, Preimage, Store};
+use rlmflow_stages::{Arity, Registry};
+use serde_json::Value;
+
+use crate::config::{Pipeline, suggest};
+
+/// One stage run for one combination of upstream variants.
+#[derive(Clone, Debug)]
+pub struct Instance {
+    pub stage: usize,
+    /// `scenes`, `pretrain[alpha4]`, or `probe[captions=llm,pretrain=alpha4]`.
+    pub label: String,
+    /// Variant dimension (the stage that declared the variants) -> variant name.
+    pub assignment: BTreeMap<String, String>,
+    /// Every setting of this instance.
+    pub settings: Value,
+    pub inputs: Vec<InstanceInput>,
+}
+
+#[derive(Clone, Debug)]
+pub struct InstanceInput {
+    pub slot: &'static str,
+    pub arity: Arity,
+    /// Indices into `Plan::instances`.
+    pub providers: Vec<usize>,
+}
+
+/// Every instance of a pipeline, providers before consumers.
+#[derive(Debug)]
+pub struct Plan<'p> {
+    pub pipeline: &'p Pipeline,
+    pub instances: Vec<Instance>,
+}
+
+pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
+    let mut instances: Vec<Instance> = Vec::new();
+    let mut dims_of: Vec<Vec<String>> = Vec::new();
+    let mut by_assignment: HashMap<(usize, String), usize> = HashMap::new();
+    for (s, stage) in pipeline.stages.iter().enumerate() {
+        let own = stage.variants.len() > 1 || stage.variants[0].name.is_some();
+        let mut dims: Vec<String> = if own { vec![stage.name.clone()] } else { Vec::new() };
+        for b in stage.bindings.iter().filter(|b| b.arity == Arity::One) {
+            dims.extend(dims_of[b.providers[0]].iter().cloned());
+        }
+        dims.sort();
+        dims.dedup();
+        let mut assignments = vec![BTreeMap::new()];
+        for dim in &dims {
+            let owner = &pipeline.stages[pipeline.stage(dim).unwrap()];
+            let names: Vec<&String> = owner.variants.iter().filter_map(|v| v.name.as_ref()).collect();
+            assignments = assignments
+                .into_iter()
+                .flat_map(|a: BTreeMap<String, String>| {
+                    names.iter().map(move |n| {
+                        let mut a = a.clone();
+                        a.insert(dim.clone(), (*n).clone());
+                        a
+                    })
+                })
+                .collect();
+        }
+        for assignment in assignments {
+            let settings = match assignment.get(&stage.name) {
+                Some(v) => stage.variants.iter().find(|x| x.name.as_ref() == Some(v)).unwrap().settings.clone(),
+                None => stage.variants[0].settings.clone(),
+            };
+            let inputs = stage
+                .bindings
+                .iter()
+                .map(|b| {
+                    let providers = match b.arity {
+                        Arity::One => {
+                            let p = b.providers[0];
+                            let key = assignment_key(&restrict(&assignment, &dims_of[p]));
+                            vec![by_assignment[&(p, key)]]
+                        }
+                        Arity::All => {
+                            let mut all: Vec<usize> =
+                                (0..instances.len()).filter(|&i| b.providers.contains(&instances[i].stage)).collect();
+                            all.sort_by(|&x, &y| instances[x].label.cmp(&instances[y].label));
+                            all
+                        }
+                    };
+                    InstanceInput { slot: b.slot, arity: b.arity, providers }
+                })
+                .collect();
+            by_assignment.insert((s, assignment_key(&assignment)), instances.len());
+            instances.push(Instance { stage: s, label: label(&stage.name, &assignment), assignment, settings, inputs });
+        }
+        dims_of.push(dims);
+    }
+    Plan { pipeline, instances }
+}
+
+fn restrict(a: &BTreeMap<String, String>, dims: &[String]) -> BTreeMap<String, String> {
+    a.iter().filter(|(d, _)| dims.contains(d)).map(|(d, v)| (d.clone(), v.clone())).collect()
+}
+
+fn assignment_key(a: &BTreeMap<String, String>) -> String {
+    a.iter().map(|(d, v)| format!("{d}={v}")).collect::<Vec<_>>().join(",")
+}
+
+fn label(stage: &str, a: &BTreeMap<String, String>) -> String {
+    match a.len() {
+        0 => stage.to_owned(),
+        1 => format!("{stage}[{}]", a.values().next().unwrap()),
+        _ => format!("{stage}[{}]", assignment_key(a)),
+    }
+}
+
+impl Plan<'_> {
+    /// Instances of the named stages and everything upstream of them.
+    pub fn select(&self, stages: &[String]) -> anyhow::Result<Vec<bool>> {
+        let mut keep = vec![stages.is_empty(); self.instances.len()];
+        for name in stages {
+            let Some(s) = self.pipeline.stage(name) else {
+                let names = self.pipeline.stage_names();
+                bail!("no stage named `{name}` in {}; stages: {}{}", self.pipeline.file.display(), names.join(", "), suggest(name, &names));
+            };
+            for (i, inst) in self.instances.iter().enumerate() {
+                keep[i] |= inst.stage == s;
+            }
+        }
+        for i in (0..self.instances.len()).rev() {
+            if keep[i] {
+                for input in &self.instances[i].inputs {
+                    for &p in &input.providers {
+                        keep[p] = true;
+                    }
+                }
+            }
+        }
+        Ok(keep)
+    }
+
+    /// The preimage of instance `i`, once every input's output digest is known.
+    pub fn preimage(&self, i: usize, registry: &Registry, outputs: &[Option<Digest>]) -> Option<Preimage> {
+        let inst = &self.instances[i];
+        let stage = &self.pipeline.stages[inst.stage];
+        let op = registry.get(&stage.operator).expect("validated operator");
+        let mut inputs = Vec::new();
+        for input in &inst.inputs {
+            for &p in &input.providers {
+                let label = match input.arity {
+                    Arity::One => String::new(),
+                    Arity::All => self.instances[p].label.clone(),
+                };
+                inputs.push(InputDigest { slot: input.slot.to_owned(), label, digest: outputs[p]? });
+            }
+        }
+        inputs.sort();
+        let mut config = inst.settings.clone();
+        if let Value::Object(map) = &mut config {
+            for key in op.non_result_keys() {
+                map.remove(*key);
+            }
+        }
+        Some(Preimage {
+            operator: stage.operator.clone(),
+            operator_version: op.spec().version,
+            config,
+            seed: self.pipeline.seed,
+            inputs,
+        })
+    }
+}
+
+/// Where one instance stands before the run.
+#[derive(Clone, Debug)]
+pub enum Freshness {
+    Cached(Box<ActionRecord>),
+    /// Its key is known and not in the store.
+    Stale { key: Digest, reasons: Vec<String> },
+    /// An input will be recomputed first, so its key is not known yet.
+    Pending { reason: String },
+}
+
+/// The freshness of every instance, against `store` (`None`: nothing was ever run).
+pub fn assess(plan: &Plan, registry: &Registry, store: Option<&Store>) -> anyhow::Result<Vec<Freshness>> {
+    let last = match store {
+        Some(s) => s.last_keys(&plan.pipeline.name)?,
+        None => BTreeMap::new(),
+    };
+    let mut outputs: Vec<Option<Digest>> = vec![None; plan.instances.len()];
+    let mut states = Vec::with_capacity(plan.instances.len());
+    for (i, inst) in plan.instances.iter().enumerate() {
+        let state = match plan.preimage(i, registry, &outputs) {
+            Some(preimage) => {
+                let key = preimage.key();
+                match store.map(|s| s.fresh(&key)).transpose()?.flatten() {
+                    Some(record) => {
+                        outputs[i] = Some(record.output);
+                        Freshness::Cached(Box::new(record))
+                    }
+                    None => {
+                        let stage = &plan.pipeline.stages[inst.stage].name;
+                        let reasons = why(store, last.get(&inst.label), &key, &preimage, stage)?;
+                        Freshness::Stale { key, reasons }
+                    }
+                }
+            }
+            None => {
+                let waiting = inst
+                    .inputs
+                    .iter()
+                    .flat_map(|input| input.providers.iter().map(move |&p| (input.slot, p)))
+                    .find(|&(_, p)| outputs[p].is_none())
+                    .map(|(slot, p)| format!("input {slot} ({}) will be recomputed first", plan.instances[p].label));
+                Freshness::Pending { reason: waiting.unwrap_or_default() }
+            }
+        };
+        states.push(state);
+    }
+    Ok(states)
+}
+
+/// Why an action with `key` is not in the store, compared with the stage's last run.
+pub fn why(store: Option<&Store>, last: Option<&Digest>, key: &Digest, now: &Preimage, stage: &str) -> anyhow::Result<Vec<String>> {
+    let (Some(store), Some(last)) = (store, last) else {
+        return Ok(vec!["never run".into()]);
+    };
+    if last == key {
+        return Ok(vec![match store.record(key)? {
+            Some(_) => "its output is gone (quarantined by verify, or collected)".into(),
+            None if store.checkpoint_dir(key).is_dir() => "interrupted; resumes from its checkpoint".into(),
+            None => "its last attempt did not finish".into(),
+        }]);
+    }
+    let before = match store.record(last)? {
+        Some(r) => Some(r.preimage),
+        None => store.request(last)?.map(|r| r.preimage),
+    };
+    let Some(before) = before else {
+        return Ok(vec!["changed since its last run (whose record was collected)".into()]);
+    };
+    let changes = now.diff(&before);
+    if changes.is_empty() {
+        return Ok(vec!["changed since its last run".into()]);
+    }
+    Ok(changes
+        .iter()
+        .map(|c| match c {
+            Change::Setting { .. } => format!("{stage}.{c}"),
+            _ => c.to_string(),
+        })
+        .collect())
+}

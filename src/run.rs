@@ -1,0 +1,499 @@
+//! The local executor: runs a plan's instances as child processes (`rlmflow exec`), independent
+//! ones concurrently within a thread budget, reusing every cached action.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Command, ExitStatus, Stdio};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use anyhow::Context as _;
+use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
+use rlmflow_cache::{ActionRequest, Digest, PlanEntry, Preimage, RunPlan, Store, now_rfc3339, run_id};
+use rlmflow_stages::{Device, Registry};
+use serde_json::{Value, json};
+
+use crate::exec::{EXIT_CORRUPT_INPUT, Message, PREFIX};
+use crate::plan::{Freshness, Plan, assess, why};
+
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    pub dry_run: bool,
+    pub only: Vec<String>,
+    /// The CPU-thread budget shared by concurrently running stages.
+    pub jobs: usize,
+    pub json: bool,
+    pub device: Device,
+}
+
+/// The outcome of a run, for the exit status and tests.
+#[derive(Debug, Default)]
+pub struct Summary {
+    pub ran: usize,
+    pub reused: usize,
+    pub failed: usize,
+    pub skipped: usize,
+}
+
+/// Prints where each selected instance stands (`status`, `run --dry-run`).
+pub fn print_status(plan: &Plan, registry: &Registry, store: Option<&Store>, selected: &[bool], json: bool) -> anyhow::Result<()> {
+    let states = assess(plan, registry, store)?;
+    let width = plan.instances.iter().map(|i| i.label.len()).max().unwrap_or(0);
+    for (i, state) in states.iter().enumerate().filter(|(i, _)| selected[*i]) {
+        let label = &plan.instances[i].label;
+        if json {
+            let line = match state {
+                Freshness::Cached(r) => json!({"stage": label, "state": "cached", "key": r.key, "output": r.output}),
+                Freshness::Stale { key, reasons } => json!({"stage": label, "state": "will run", "key": key, "reasons": reasons}),
+                Freshness::Pending { reason } => json!({"stage": label, "state": "pending", "reasons": [reason]}),
+            };
+            println!("{line}");
+            continue;
+        }
+        match state {
+            Freshness::Cached(r) => println!("  cached    {label:width$}  (ran {:.1}s, {})", r.duration_s, r.started),
+            Freshness::Stale { reasons, .. } => println!("  will run  {label:width$}  {}", reasons.join("; ")),
+            Freshness::Pending { reason } => println!("  pending   {label:width$}  {reason}"),
+        }
+    }
+    Ok(())
+}
+
+#[derive(Clone, Debug)]
+enum State {
+    Excluded,
+    Waiting,
+    Ready { key: Digest },
+    Running { key: Digest },
+    Done { output: Digest },
+    Failed,
+    Skipped,
+}
+
+/// What a child's reader thread tells the scheduler.
+enum Report {
+    Message(Message),
+    Exited(std::io::Result<ExitStatus>),
+}
+
+struct Executor<'a> {
+    plan: &'a Plan<'a>,
+    registry: &'a Registry,
+    store: &'a Store,
+    opts: &'a RunOptions,
+    run: String,
+    states: Vec<State>,
+    keys: Vec<Option<Digest>>,
+    plan_dirty: bool,
+    events: EventLog,
+    ui: Ui,
+    /// How each finished instance ended, and the compute time its reuse saved.
+    results: Vec<Option<(Outcome, f64)>>,
+    recoveries: Vec<u32>,
+    last: BTreeMap<String, Digest>,
+}
+
+/// Runs the plan; returns its summary.
+pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], opts: &RunOptions) -> anyhow::Result<Summary> {
+    let _shared = store.lock_shared()?;
+    store.sweep_tmp(None)?;
+    let run = run_id();
+    let events = EventLog::create(&store.run_dir(&run), opts.json)?;
+    let states = selected.iter().map(|&s| if s { State::Waiting } else { State::Excluded }).collect();
+    let n = plan.instances.len();
+    let mut ex = Executor {
+        plan,
+        registry,
+        store,
+        opts,
+        run,
+        states,
+        keys: vec![None; n],
+        plan_dirty: true,
+        events,
+        ui: Ui::new(opts.json),
+        results: vec![None; n],
+        recoveries: vec![0; n],
+        last: store.last_keys(&plan.pipeline.name)?,
+    };
+    ex.execute()?;
+    Ok(ex.summary())
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Outcome {
+    Ran,
+    Reused,
+    Failed,
+    Skipped,
+}
+
+impl Executor<'_> {
+    fn execute(&mut self) -> anyhow::Result<()> {
+        let clock = Instant::now();
+        let p = self.plan.pipeline;
+        let selected = self.states.iter().filter(|s| !matches!(s, State::Excluded)).count();
+        self.events.write("run_started", json!({"run": self.run, "pipeline": p.name, "file": p.file, "instances": selected, "jobs": self.opts.jobs}))?;
+        self.ui.say(format!("rlmflow run {} ({} stage instances, {} threads, run {})", p.file.display(), selected, self.opts.jobs, self.run));
+
+        let (tx, rx) = mpsc::channel::<(usize, Report)>();
+        let mut bars: BTreeMap<usize, ProgressBar> = BTreeMap::new();
+        let mut threads_in_use = 0;
+        let mut gpu_in_use = false;
+        let mut started: BTreeMap<usize, (Instant, usize, bool)> = BTreeMap::new();
+        let mut outcome: BTreeMap<usize, Message> = BTreeMap::new();
+        loop {
+            self.resolve()?;
+            self.write_plan_if_dirty()?;
+            // Start what fits in the budget, in plan order.
+            for i in 0..self.states.len() {
+                let State::Ready { key } = self.states[i] else { continue };
+                let op = self.registry.get(&self.plan.pipeline.stages[self.plan.instances[i].stage].operator).unwrap();
+                let wants = op.resources(&self.plan.instances[i].settings);
+                let threads = wants.threads.clamp(1, self.opts.jobs);
+                let fits = threads_in_use + threads <= self.opts.jobs && !(wants.gpu && gpu_in_use);
+                if !fits && !started.is_empty() {
+                    continue;
+                }
+                threads_in_use += threads;
+                gpu_in_use |= wants.gpu;
+                started.insert(i, (Instant::now(), threads, wants.gpu));
+                self.states[i] = State::Running { key };
+                let label = self.plan.instances[i].label.clone();
+                self.events.write("stage_started", json!({"stage": label, "key": key, "threads": threads}))?;
+                bars.insert(i, self.ui.bar(&label));
+                self.spawn(i, key, threads, tx.clone())?;
+            }
+            if started.is_empty() {
+                break;
+            }
+            let (i, report) = rx.recv().expect("a running child always reports its exit");
+            match report {
+                Report::Message(Message::Progress { position, length, message }) => {
+                    let bar = &bars[&i];
+                    if bar.length() != Some(length) {
+                        bar.set_length(length);
+                        bar.set_style(Ui::bar_style());
+                    }
+                    bar.set_position(position);
+                    bar.set_message(message);
+                }
+                Report::Message(Message::Event { name, data }) => {
+                    self.events.write("operator_event", json!({"stage": self.plan.instances[i].label, "name": name, "data": data}))?;
+                }
+                Report::Message(Message::Waiting) => bars[&i].set_message("waiting for another run computing it"),
+                Report::Message(message) => {
+                    outcome.insert(i, message);
+                }
+                Report::Exited(status) => {
+                    let (t0, threads, gpu) = started.remove(&i).unwrap();
+                    threads_in_use -= threads;
+                    gpu_in_use &= !gpu;
+                    bars.remove(&i).unwrap().finish_and_clear();
+                    let secs = t0.elapsed().as_secs_f64();
+                    self.finish(i, status, outcome.remove(&i), secs)?;
+                }
+            }
+        }
+        self.write_plan_if_dirty()?;
+        let resolved: BTreeMap<String, Digest> = self
+            .keys
+            .iter()
+            .enumerate()
+            .filter_map(|(i, k)| k.map(|k| (self.plan.instances[i].label.clone(), k)))
+            .collect();
+        self.store.update_last_keys(&self.plan.pipeline.name, &resolved)?;
+        let s = self.summary();
+        let saved: f64 = self.results.iter().flatten().map(|r| r.1).sum();
+        let wall = clock.elapsed().as_secs_f64();
+        self.events.write(
+            "run_finished",
+            json!({"ran": s.ran, "reused": s.reused, "failed": s.failed, "skipped": s.skipped, "wall_s": wall, "saved_s": saved}),
+        )?;
+        self.ui.say(format!(
+            "done: {} ran, {} reused, {} failed, {} skipped in {:.1}s; reuse saved {:.1}s",
+            s.ran, s.reused, s.failed, s.skipped, wall, saved
+        ));
+        if s.failed > 0 {
+            self.ui.say(format!("logs: {}", self.store.run_dir(&self.run).join("logs").display()));
+        }
+        Ok(())
+    }
+
+    fn summary(&self) -> Summary {
+        let count = |o: Outcome| self.results.iter().flatten().filter(|r| r.0 == o).count();
+        Summary {
+            ran: count(Outcome::Ran),
+            reused: count(Outcome::Reused),
+            failed: count(Outcome::Failed),
+            skipped: count(Outcome::Skipped),
+        }
+    }
+
+    /// Moves waiting instances whose inputs are settled to ready, reused or skipped.
+    fn resolve(&mut self) -> anyhow::Result<()> {
+        for i in 0..self.states.len() {
+            if !matches!(self.states[i], State::Waiting) {
+                continue;
+            }
+            let inst = &self.plan.instances[i];
+            let providers = inst.inputs.iter().flat_map(|input| input.providers.iter().copied());
+            if let Some(bad) = providers.clone().find(|&p| matches!(self.states[p], State::Failed | State::Skipped)) {
+                let upstream = self.plan.instances[bad].label.clone();
+                self.states[i] = State::Skipped;
+                self.results[i] = Some((Outcome::Skipped, 0.0));
+                let label = inst.label.clone();
+                self.events.write("stage_finished", json!({"stage": label, "status": "skipped", "reason": format!("upstream {upstream} did not finish")}))?;
+                self.ui.say(format!("  skipped  {label}  (upstream {upstream} did not finish)"));
+                continue;
+            }
+            let outputs: Vec<Option<Digest>> =
+                self.states.iter().map(|s| if let State::Done { output } = s { Some(*output) } else { None }).collect();
+            let Some(preimage) = self.plan.preimage(i, self.registry, &outputs) else { continue };
+            let key = preimage.key();
+            if self.keys[i] != Some(key) {
+                self.keys[i] = Some(key);
+                self.plan_dirty = true;
+            }
+            if let Some(record) = self.store.fresh(&key)? {
+                self.states[i] = State::Done { output: record.output };
+                self.results[i] = Some((Outcome::Reused, record.duration_s));
+                self.events.write("stage_finished", json!({"stage": inst.label, "status": "reused", "key": key, "output": record.output, "saved_s": record.duration_s}))?;
+                self.ui.say(format!("  reused   {}  ({:.1}s saved)", inst.label, record.duration_s));
+                continue;
+            }
+            let stage = &self.plan.pipeline.stages[inst.stage];
+            let reasons = why(Some(self.store), self.last.get(&inst.label), &key, &preimage, &stage.name)?;
+            self.ui.say(format!("  run      {}  ({})", inst.label, reasons.join("; ")));
+            self.events.write("stage_planned", json!({"stage": inst.label, "key": key, "reasons": reasons}))?;
+            self.write_request(i, key, preimage)?;
+            self.states[i] = State::Ready { key };
+        }
+        Ok(())
+    }
+
+    fn write_request(&self, i: usize, key: Digest, preimage: Preimage) -> anyhow::Result<()> {
+        let inst = &self.plan.instances[i];
+        self.store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone() })
+    }
+
+    fn write_plan_if_dirty(&mut self) -> anyhow::Result<()> {
+        if !self.plan_dirty {
+            return Ok(());
+        }
+        let instances = self
+            .plan
+            .instances
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| !matches!(self.states[*i], State::Excluded))
+            .map(|(i, inst)| PlanEntry {
+                label: inst.label.clone(),
+                stage: self.plan.pipeline.stages[inst.stage].name.clone(),
+                key: self.keys[i],
+            })
+            .collect();
+        self.store.write_plan(&RunPlan {
+            run: self.run.clone(),
+            pipeline: self.plan.pipeline.name.clone(),
+            started: now_rfc3339(),
+            instances,
+        })?;
+        self.plan_dirty = false;
+        Ok(())
+    }
+
+    fn spawn(&self, i: usize, key: Digest, threads: usize, tx: mpsc::Sender<(usize, Report)>) -> anyhow::Result<()> {
+        let label = &self.plan.instances[i].label;
+        let log_path = self.store.run_dir(&self.run).join("logs").join(format!("{}.log", file_safe(label)));
+        let log = Arc::new(Mutex::new(File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?));
+        let exe = std::env::current_exe().context("locating the rlmflow executable")?;
+        let mut cmd = Command::new(exe);
+        cmd.arg("exec")
+            .arg(key.to_string())
+            .arg("--store")
+            .arg(self.store.root())
+            .arg("--threads")
+            .arg(threads.to_string())
+            .arg("--device")
+            .arg(self.opts.device.to_string())
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped());
+        die_with_parent(&mut cmd);
+        let mut child = cmd.spawn().context("starting `rlmflow exec`")?;
+        let stdout = child.stdout.take().unwrap();
+        let stderr = child.stderr.take().unwrap();
+        let err_log = log.clone();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                let _ = writeln!(err_log.lock().unwrap(), "{line}");
+            }
+        });
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                match line.strip_prefix(PREFIX).map(serde_json::from_str::<Message>) {
+                    Some(Ok(message)) => {
+                        let _ = tx.send((i, Report::Message(message)));
+                    }
+                    _ => {
+                        let _ = writeln!(log.lock().unwrap(), "{line}");
+                    }
+                }
+            }
+            let _ = tx.send((i, Report::Exited(child.wait())));
+        });
+        Ok(())
+    }
+
+    fn finish(&mut self, i: usize, status: std::io::Result<ExitStatus>, outcome: Option<Message>, secs: f64) -> anyhow::Result<()> {
+        let label = self.plan.instances[i].label.clone();
+        let State::Running { key } = self.states[i] else { unreachable!("finished a stage that was not running") };
+        let code = status.as_ref().ok().and_then(|s| s.code());
+        match outcome {
+            Some(Message::Done { .. } | Message::Reused) if code == Some(0) => {
+                let record = self.store.fresh(&key)?.context("a finished action has no record")?;
+                let reused = matches!(outcome, Some(Message::Reused));
+                self.states[i] = State::Done { output: record.output };
+                let status = if reused { "reused" } else { "ran" };
+                self.results[i] = Some(if reused { (Outcome::Reused, record.duration_s) } else { (Outcome::Ran, 0.0) });
+                self.events.write("stage_finished", json!({"stage": label, "status": status, "key": key, "output": record.output, "duration_s": secs, "summary": record.summary, "metrics": record.metrics}))?;
+                let note = if reused { "computed by another run".to_owned() } else { record.summary.clone() };
+                self.ui.say(format!("  {status:<8} {label}  {secs:.1}s  {note}"));
+            }
+            Some(Message::CorruptInput { digest, files }) if code == Some(EXIT_CORRUPT_INPUT) && self.recoveries[i] < 2 => {
+                self.recoveries[i] += 1;
+                let producers: Vec<usize> =
+                    (0..self.states.len()).filter(|&j| matches!(self.states[j], State::Done { output } if output == digest)).collect();
+                let names: Vec<&str> = producers.iter().map(|&j| self.plan.instances[j].label.as_str()).collect();
+                self.ui.say(format!(
+                    "  corrupt  {label}: input {} failed verification ({}); quarantined, recomputing {}",
+                    digest.short(),
+                    if files.is_empty() { "missing".to_owned() } else { files.join(", ") },
+                    names.join(", ")
+                ));
+                self.events.write("input_corrupt", json!({"stage": label, "digest": digest, "files": files, "recompute": names}))?;
+                for j in producers {
+                    self.states[j] = State::Waiting;
+                    self.results[j] = None;
+                }
+                self.states[i] = State::Waiting;
+            }
+            other => {
+                let message = match (other, &status) {
+                    (Some(Message::Failed { message }), _) => message,
+                    (Some(Message::CorruptInput { digest, .. }), _) => format!("input {} is still corrupt after recomputing it", digest.short()),
+                    (_, Ok(s)) => describe_exit(s),
+                    (_, Err(e)) => format!("could not wait for the child: {e}"),
+                };
+                self.states[i] = State::Failed;
+                self.results[i] = Some((Outcome::Failed, 0.0));
+                let log = self.store.run_dir(&self.run).join("logs").join(format!("{}.log", file_safe(&label)));
+                self.events.write("stage_finished", json!({"stage": label, "status": "failed", "key": key, "error": message, "log": log, "duration_s": secs}))?;
+                self.ui.say(format!("  FAILED   {label}  {secs:.1}s  {message}\n           log: {}", log.display()));
+            }
+        }
+        Ok(())
+    }
+}
+
+fn describe_exit(status: &ExitStatus) -> String {
+    use std::os::unix::process::ExitStatusExt;
+    match (status.code(), status.signal()) {
+        (_, Some(sig)) => format!("the stage process was killed by signal {sig}"),
+        (Some(code), _) => format!("the stage process exited with status {code}"),
+        _ => "the stage process ended abnormally".into(),
+    }
+}
+
+/// The child dies with the engine (Linux), so a killed run leaves no stage computing alone.
+fn die_with_parent(cmd: &mut Command) {
+    #[cfg(target_os = "linux")]
+    unsafe {
+        use std::os::unix::process::CommandExt;
+        cmd.pre_exec(|| {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+}
+
+pub fn file_safe(label: &str) -> String {
+    label.chars().map(|c| if c.is_ascii_alphanumeric() || "-_.".contains(c) { c } else { '_' }).collect()
+}
+
+/// `runs/<id>/events.jsonl`: one JSON object per line, flushed as written, so a killed run
+/// leaves a readable log. With `--json` each line is echoed to stdout.
+struct EventLog {
+    file: File,
+    echo: bool,
+    clock: Instant,
+}
+
+impl EventLog {
+    fn create(run_dir: &Path, echo: bool) -> anyhow::Result<EventLog> {
+        std::fs::create_dir_all(run_dir.join("logs"))?;
+        let path: PathBuf = run_dir.join("events.jsonl");
+        let file = File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+        Ok(EventLog { file, echo, clock: Instant::now() })
+    }
+
+    fn write(&mut self, event: &str, mut data: Value) -> anyhow::Result<()> {
+        if let Value::Object(map) = &mut data {
+            map.insert("event".into(), event.into());
+            map.insert("t".into(), json!((self.clock.elapsed().as_secs_f64() * 1000.0).round() / 1000.0));
+        }
+        let line = serde_json::to_string(&data)?;
+        writeln!(self.file, "{line}")?;
+        if self.echo {
+            println!("{line}");
+        }
+        Ok(())
+    }
+}
+
+/// Progress bars on a terminal; plain lines otherwise.
+struct Ui {
+    multi: MultiProgress,
+    quiet: bool,
+}
+
+impl Ui {
+    fn new(json: bool) -> Ui {
+        let multi = MultiProgress::new();
+        if json {
+            multi.set_draw_target(ProgressDrawTarget::hidden());
+        }
+        Ui { multi, quiet: json }
+    }
+
+    fn say(&self, line: String) {
+        if self.quiet {
+            return;
+        }
+        if self.multi.is_hidden() {
+            println!("{line}");
+        } else {
+            let _ = self.multi.println(line);
+        }
+    }
+
+    fn bar(&self, label: &str) -> ProgressBar {
+        let bar = self.multi.add(ProgressBar::new_spinner());
+        bar.set_style(ProgressStyle::with_template("  {spinner} {prefix} {elapsed} {msg}").unwrap());
+        bar.set_prefix(label.to_owned());
+        bar.enable_steady_tick(std::time::Duration::from_millis(120));
+        bar
+    }
+
+    fn bar_style() -> ProgressStyle {
+        ProgressStyle::with_template("  {prefix} [{bar:30}] {pos}/{len} {msg} ({elapsed}, eta {eta})")
+            .unwrap()
+            .progress_chars("=> ")
+    }
+}
