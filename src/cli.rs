@@ -260,16 +260,13 @@ fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> any
                 }
                 println!("  preimage:\n{}", indent(&serde_json::to_string_pretty(&r.preimage)?));
             }
-            Freshness::Stale { key, reasons } => {
+            Freshness::Stale { key, reasons, preimage } => {
                 println!("  will run: key {key}");
                 println!("  last run: {}", last.get(label).map_or("none".into(), |k| k.to_string()));
                 for r in reasons {
                     println!("    {r}");
                 }
-                let preimage = store.as_ref().and_then(|s| s.request(key).ok().flatten()).map(|r| r.preimage);
-                if let Some(preimage) = preimage {
-                    println!("  preimage:\n{}", indent(&serde_json::to_string_pretty(&preimage)?));
-                }
+                println!("  preimage:\n{}", indent(&serde_json::to_string_pretty(preimage)?));
             }
             Freshness::Pending { reason } => {
                 println!("  pending: {reason}; its key is known once that input is");

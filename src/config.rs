@@ -221,6 +221,7 @@ impl Checker {
         };
         let cache = self.string(header, "pipeline", "cache").unwrap_or_else(|| ".rlmflow".into());
         let cache = file.parent().unwrap_or(Path::new(".")).join(cache);
+        let cache = std::path::absolute(&cache).unwrap_or(cache);
         if let Some(executor) = self.string(header, "pipeline", "executor") {
             if !EXECUTORS.contains(&executor.as_str()) {
                 let help = format!("valid executors: {}{}", EXECUTORS.join(", "), suggest(&executor, EXECUTORS));

@@ -176,7 +176,7 @@ impl Plan<'_> {
 pub enum Freshness {
     Cached(Box<ActionRecord>),
     /// Its key is known and not in the store.
-    Stale { key: Digest, reasons: Vec<String> },
+    Stale { key: Digest, reasons: Vec<String>, preimage: Box<Preimage> },
     /// An input will be recomputed first, so its key is not known yet.
     Pending { reason: String },
 }
@@ -201,7 +201,7 @@ pub fn assess(plan: &Plan, registry: &Registry, store: Option<&Store>) -> anyhow
                     None => {
                         let stage = &plan.pipeline.stages[inst.stage].name;
                         let reasons = why(store, last.get(&inst.label), &key, &preimage, stage)?;
-                        Freshness::Stale { key, reasons }
+                        Freshness::Stale { key, reasons, preimage: Box::new(preimage) }
                     }
                 }
             }

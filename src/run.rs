@@ -47,7 +47,7 @@ pub fn print_status(plan: &Plan, registry: &Registry, store: Option<&Store>, sel
         if json {
             let line = match state {
                 Freshness::Cached(r) => json!({"stage": label, "state": "cached", "key": r.key, "output": r.output}),
-                Freshness::Stale { key, reasons } => json!({"stage": label, "state": "will run", "key": key, "reasons": reasons}),
+                Freshness::Stale { key, reasons, .. } => json!({"stage": label, "state": "will run", "key": key, "reasons": reasons}),
                 Freshness::Pending { reason } => json!({"stage": label, "state": "pending", "reasons": [reason]}),
             };
             println!("{line}");
@@ -199,13 +199,6 @@ impl Executor<'_> {
             }
         }
         self.write_plan_if_dirty()?;
-        let resolved: BTreeMap<String, Digest> = self
-            .keys
-            .iter()
-            .enumerate()
-            .filter_map(|(i, k)| k.map(|k| (self.plan.instances[i].label.clone(), k)))
-            .collect();
-        self.store.update_last_keys(&self.plan.pipeline.name, &resolved)?;
         let s = self.summary();
         let saved: f64 = self.results.iter().flatten().map(|r| r.1).sum();
         let wall = clock.elapsed().as_secs_f64();
@@ -302,6 +295,14 @@ impl Executor<'_> {
             started: now_rfc3339(),
             instances,
         })?;
+        // Recorded as soon as known, so a killed run still tells `status` what it was doing.
+        let resolved: BTreeMap<String, Digest> = self
+            .keys
+            .iter()
+            .enumerate()
+            .filter_map(|(i, k)| k.map(|k| (self.plan.instances[i].label.clone(), k)))
+            .collect();
+        self.store.update_last_keys(&self.plan.pipeline.name, &resolved)?;
         self.plan_dirty = false;
         Ok(())
     }

@@ -1,0 +1,6 @@
+//! End-to-end tests of the engine through the `rlmflow-test` binary (the real CLI with the test
+//! operators of this crate).
+
+mod config_errors;
+mod engine;
+mod harness;

@@ -1,0 +1,111 @@
+//! Every configuration error names the file, line and key, says what is valid, and suggests the
+//! nearest name; nothing runs and nothing is written.
+
+use crate::harness::*;
+
+fn error_for(pipeline: &str) -> String {
+    let s = Scratch::new(&format!("cfg-{:x}", pipeline.len() * 31 + pipeline.bytes().map(|b| b as usize).sum::<usize>()));
+    s.pipeline(pipeline);
+    let out = s.cli(&["run", "p.toml"]);
+    assert_eq!(out.status.code(), Some(2), "stdout: {}", text(&out.stdout));
+    assert!(!s.store().exists(), "a config error writes nothing");
+    assert!(s.trace().is_empty(), "a config error runs nothing");
+    text(&out.stderr)
+}
+
+fn assert_has(err: &str, parts: &[&str]) {
+    for p in parts {
+        assert!(err.contains(p), "expected `{p}` in:\n{err}");
+    }
+}
+
+#[test]
+fn operator_typo_suggests_the_nearest() {
+    let err = error_for("[stages.source]\noperator = \"write-txt\"\n");
+    assert_has(&err, &["p.toml:2: stages.source.operator: unknown operator `write-txt` for stage kind `source`", "valid: write-text", "did you mean `write-text`?"]);
+}
+
+#[test]
+fn operator_of_another_kind_is_named() {
+    let err = error_for("[stages.source]\noperator = \"shout\"\n");
+    assert_has(&err, &["p.toml:2:", "operator `shout` implements kind `map`, not `source`"]);
+}
+
+#[test]
+fn unknown_setting_lists_valid_keys() {
+    let err = error_for("[stages.source]\noperator = \"write-text\"\n\ntxet = \"x\"\n");
+    assert_has(&err, &["p.toml:4: stages.source.txet: unknown setting `txet`", "valid keys: text, steps", "did you mean `text`?"]);
+}
+
+#[test]
+fn bad_setting_value_names_the_key() {
+    let err = error_for("[stages.source]\noperator = \"write-text\"\nsteps = \"many\"\n");
+    assert_has(&err, &["p.toml:3: stages.source.steps: invalid type: string \"many\", expected u32"]);
+    let err = error_for("[stages.source]\noperator = \"write-text\"\nthreads = 0\n");
+    assert_has(&err, &["p.toml:3: stages.source.threads: must be at least 1"]);
+}
+
+#[test]
+fn bad_variant_setting_points_at_the_variant() {
+    let err = error_for("[stages.source]\noperator = \"write-text\"\n[stages.source.variants]\nok = { text = \"a\" }\nbad = { step = 3 }\n");
+    assert_has(&err, &["p.toml:5: stages.source.variants.bad.step: unknown setting `step`", "did you mean `steps`?"]);
+}
+
+#[test]
+fn unknown_pipeline_key_and_executor() {
+    let err = error_for("[pipeline]\nnmae = \"x\"\nexecutor = \"hyperqeue\"\n[stages.source]\noperator = \"write-text\"\n");
+    assert_has(&err, &["p.toml:2: pipeline.nmae: unknown key `nmae`", "did you mean `name`?", "p.toml:3: pipeline.executor: unknown executor `hyperqeue`", "valid executors: local"]);
+    assert!(err.contains("2 problems"), "{err}");
+}
+
+#[test]
+fn unknown_kind() {
+    let err = error_for("[stages.src]\noperator = \"write-text\"\n");
+    assert_has(&err, &["p.toml:1: stages.src: `src` is not a stage kind", "valid kinds: source, map, measure, remap, collect"]);
+    let err = error_for("[stages.x]\nkind = \"mesure\"\noperator = \"count\"\n");
+    assert_has(&err, &["p.toml:2: stages.x.kind: unknown stage kind `mesure`", "did you mean `measure`?"]);
+}
+
+#[test]
+fn missing_input() {
+    let err = error_for("[stages.map]\noperator = \"shout\"\n");
+    assert_has(&err, &["p.toml:1: stages.map: missing input `text`: no stage produces Text", "add a stage of kind source"]);
+}
+
+#[test]
+fn ambiguous_input() {
+    let err = error_for("[stages.a]\nkind = \"source\"\noperator = \"write-text\"\n[stages.b]\nkind = \"source\"\noperator = \"write-text\"\n[stages.map]\noperator = \"shout\"\n");
+    assert_has(&err, &["p.toml:7: stages.map: ambiguous input `text`: stages a, b all produce Text", "inputs = { text = \"a\" }"]);
+}
+
+#[test]
+fn artifact_type_mismatch() {
+    let err = error_for("[stages.source]\noperator = \"write-text\"\n[stages.m]\nkind = \"map\"\noperator = \"shout\"\n[stages.map]\noperator = \"shout\"\ninputs = { text = \"m\" }\n");
+    assert_has(&err, &["p.toml:8: stages.map.inputs.text: stage `m` produces Mapped, but slot `text` takes Text"]);
+}
+
+#[test]
+fn unknown_input_stage_and_slot() {
+    let err = error_for("[stages.source]\noperator = \"write-text\"\n[stages.map]\noperator = \"shout\"\ninputs = { txt = \"source\" }\n");
+    assert_has(&err, &["p.toml:5: stages.map.inputs.txt: unknown input slot `txt`", "did you mean `text`?"]);
+    let err = error_for("[stages.source]\noperator = \"write-text\"\n[stages.map]\noperator = \"shout\"\ninputs = { text = \"sorce\" }\n");
+    assert_has(&err, &["p.toml:5: stages.map.inputs.text: no stage named `sorce`", "did you mean `source`?"]);
+}
+
+#[test]
+fn cycles_are_caught_before_anything_runs() {
+    let err = error_for("[stages.a]\nkind = \"remap\"\noperator = \"echo\"\ninputs = { mapped = \"b\" }\n[stages.b]\nkind = \"remap\"\noperator = \"echo\"\ninputs = { mapped = \"a\" }\n");
+    assert_has(&err, &["p.toml:1: stages.a: the stages form a cycle: a -> b -> a", "break it by changing one stage's `inputs`"]);
+}
+
+#[test]
+fn invalid_toml_names_the_line() {
+    let err = error_for("[stages.source]\noperator = \"write-text\"\ntext = \n");
+    assert_has(&err, &["p.toml:3: invalid TOML"]);
+}
+
+#[test]
+fn a_pipeline_without_stages_is_an_error() {
+    let err = error_for("[pipeline]\nname = \"empty\"\n");
+    assert_has(&err, &["the pipeline has no stages"]);
+}

@@ -1,0 +1,188 @@
+//! Small operators for testing the engine end to end, on kinds of their own:
+//! `source` (-> Text) -> `map` (Text -> Mapped) -> `measure` (Mapped -> Measure) -> `collect`
+//! (gathers every Measure and Mapped); `remap` (Mapped -> Mapped) makes cycles possible.
+//!
+//! Each operator appends a line to the file named by `RLMFLOW_TEST_TRACE` when it starts and
+//! at each step, so tests can see what ran, in which process, from which checkpoint.
+
+use std::fs::{self, OpenOptions};
+use std::io::Write;
+use std::time::Duration;
+
+use anyhow::bail;
+use rlmflow_stages::{Catalog, Context, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Slot, StageKind};
+use serde::{Deserialize, Serialize};
+
+pub fn registry() -> Registry {
+    let mut r = Registry::new(Catalog { kinds: TEST_KINDS.to_vec() });
+    r.add(WriteText).add(Shout).add(Count).add(Collect).add(Echo);
+    r
+}
+
+const TEST_KINDS: &[StageKind] = &[
+    StageKind { name: "source", produces: "Text", inputs: &[] },
+    StageKind { name: "map", produces: "Mapped", inputs: &[Slot::one("text", "Text")] },
+    StageKind { name: "measure", produces: "Measure", inputs: &[Slot::one("mapped", "Mapped")] },
+    StageKind { name: "remap", produces: "Mapped", inputs: &[Slot::one("mapped", "Mapped")] },
+    StageKind {
+        name: "collect",
+        produces: "Collection",
+        inputs: &[Slot::gather("measures", "Measure"), Slot::gather("mapped", "Mapped")],
+    },
+];
+
+fn trace(line: String) {
+    if let Ok(path) = std::env::var("RLMFLOW_TEST_TRACE") {
+        let mut f = OpenOptions::new().create(true).append(true).open(path).expect("trace file");
+        writeln!(f, "{line} pid={}", std::process::id()).unwrap();
+    }
+}
+
+/// Writes `text` after `steps` steps of `step_ms`, checkpointing each step.
+pub struct WriteText;
+
+#[derive(Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct WriteTextSettings {
+    pub text: String,
+    pub steps: u32,
+    pub step_ms: u64,
+    pub fail: bool,
+    pub panic: bool,
+    pub threads: usize,
+}
+
+impl Default for WriteTextSettings {
+    fn default() -> Self {
+        WriteTextSettings { text: "hello".into(), steps: 0, step_ms: 0, fail: false, panic: false, threads: 1 }
+    }
+}
+
+impl Settings for WriteTextSettings {
+    const NON_RESULT: &'static [&'static str] = &["threads", "step_ms"];
+    fn check(&self) -> Result<(), SettingError> {
+        if self.threads == 0 {
+            return Err(SettingError::new("threads", "must be at least 1"));
+        }
+        Ok(())
+    }
+}
+
+impl Operator for WriteText {
+    type Settings = WriteTextSettings;
+    fn spec(&self) -> OperatorSpec {
+        // The version can be bumped from outside to test `operator version 1 -> 2`.
+        let version = std::env::var("RLMFLOW_TEST_VERSION").ok().and_then(|v| v.parse().ok()).unwrap_or(1);
+        OperatorSpec { name: "write-text", kind: "source", version, inputs: None, summary: "writes a text" }
+    }
+    fn resources(&self, s: &WriteTextSettings) -> Resources {
+        Resources { threads: s.threads, gpu: false }
+    }
+    fn run(&self, s: &WriteTextSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        let done_file = ctx.checkpoint_dir.join("steps-done");
+        let start: u32 = fs::read_to_string(&done_file).ok().and_then(|t| t.trim().parse().ok()).unwrap_or(0);
+        trace(format!("start write-text {} from={start} threads={}", ctx.stage, ctx.threads));
+        if s.panic {
+            panic!("asked to panic");
+        }
+        if s.fail {
+            bail!("asked to fail");
+        }
+        let progress = ctx.progress(s.steps as u64, "steps");
+        progress.set_position(start as u64);
+        for step in start..s.steps {
+            std::thread::sleep(Duration::from_millis(s.step_ms));
+            fs::write(&done_file, (step + 1).to_string())?;
+            trace(format!("step write-text {} {}", ctx.stage, step + 1));
+            progress.inc(1);
+        }
+        progress.finish();
+        ctx.event("wrote", serde_json::json!({"bytes": s.text.len()}));
+        fs::write(ctx.output_dir.join("text.txt"), &s.text)?;
+        Ok(Outcome { metrics: serde_json::json!({"chars": s.text.len()}), summary: format!("{} chars", s.text.len()) })
+    }
+}
+
+/// Upper-cases its input and appends `suffix`.
+pub struct Shout;
+
+#[derive(Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ShoutSettings {
+    pub suffix: String,
+}
+
+impl Default for ShoutSettings {
+    fn default() -> Self {
+        ShoutSettings { suffix: "!".into() }
+    }
+}
+
+impl Settings for ShoutSettings {}
+
+impl Operator for Shout {
+    type Settings = ShoutSettings;
+    fn spec(&self) -> OperatorSpec {
+        OperatorSpec { name: "shout", kind: "map", version: 1, inputs: None, summary: "upper-cases" }
+    }
+    fn run(&self, s: &ShoutSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        trace(format!("start shout {}", ctx.stage));
+        let text = fs::read_to_string(ctx.input("text")?.join("text.txt"))?;
+        fs::write(ctx.output_dir.join("mapped.txt"), format!("{}{}", text.to_uppercase(), s.suffix))?;
+        Ok(Outcome::default())
+    }
+}
+
+/// Writes the character count of its input: equal lengths give equal bytes (early cutoff).
+pub struct Count;
+
+#[derive(Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct NoSettings {}
+impl Settings for NoSettings {}
+
+impl Operator for Count {
+    type Settings = NoSettings;
+    fn spec(&self) -> OperatorSpec {
+        OperatorSpec { name: "count", kind: "measure", version: 1, inputs: None, summary: "counts characters" }
+    }
+    fn run(&self, _: &NoSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        trace(format!("start count {}", ctx.stage));
+        let text = fs::read_to_string(ctx.input("mapped")?.join("mapped.txt"))?;
+        fs::write(ctx.output_dir.join("count.txt"), text.chars().count().to_string())?;
+        Ok(Outcome::default())
+    }
+}
+
+/// Gathers every measure (and every mapped text) into one listing, by upstream label.
+pub struct Collect;
+
+impl Operator for Collect {
+    type Settings = NoSettings;
+    fn spec(&self) -> OperatorSpec {
+        OperatorSpec { name: "collect", kind: "collect", version: 1, inputs: Some(&["measures"]), summary: "gathers" }
+    }
+    fn run(&self, _: &NoSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        trace(format!("start collect {}", ctx.stage));
+        let mut listing = String::new();
+        for input in ctx.gathered("measures") {
+            listing.push_str(&format!("{} {}\n", input.label, fs::read_to_string(input.path.join("count.txt"))?));
+        }
+        fs::write(ctx.output_dir.join("listing.txt"), listing)?;
+        Ok(Outcome::default())
+    }
+}
+
+/// Copies its input (kind `remap`, which consumes what it produces).
+pub struct Echo;
+
+impl Operator for Echo {
+    type Settings = NoSettings;
+    fn spec(&self) -> OperatorSpec {
+        OperatorSpec { name: "echo", kind: "remap", version: 1, inputs: None, summary: "copies" }
+    }
+    fn run(&self, _: &NoSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        fs::copy(ctx.input("mapped")?.join("mapped.txt"), ctx.output_dir.join("mapped.txt"))?;
+        Ok(Outcome::default())
+    }
+}
