@@ -1,0 +1,107 @@
+//! `cargo bench --bench engine`: the engine's speed targets, each printed with its ratio to the
+//! target (above 1.00 meets it).
+//!
+//! * warm no-op run of a 100-stage pipeline (every stage cached), as a user runs it: a new
+//!   `rlmflow-test run` process each time; target <= 50 ms
+//! * planning 10,000 stage instances: parse, validate, fan out, compute every action key;
+//!   target <= 1 s
+//! * hashing throughput on one core, in memory and from a file; target >= 1 GB/s
+
+use std::fmt::Write as _;
+use std::path::Path;
+use std::process::Command;
+use std::time::Instant;
+
+use rlmflow_cache::{Digest, hash_file};
+
+fn median(mut xs: Vec<f64>) -> f64 {
+    xs.sort_by(f64::total_cmp);
+    xs[xs.len() / 2]
+}
+
+fn report(name: &str, value: f64, unit: &str, target: f64, higher_is_better: bool) {
+    let ratio = if higher_is_better { value / target } else { target / value };
+    let verdict = if ratio >= 1.0 { "meets" } else { "MISSES" };
+    println!("{name:<42} {value:>10.3} {unit:<5} target {target} {unit}: {ratio:.2}x ({verdict})");
+}
+
+fn warm_noop(dir: &Path) {
+    let mut text = String::from("[pipeline]\nname = \"bench100\"\n");
+    for i in 0..50 {
+        write!(text, "[stages.s{i}]\nkind = \"source\"\noperator = \"write-text\"\ntext = \"t{i}\"\n").unwrap();
+        write!(text, "[stages.m{i}]\nkind = \"map\"\noperator = \"shout\"\ninputs = {{ text = \"s{i}\" }}\n").unwrap();
+    }
+    std::fs::write(dir.join("p.toml"), text).unwrap();
+    let run = || {
+        let t0 = Instant::now();
+        let out = Command::new(env!("CARGO_BIN_EXE_rlmflow-test")).current_dir(dir).args(["run", "p.toml", "--json"]).output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        (t0.elapsed().as_secs_f64() * 1e3, String::from_utf8_lossy(&out.stdout).into_owned())
+    };
+    run(); // cold: computes all 100
+    let times: Vec<f64> = (0..21)
+        .map(|_| {
+            let (ms, out) = run();
+            assert!(out.contains(r#""reused":100"#), "the warm run reused everything");
+            ms
+        })
+        .collect();
+    report("warm no-op run, 100 stages (median of 21)", median(times), "ms", 50.0, false);
+}
+
+fn planning() {
+    let mut text = String::from("[pipeline]\nname = \"plan10k\"\n[stages.source]\noperator = \"write-text\"\n[stages.source.variants]\n");
+    for i in 0..100 {
+        writeln!(text, "v{i} = {{ text = \"t{i}\" }}").unwrap();
+    }
+    text.push_str("[stages.map]\noperator = \"shout\"\n[stages.map.variants]\n");
+    for i in 0..100 {
+        writeln!(text, "w{i} = {{ suffix = \"{i}\" }}").unwrap();
+    }
+    let registry = rlmflow_e2e::registry();
+    let times: Vec<f64> = (0..5)
+        .map(|_| {
+            let t0 = Instant::now();
+            let pipeline = rlmflow::config::parse(Path::new("plan10k.toml"), &text, &registry).unwrap();
+            let plan = rlmflow::plan::plan(&pipeline);
+            // Every instance's key, with every upstream output known.
+            let outputs: Vec<Option<Digest>> = (0..plan.instances.len()).map(|i| Some(Digest::of(&i.to_le_bytes()))).collect();
+            let keys: Vec<Digest> = (0..plan.instances.len()).map(|i| plan.preimage(i, &registry, &outputs).unwrap().key()).collect();
+            assert_eq!(keys.len(), 10_100);
+            t0.elapsed().as_secs_f64()
+        })
+        .collect();
+    report("planning 10,100 stage instances (median of 5)", median(times), "s", 1.0, false);
+}
+
+fn hashing(dir: &Path) {
+    let size = 256 << 20;
+    let data: Vec<u8> = (0..size).map(|i| (i * 2654435761usize >> 13) as u8).collect();
+    let times: Vec<f64> = (0..5)
+        .map(|_| {
+            let t0 = Instant::now();
+            std::hint::black_box(blake3::Hasher::new().update(&data).finalize());
+            t0.elapsed().as_secs_f64()
+        })
+        .collect();
+    report("BLAKE3 in memory, one core (256 MiB)", size as f64 / median(times) / 1e9, "GB/s", 1.0, true);
+    let file = dir.join("blob");
+    std::fs::write(&file, &data).unwrap();
+    let times: Vec<f64> = (0..5)
+        .map(|_| {
+            let t0 = Instant::now();
+            std::hint::black_box(hash_file(&file).unwrap());
+            t0.elapsed().as_secs_f64()
+        })
+        .collect();
+    report("hash_file, one core (256 MiB, page cache)", size as f64 / median(times) / 1e9, "GB/s", 1.0, true);
+}
+
+fn main() {
+    let dir = std::env::temp_dir().join(format!("rlmflow-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    warm_noop(&dir);
+    planning();
+    hashing(&dir);
+    let _ = std::fs::remove_dir_all(&dir);
+}
