@@ -7,11 +7,16 @@
 //! * [`context`]: what an operator is given when it runs: input paths, an output directory, a
 //!   checkpoint directory that survives a crash, the seed, a thread budget and a progress handle.
 //!
+//! * [`grid`] and [`scenes`]: artifact formats shared by more than one operator family (the
+//!   paper's ego grid; the Scenes directory layout and its reader).
+//!
 //! Nothing here knows about scheduling, caching or processes; nothing here knows machine learning.
 
 pub mod context;
+pub mod grid;
 pub mod kind;
 pub mod operator;
+pub mod scenes;
 
 pub use context::{Context, Device, Input, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};

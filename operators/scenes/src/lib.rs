@@ -1,0 +1,8 @@
+//! The `scenes` stage kind's operators. `procedural` (pure Rust) places vehicles, without
+//! dynamics, on sampled road layouts and renders them through the shared radar model.
+
+mod layout;
+mod procedural;
+mod writer;
+
+pub use procedural::{Procedural, ProceduralSettings};

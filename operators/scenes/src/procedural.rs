@@ -1,0 +1,215 @@
+//! The `procedural` operator: vehicles placed (no dynamics) on sampled road layouts, aimed at
+//! the 48 grid cells with a configurable target distribution, rendered by the radar model.
+
+use std::collections::BTreeMap;
+
+use anyhow::Context as _;
+use rand::{Rng, RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rlmflow_radar::{ImageMap, Path, RadarConfig, VehicleBox};
+use rlmflow_stages::grid::{CELLS, Cell, GridRule, SECTORS};
+use rlmflow_stages::scenes::{Actor, Frame};
+use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, SettingError, Settings};
+use serde::{Deserialize, Serialize};
+
+use crate::layout::{LAYOUTS, Layout};
+use crate::writer::SceneWriter;
+
+pub struct Procedural;
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ProceduralSettings {
+    pub frames: u64,
+    /// Road layouts to draw from, uniformly: straight, two-way, junction.
+    pub layouts: Vec<String>,
+    pub min_vehicles: usize,
+    /// At most 20, the paper's filter.
+    pub max_vehicles: usize,
+    pub truck_fraction: f64,
+    /// Relative weight of each distance bin when aiming a vehicle at a cell.
+    pub bin_weights: [f64; 4],
+    /// Relative weight of each sector (by key; missing sectors weigh 1).
+    pub sector_weights: BTreeMap<String, f64>,
+    pub radar: RadarConfig,
+    /// Render through the exact ADC-cube path instead of the fast one (much slower).
+    pub exact: bool,
+    /// Frames per checkpointed batch (does not change the result).
+    pub batch: u64,
+}
+
+impl Default for ProceduralSettings {
+    fn default() -> Self {
+        ProceduralSettings {
+            frames: 200,
+            layouts: LAYOUTS.iter().map(|s| s.to_string()).collect(),
+            min_vehicles: 2,
+            max_vehicles: 12,
+            truck_fraction: 0.15,
+            bin_weights: [1.0; 4],
+            sector_weights: BTreeMap::new(),
+            radar: RadarConfig::default(),
+            exact: false,
+            batch: 64,
+        }
+    }
+}
+
+impl Settings for ProceduralSettings {
+    const NON_RESULT: &'static [&'static str] = &["batch"];
+
+    fn check(&self) -> Result<(), SettingError> {
+        let err = |k: &str, m: String| Err(SettingError::new(k, m));
+        if self.frames == 0 {
+            return err("frames", "must be at least 1".into());
+        }
+        if self.layouts.is_empty() {
+            return err("layouts", format!("must name at least one of {}", LAYOUTS.join(", ")));
+        }
+        for l in &self.layouts {
+            if !LAYOUTS.contains(&l.as_str()) {
+                let mut e = SettingError::new("layouts", format!("unknown layout `{l}`; valid: {}", LAYOUTS.join(", ")));
+                e.valid = vec![];
+                return Err(e);
+            }
+        }
+        if self.max_vehicles > 20 {
+            return err("max_vehicles", format!("must be at most 20 (scenes over 20 vehicles are dropped, as in the paper), not {}", self.max_vehicles));
+        }
+        if self.min_vehicles > self.max_vehicles {
+            return err("min_vehicles", format!("must not exceed max_vehicles ({})", self.max_vehicles));
+        }
+        if !(0.0..=1.0).contains(&self.truck_fraction) {
+            return err("truck_fraction", "must be in [0, 1]".into());
+        }
+        if self.bin_weights.iter().any(|w| *w < 0.0) || self.bin_weights.iter().sum::<f64>() <= 0.0 {
+            return err("bin_weights", "must be non-negative with a positive sum".into());
+        }
+        for (k, w) in &self.sector_weights {
+            if !SECTORS.contains(&k.as_str()) {
+                let mut e = SettingError::new(format!("sector_weights.{k}"), format!("unknown sector `{k}`"));
+                e.valid = SECTORS.iter().map(|s| s.to_string()).collect();
+                return Err(e);
+            }
+            if *w < 0.0 {
+                return err(&format!("sector_weights.{k}"), "must be non-negative".into());
+            }
+        }
+        if self.batch == 0 {
+            return err("batch", "must be at least 1".into());
+        }
+        self.radar.check().map_err(|(k, m)| SettingError::new(format!("radar.{k}"), m))
+    }
+}
+
+impl ProceduralSettings {
+    fn cell_weights(&self) -> Vec<f64> {
+        (0..CELLS)
+            .map(|i| {
+                let c = Cell::from_index(i);
+                self.bin_weights[c.bin] * self.sector_weights.get(SECTORS[c.sector]).copied().unwrap_or(1.0)
+            })
+            .collect()
+    }
+}
+
+impl Operator for Procedural {
+    type Settings = ProceduralSettings;
+
+    fn spec(&self) -> OperatorSpec {
+        OperatorSpec {
+            name: "procedural",
+            kind: "scenes",
+            version: 1,
+            inputs: None,
+            summary: "vehicles placed on sampled road layouts to cover every grid cell, rendered by the radar model",
+        }
+    }
+
+    fn resources(&self, _: &ProceduralSettings) -> Resources {
+        Resources { threads: usize::MAX, gpu: false }
+    }
+
+    fn run(&self, s: &ProceduralSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        let map = ImageMap::new(&s.radar);
+        let mut writer = SceneWriter::resume(&ctx.checkpoint_dir, s.radar.image).context("opening the checkpoint")?;
+        let progress = ctx.progress(s.frames, "frames");
+        progress.set_position(writer.done());
+        let weights = s.cell_weights();
+        let threads = ctx.threads.max(1);
+        while writer.done() < s.frames {
+            let start = writer.done();
+            let end = (start + s.batch).min(s.frames);
+            let indices: Vec<u64> = (start..end).collect();
+            let chunk = indices.len().div_ceil(threads);
+            let batch: Vec<(Frame, Vec<u8>)> = std::thread::scope(|scope| {
+                let handles: Vec<_> = indices
+                    .chunks(chunk)
+                    .map(|part| scope.spawn(|| part.iter().map(|&i| frame(s, &map, &weights, ctx.seed, i)).collect::<Vec<_>>()))
+                    .collect();
+                handles.into_iter().flat_map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect()
+            });
+            writer.append(&batch)?;
+            progress.set_position(writer.done());
+        }
+        progress.finish();
+        let summary = writer.finish(&ctx.output_dir, s.radar.range_max_m, serde_json::to_value(s)?)?;
+        let covered = summary.cells.values().filter(|&&n| n > 0).count();
+        let vehicles: u64 = summary.vehicles_per_scene.iter().enumerate().map(|(n, f)| n as u64 * f).sum();
+        ctx.event("dataset", serde_json::json!({"frames": summary.frames, "vehicles": vehicles, "cells_covered": covered}));
+        Ok(Outcome {
+            metrics: serde_json::json!({"frames": summary.frames, "vehicles": vehicles, "cells_covered": covered, "frames_per_scenario": summary.frames_per_scenario}),
+            summary: format!("{} frames, {vehicles} vehicles, {covered}/{CELLS} cells covered", summary.frames),
+        })
+    }
+}
+
+/// Frame `index`: deterministic in (seed, index) whatever the batch or thread split.
+fn frame(s: &ProceduralSettings, map: &ImageMap, weights: &[f64], seed: u64, index: u64) -> (Frame, Vec<u8>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let chosen = &s.layouts[rng.random_range(0..s.layouts.len())];
+    let kind = LAYOUTS.iter().find(|l| *l == chosen).expect("layouts were checked against LAYOUTS");
+    let layout = Layout::sample(kind, &mut rng);
+    let rule = GridRule::default();
+    let wanted = rng.random_range(s.min_vehicles..=s.max_vehicles);
+    let mut placed: Vec<VehicleBox> = Vec::new();
+    let mut classes = Vec::new();
+    let mut attempts = 0;
+    while placed.len() < wanted && attempts < wanted * 8 {
+        attempts += 1;
+        let truck = rng.random_bool(s.truck_fraction);
+        let size = if truck { (rng.random_range(8.0..12.0), 2.5) } else { (rng.random_range(4.0..5.0), rng.random_range(1.7..1.9)) };
+        let target = Cell::from_index(weighted(weights, &mut rng));
+        if let Some(v) = layout.place(target, size, &rule, &placed, &mut rng) {
+            placed.push(v);
+            classes.push(if truck { "truck" } else { "car" });
+        }
+    }
+    let path = if s.exact { Path::Exact } else { Path::Fast };
+    let image = map.render(&placed, &layout.edges, path, &mut rng);
+    let actors = placed
+        .iter()
+        .zip(&classes)
+        .enumerate()
+        .map(|(i, (v, class))| {
+            let (row, col) = map.projection.pixel(v.x, v.y);
+            let speed = if v.heading.cos().abs() > 0.5 { rng.random_range(15.0..30.0) } else { rng.random_range(5.0..15.0) };
+            Actor { id: i as u32 + 1, class: class.to_string(), x: v.x, y: v.y, heading: v.heading, length: v.length, width: v.width, speed, row, col }
+        })
+        .collect();
+    let pixels = image.iter().map(|&v| (v * 255.0).round() as u8).collect();
+    (Frame { index, scenario: kind.to_string(), actors }, pixels)
+}
+
+fn weighted(weights: &[f64], rng: &mut impl Rng) -> usize {
+    let total: f64 = weights.iter().sum();
+    let mut x = rng.random::<f64>() * total;
+    for (i, w) in weights.iter().enumerate() {
+        if x < *w {
+            return i;
+        }
+        x -= w;
+    }
+    weights.len() - 1
+}
+

@@ -1,0 +1,136 @@
+//! The paper's ego-centric spatial grid: four 10 m distance bins by twelve lane sectors.
+//!
+//! The rule (paper appendix, "Actor State Extraction and Filtering"): actors within 40 m; ego
+//! frame with x forward and y left; a vehicle whose heading has dot product > 0.5 with the
+//! ego's is *same direction*, < -0.5 *opposing*, otherwise *other* (crossing); same-direction
+//! vehicles go to the in-lane, left or right lane by lateral offset with a 3 m lane width; and
+//! ahead / beside / behind comes from the ego's forward vector and the relative position.
+//!
+//! Choices where the paper is silent (settings of [`GridRule`]): a vehicle is *beside* when its
+//! longitudinal offset is within `beside_m` (2.5 m: about half a car length) of the ego's centre;
+//! only the left and right lanes have beside sectors, so an in-lane, opposing or other vehicle
+//! within the band counts as front when x >= 0. Lanes further out than the adjacent ones count
+//! as left or right. Headings are body headings.
+
+use serde::{Deserialize, Serialize};
+
+/// The distance bins' JSON keys, nearest first.
+pub const DISTANCE_BINS: [&str; 4] = ["0-10m", "10-20m", "20-30m", "30-40m"];
+pub const BIN_WIDTH_M: f64 = 10.0;
+pub const MAX_RANGE_M: f64 = 40.0;
+
+/// The twelve sector keys, in the paper's order.
+pub const SECTORS: [&str; 12] = [
+    "left_lane_front_side",
+    "left_side",
+    "left_lane_back_side",
+    "in_lane_front_side",
+    "in_lane_back_side",
+    "right_lane_front_side",
+    "right_side",
+    "right_lane_back_side",
+    "opposing_lane_front",
+    "opposing_lane_back",
+    "other_lane_front",
+    "other_lane_back",
+];
+
+/// Cells in the count vector: `bin * 12 + sector`.
+pub const CELLS: usize = DISTANCE_BINS.len() * SECTORS.len();
+
+/// The classification rule's thresholds.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GridRule {
+    /// Lateral width of a lane: |y| <= lane_width_m / 2 is the ego's lane.
+    pub lane_width_m: f64,
+    /// Heading dot product above which a vehicle is same-direction (below minus it: opposing).
+    pub direction_dot: f64,
+    /// Half-width of the beside band along x.
+    pub beside_m: f64,
+}
+
+impl Default for GridRule {
+    fn default() -> Self {
+        GridRule { lane_width_m: 3.0, direction_dot: 0.5, beside_m: 2.5 }
+    }
+}
+
+/// A cell: distance bin and sector index.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct Cell {
+    pub bin: usize,
+    pub sector: usize,
+}
+
+impl Cell {
+    pub fn index(&self) -> usize {
+        self.bin * SECTORS.len() + self.sector
+    }
+
+    pub fn from_index(i: usize) -> Cell {
+        Cell { bin: i / SECTORS.len(), sector: i % SECTORS.len() }
+    }
+
+    pub fn name(&self) -> String {
+        format!("{}/{}", DISTANCE_BINS[self.bin], SECTORS[self.sector])
+    }
+}
+
+impl GridRule {
+    /// The cell of a vehicle at ego-frame position (x, y) with heading `heading` relative to
+    /// the ego's; `None` beyond 40 m.
+    pub fn classify(&self, x: f64, y: f64, heading: f64) -> Option<Cell> {
+        let distance = (x * x + y * y).sqrt();
+        if distance >= MAX_RANGE_M {
+            return None;
+        }
+        let bin = ((distance / BIN_WIDTH_M) as usize).min(DISTANCE_BINS.len() - 1);
+        let dot = heading.cos();
+        let ahead = x >= 0.0;
+        let beside = x.abs() <= self.beside_m;
+        let half = self.lane_width_m / 2.0;
+        let sector = if dot > self.direction_dot {
+            match (y > half, y < -half) {
+                (true, _) if beside => 1,
+                (true, _) => if ahead { 0 } else { 2 },
+                (_, true) if beside => 6,
+                (_, true) => if ahead { 5 } else { 7 },
+                _ => if ahead { 3 } else { 4 },
+            }
+        } else if dot < -self.direction_dot {
+            if ahead { 8 } else { 9 }
+        } else if ahead {
+            10
+        } else {
+            11
+        };
+        Some(Cell { bin, sector })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::f64::consts::PI;
+
+    #[test]
+    fn the_paper_rule_classifies_each_sector() {
+        let r = GridRule::default();
+        let name = |x, y, h| r.classify(x, y, h).map(|c| c.name());
+        assert_eq!(name(5.0, 0.3, 0.1).unwrap(), "0-10m/in_lane_front_side");
+        assert_eq!(name(-15.0, -0.5, 0.0).unwrap(), "10-20m/in_lane_back_side");
+        assert_eq!(name(12.0, 3.5, 0.0).unwrap(), "10-20m/left_lane_front_side");
+        assert_eq!(name(1.0, 3.5, 0.0).unwrap(), "0-10m/left_side");
+        assert_eq!(name(-25.0, 7.0, 0.2).unwrap(), "20-30m/left_lane_back_side");
+        assert_eq!(name(0.0, -3.5, 0.0).unwrap(), "0-10m/right_side");
+        assert_eq!(name(31.0, -3.5, -0.3).unwrap(), "30-40m/right_lane_front_side");
+        assert_eq!(name(-8.0, -3.5, 0.0).unwrap(), "0-10m/right_lane_back_side");
+        assert_eq!(name(22.0, 7.0, PI).unwrap(), "20-30m/opposing_lane_front");
+        assert_eq!(name(-5.0, 7.0, PI - 0.2).unwrap(), "0-10m/opposing_lane_back");
+        assert_eq!(name(14.0, -6.0, PI / 2.0).unwrap(), "10-20m/other_lane_front");
+        assert_eq!(name(-35.0, 2.0, -PI / 2.0).unwrap(), "30-40m/other_lane_back");
+        assert_eq!(name(40.0, 0.0, 0.0), None);
+        assert_eq!(Cell::from_index(Cell { bin: 3, sector: 11 }.index()), Cell { bin: 3, sector: 11 });
+    }
+}
