@@ -213,3 +213,88 @@ fn weighted(weights: &[f64], rng: &mut impl Rng) -> usize {
     weights.len() - 1
 }
 
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+    use std::path::PathBuf;
+    use std::sync::Arc;
+
+    use rlmflow_stages::context::Silent;
+    use rlmflow_stages::scenes::Scenes;
+    use rlmflow_stages::{Device, DynOperator};
+
+    use super::*;
+
+    fn dirs(name: &str) -> (PathBuf, PathBuf) {
+        let root = std::env::temp_dir().join(format!("rlmflow-procedural-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let (out, ckpt) = (root.join("out"), root.join("ckpt"));
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::create_dir_all(&ckpt).unwrap();
+        (out, ckpt)
+    }
+
+    fn run(s: &ProceduralSettings, name: &str, threads: usize, prefill: Option<u64>) -> (Vec<u8>, String) {
+        let (out, ckpt) = dirs(name);
+        if let Some(n) = prefill {
+            // A previous attempt recorded `n` frames, then was killed while writing the next
+            // batch (extra bytes past the recorded count).
+            let mut writer = SceneWriter::resume(&ckpt, s.radar.image).unwrap();
+            let map = ImageMap::new(&s.radar);
+            let frames: Vec<_> = (0..n).map(|i| frame(s, &map, &s.cell_weights(), 7, i)).collect();
+            writer.append(&frames).unwrap();
+            let side = s.radar.image as u64;
+            std::fs::OpenOptions::new().append(true).open(ckpt.join("heatmaps.u8.part")).unwrap().set_len(n * side * side + 100).unwrap();
+        }
+        let mut ctx = Context::new("scenes".into(), BTreeMap::new(), out.clone(), ckpt, 7, threads, Device::Cpu, Arc::new(Silent));
+        Operator::run(&Procedural, s, &mut ctx).unwrap();
+        (std::fs::read(out.join("heatmaps.u8")).unwrap(), std::fs::read_to_string(out.join("frames.jsonl")).unwrap())
+    }
+
+    fn small() -> ProceduralSettings {
+        ProceduralSettings { frames: 24, batch: 8, radar: RadarConfig { image: 32, ..RadarConfig::default() }, ..ProceduralSettings::default() }
+    }
+
+    #[test]
+    fn output_depends_on_seed_and_settings_only_not_on_batches_threads_or_resumes() {
+        let reference = run(&small(), "ref", 1, None);
+        assert_eq!(reference, run(&ProceduralSettings { batch: 5, ..small() }, "batch", 2, None));
+        assert_eq!(reference, run(&small(), "resume", 2, Some(8)));
+        assert_ne!(reference, run(&ProceduralSettings { truck_fraction: 0.9, ..small() }, "other", 1, None));
+    }
+
+    #[test]
+    fn the_artifact_reads_back_with_actor_pixels_and_statistics() {
+        let (out, ckpt) = dirs("read");
+        let s = small();
+        let mut ctx = Context::new("scenes".into(), BTreeMap::new(), out.clone(), ckpt, 3, 2, Device::Cpu, Arc::new(Silent));
+        let outcome = Operator::run(&Procedural, &s, &mut ctx).unwrap();
+        let scenes = Scenes::open(&out).unwrap();
+        let frames = scenes.frames().unwrap();
+        assert_eq!(frames.len(), 24);
+        assert_eq!(scenes.summary.frames, 24);
+        assert_eq!(scenes.summary.vehicles_per_scene.iter().sum::<u64>(), 24);
+        let vehicles: usize = frames.iter().map(|f| f.actors.len()).sum();
+        assert_eq!(scenes.summary.cells.values().sum::<u64>() as usize, vehicles, "every placed vehicle is within 40 m");
+        assert_eq!(outcome.metrics["vehicles"], vehicles);
+        for f in &frames {
+            assert!((s.min_vehicles..=s.max_vehicles).contains(&f.actors.len()) || f.actors.len() < s.min_vehicles);
+            for a in &f.actors {
+                assert!(a.row >= 0.0 && a.row < 32.0 * 40.0 / 44.0 + 1.0 && (0.0..32.0).contains(&a.col), "{a:?}");
+            }
+        }
+        assert_eq!(scenes.heatmap(23).unwrap().len(), 32 * 32);
+        assert!(scenes.heatmap(24).is_err());
+    }
+
+    #[test]
+    fn impossible_settings_name_their_key() {
+        let check = |v: serde_json::Value| Procedural.settings(v).unwrap_err();
+        assert_eq!(check(serde_json::json!({"max_vehicles": 21})).key, "max_vehicles");
+        assert_eq!(check(serde_json::json!({"layouts": ["highway"]})).message, "unknown layout `highway`; valid: straight, two-way, junction");
+        assert_eq!(check(serde_json::json!({"sector_weights": {"left_lane": 2.0}})).key, "sector_weights.left_lane");
+        assert_eq!(check(serde_json::json!({"radar": {"range_max_m": 60.0}})).key, "radar.range_max_m");
+        assert_eq!(check(serde_json::json!({"radar": {"imag": 64}})).key, "radar.imag");
+    }
+}
