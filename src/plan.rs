@@ -251,3 +251,105 @@ pub fn why(store: Option<&Store>, last: Option<&Digest>, key: &Digest, now: &Pre
         })
         .collect())
 }
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use rlmflow_stages::{Catalog, Context, Operator, OperatorSpec, Outcome, Registry, Settings, Slot, StageKind};
+    use serde::{Deserialize, Serialize};
+
+    use super::*;
+    use crate::config::parse;
+
+    #[derive(Serialize, Deserialize, Default)]
+    #[serde(default, deny_unknown_fields)]
+    struct Knob {
+        k: i64,
+        nested: Nested,
+    }
+    #[derive(Serialize, Deserialize, Default)]
+    #[serde(default, deny_unknown_fields)]
+    struct Nested {
+        a: i64,
+        b: i64,
+    }
+    impl Settings for Knob {}
+
+    struct Op(&'static str, &'static str);
+    impl Operator for Op {
+        type Settings = Knob;
+        fn spec(&self) -> OperatorSpec {
+            OperatorSpec { name: self.0, kind: self.1, version: 1, inputs: None, summary: "" }
+        }
+        fn run(&self, _: &Knob, _: &mut Context) -> anyhow::Result<Outcome> {
+            Ok(Outcome::default())
+        }
+    }
+
+    const KINDS: &[StageKind] = &[
+        StageKind { name: "a", produces: "A", inputs: &[] },
+        StageKind { name: "b", produces: "B", inputs: &[] },
+        StageKind { name: "c", produces: "C", inputs: &[Slot::one("a", "A"), Slot::one("b", "B")] },
+        StageKind { name: "d", produces: "D", inputs: &[Slot::gather("c", "C")] },
+    ];
+
+    fn registry() -> Registry {
+        let mut r = Registry::new(Catalog { kinds: KINDS.to_vec() });
+        r.add(Op("oa", "a")).add(Op("ob", "b")).add(Op("oc", "c")).add(Op("od", "d"));
+        r
+    }
+
+    const TWO_DIMS: &str = r#"
+[stages.a]
+operator = "oa"
+nested = { a = 1, b = 2 }
+variants = { x = { k = 1 }, y = { nested = { b = 5 } } }
+[stages.b]
+operator = "ob"
+variants = { p = { k = 3 }, q = { k = 4 } }
+[stages.c]
+operator = "oc"
+[stages.d]
+operator = "od"
+"#;
+
+    #[test]
+    fn two_variant_dimensions_fan_out_as_their_product_and_gather_into_one() {
+        let r = registry();
+        let p = parse(Path::new("t.toml"), TWO_DIMS, &r).unwrap();
+        let plan = plan(&p);
+        let labels: Vec<&str> = plan.instances.iter().map(|i| i.label.as_str()).collect();
+        assert_eq!(
+            labels,
+            ["a[x]", "a[y]", "b[p]", "b[q]", "c[a=x,b=p]", "c[a=x,b=q]", "c[a=y,b=p]", "c[a=y,b=q]", "d"]
+        );
+        // c[a=y,b=q] reads a[y] and b[q].
+        let c = &plan.instances[7];
+        let inputs: Vec<&str> = c.inputs.iter().map(|i| plan.instances[i.providers[0]].label.as_str()).collect();
+        assert_eq!(inputs, ["a[y]", "b[q]"]);
+        assert_eq!(plan.instances[8].inputs[0].providers, [4, 5, 6, 7]);
+    }
+
+    #[test]
+    fn variant_overrides_merge_into_nested_tables() {
+        let r = registry();
+        let p = parse(Path::new("t.toml"), TWO_DIMS, &r).unwrap();
+        let plan = plan(&p);
+        assert_eq!(plan.instances[0].settings, serde_json::json!({"k": 1, "nested": {"a": 1, "b": 2}}));
+        assert_eq!(plan.instances[1].settings, serde_json::json!({"k": 0, "nested": {"a": 1, "b": 5}}));
+    }
+
+    #[test]
+    fn gathered_labels_enter_the_key_but_single_input_labels_do_not() {
+        let r = registry();
+        let p = parse(Path::new("t.toml"), TWO_DIMS, &r).unwrap();
+        let plan = plan(&p);
+        let outputs: Vec<Option<Digest>> = (0..plan.instances.len()).map(|i| Some(Digest::of(&[i as u8]))).collect();
+        let c = plan.preimage(7, &r, &outputs).unwrap();
+        assert!(c.inputs.iter().all(|i| i.label.is_empty()));
+        let d = plan.preimage(8, &r, &outputs).unwrap();
+        let labels: Vec<&str> = d.inputs.iter().map(|i| i.label.as_str()).collect();
+        assert_eq!(labels, ["c[a=x,b=p]", "c[a=x,b=q]", "c[a=y,b=p]", "c[a=y,b=q]"]);
+    }
+}
