@@ -145,7 +145,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             }
             let jobs = jobs.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())).max(1);
             let store = Store::open(&root)?;
-            let summary = run(&plan, registry, &store, &selected, &RunOptions { dry_run, only, jobs, json, device })?;
+            let summary = run(&plan, registry, &store, &selected, &RunOptions { jobs, json, device })?;
             Ok(if summary.failed > 0 { ExitCode::FAILURE } else { ExitCode::SUCCESS })
         }
         Command::Status { pipeline, json, store } => {
@@ -232,7 +232,7 @@ fn existing_store(registry: &Registry, pipeline: Option<&Path>, arg: &StoreArg) 
     Store::open_existing(&root)?.with_context(|| format!("no rlmflow store at {}", root.display()))
 }
 
-fn instances_of<'a>(plan: &'a crate::plan::Plan, stage: &str) -> anyhow::Result<Vec<usize>> {
+fn instances_of(plan: &crate::plan::Plan, stage: &str) -> anyhow::Result<Vec<usize>> {
     let Some(s) = plan.pipeline.stage(stage) else {
         let names = plan.pipeline.stage_names();
         bail!("no stage named `{stage}`; stages: {}{}", names.join(", "), config::suggest(stage, &names));

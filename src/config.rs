@@ -222,13 +222,12 @@ impl Checker {
         let cache = self.string(header, "pipeline", "cache").unwrap_or_else(|| ".rlmflow".into());
         let cache = file.parent().unwrap_or(Path::new(".")).join(cache);
         let cache = std::path::absolute(&cache).unwrap_or(cache);
-        if let Some(executor) = self.string(header, "pipeline", "executor") {
-            if !EXECUTORS.contains(&executor.as_str()) {
+        if let Some(executor) = self.string(header, "pipeline", "executor")
+            && !EXECUTORS.contains(&executor.as_str()) {
                 let help = format!("valid executors: {}{}", EXECUTORS.join(", "), suggest(&executor, EXECUTORS));
                 let msg = format!("unknown executor `{executor}`");
                 self.error(self.line("pipeline.executor"), "pipeline.executor", msg, Some(help));
             }
-        }
 
         let stages_table = match root.get("stages") {
             Some(Value::Object(t)) if !t.is_empty() => t.clone(),

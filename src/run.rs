@@ -21,8 +21,6 @@ use crate::plan::{Freshness, Plan, assess, why};
 
 #[derive(Clone, Debug)]
 pub struct RunOptions {
-    pub dry_run: bool,
-    pub only: Vec<String>,
     /// The CPU-thread budget shared by concurrently running stages.
     pub jobs: usize,
     pub json: bool,

@@ -111,11 +111,10 @@ impl Preimage {
         }
         for new in &self.inputs {
             let same_slot = |o: &&InputDigest| o.slot == new.slot && o.label == new.label;
-            if let Some(o) = old.inputs.iter().find(same_slot) {
-                if o.digest != new.digest {
+            if let Some(o) = old.inputs.iter().find(same_slot)
+                && o.digest != new.digest {
                     changes.push(Change::InputChanged { slot: new.slot.clone(), label: new.label.clone() });
                 }
-            }
         }
         changes
     }

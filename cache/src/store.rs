@@ -185,11 +185,10 @@ impl Store {
         for shard in read_dir_sorted(&self.root.join("objects"))? {
             for entry in read_dir_sorted(&shard)? {
                 let name = entry.file_name().unwrap().to_string_lossy().into_owned();
-                if let Some(hex) = name.strip_suffix(".tree") {
-                    if let Ok(d) = hex.parse() {
+                if let Some(hex) = name.strip_suffix(".tree")
+                    && let Ok(d) = hex.parse() {
                         out.push(d);
                     }
-                }
             }
         }
         Ok(out)

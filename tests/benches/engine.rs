@@ -76,7 +76,7 @@ fn planning() {
 
 fn hashing(dir: &Path) {
     let size = 256 << 20;
-    let data: Vec<u8> = (0..size).map(|i| (i * 2654435761usize >> 13) as u8).collect();
+    let data: Vec<u8> = (0..size).map(|i| ((i * 2654435761usize) >> 13) as u8).collect();
     let times: Vec<f64> = (0..5)
         .map(|_| {
             let t0 = Instant::now();

@@ -157,9 +157,9 @@ mod tests {
         let mut reached = [false; CELLS];
         for _ in 0..400 {
             let layout = Layout::sample("junction", &mut rng);
-            for i in 0..CELLS {
+            for (i, hit) in reached.iter_mut().enumerate() {
                 if layout.place(Cell::from_index(i), (4.5, 1.8), &rule, &[], &mut rng).is_some() {
-                    reached[i] = true;
+                    *hit = true;
                 }
             }
         }
