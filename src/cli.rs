@@ -270,9 +270,8 @@ fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> any
             }
             Freshness::Pending { reason } => {
                 println!("  pending: {reason}; its key is known once that input is");
-                if let (Some(s), Some(old)) = (&store, last.get(label)) {
-                    let before = s.record(old)?.map(|r| r.preimage).or(s.request(old)?.map(|r| r.preimage));
-                    if let Some(before) = before {
+                if let (Some(s), Some(old)) = (&store, last.get(label))
+                    && let Some(before) = crate::plan::previous_preimage(s, old)? {
                         let unknown = rlmflow_cache::Digest([0; 32]);
                         let outputs: Vec<Option<Digest>> = states
                             .iter()
@@ -281,22 +280,14 @@ fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> any
                         let now = plan.preimage(i, registry, &outputs).unwrap();
                         for change in now.diff(&before) {
                             if !matches!(&change, rlmflow_cache::Change::InputChanged { .. }) {
-                                println!("    {}", change_line(&p.stages[plan.instances[i].stage].name, &change));
+                                println!("    {}", crate::plan::describe(&p.stages[plan.instances[i].stage].name, &change));
                             }
                         }
                     }
-                }
             }
         }
     }
     Ok(ExitCode::SUCCESS)
-}
-
-fn change_line(stage: &str, change: &rlmflow_cache::Change) -> String {
-    match change {
-        rlmflow_cache::Change::Setting { .. } => format!("{stage}.{change}"),
-        _ => change.to_string(),
-    }
 }
 
 fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {

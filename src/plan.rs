@@ -232,24 +232,30 @@ pub fn why(store: Option<&Store>, last: Option<&Digest>, key: &Digest, now: &Pre
             None => "its last attempt did not finish".into(),
         }]);
     }
-    let before = match store.record(last)? {
-        Some(r) => Some(r.preimage),
-        None => store.request(last)?.map(|r| r.preimage),
-    };
-    let Some(before) = before else {
+    let Some(before) = previous_preimage(store, last)? else {
         return Ok(vec!["changed since its last run (whose record was collected)".into()]);
     };
     let changes = now.diff(&before);
     if changes.is_empty() {
         return Ok(vec!["changed since its last run".into()]);
     }
-    Ok(changes
-        .iter()
-        .map(|c| match c {
-            Change::Setting { .. } => format!("{stage}.{c}"),
-            _ => c.to_string(),
-        })
-        .collect())
+    Ok(changes.iter().map(|c| describe(stage, c)).collect())
+}
+
+/// The preimage of an earlier action: from its record, or from its request if it never finished.
+pub fn previous_preimage(store: &Store, key: &Digest) -> anyhow::Result<Option<Preimage>> {
+    Ok(match store.record(key)? {
+        Some(r) => Some(r.preimage),
+        None => store.request(key)?.map(|r| r.preimage),
+    })
+}
+
+/// A change as `status` prints it: settings are prefixed with the stage (`pretrain.alpha ...`).
+pub fn describe(stage: &str, change: &Change) -> String {
+    match change {
+        Change::Setting { .. } => format!("{stage}.{change}"),
+        _ => change.to_string(),
+    }
 }
 
 #[cfg(test)]

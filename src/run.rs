@@ -12,7 +12,7 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
-use rlmflow_cache::{ActionRequest, Digest, PlanEntry, Preimage, RunPlan, Store, now_rfc3339, run_id};
+use rlmflow_cache::{ActionRequest, Digest, PlanEntry, Preimage, RunPlan, Store, file_safe, now_rfc3339, run_id};
 use rlmflow_stages::{Device, Registry};
 use serde_json::{Value, json};
 
@@ -305,9 +305,13 @@ impl Executor<'_> {
         Ok(())
     }
 
+    fn log_path(&self, label: &str) -> PathBuf {
+        self.store.run_dir(&self.run).join("logs").join(format!("{}.log", file_safe(label)))
+    }
+
     fn spawn(&self, i: usize, key: Digest, threads: usize, tx: mpsc::Sender<(usize, Report)>) -> anyhow::Result<()> {
         let label = &self.plan.instances[i].label;
-        let log_path = self.store.run_dir(&self.run).join("logs").join(format!("{}.log", file_safe(label)));
+        let log_path = self.log_path(label);
         let log = Arc::new(Mutex::new(File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?));
         let exe = std::env::current_exe().context("locating the rlmflow executable")?;
         let mut cmd = Command::new(exe);
@@ -390,7 +394,7 @@ impl Executor<'_> {
                 };
                 self.states[i] = State::Failed;
                 self.results[i] = Some((Outcome::Failed, 0.0));
-                let log = self.store.run_dir(&self.run).join("logs").join(format!("{}.log", file_safe(&label)));
+                let log = self.log_path(&label);
                 self.events.write("stage_finished", json!({"stage": label, "status": "failed", "key": key, "error": message, "log": log, "duration_s": secs}))?;
                 self.ui.say(format!("  FAILED   {label}  {secs:.1}s  {message}\n           log: {}", log.display()));
             }
@@ -420,10 +424,6 @@ fn die_with_parent(cmd: &mut Command) {
             Ok(())
         });
     }
-}
-
-pub fn file_safe(label: &str) -> String {
-    label.chars().map(|c| if c.is_ascii_alphanumeric() || "-_.".contains(c) { c } else { '_' }).collect()
 }
 
 /// `runs/<id>/events.jsonl`: one JSON object per line, flushed as written, so a killed run

@@ -163,7 +163,7 @@ impl Store {
         if actual.digest == *digest && crate::Digest::of(manifest.as_bytes()) == *digest {
             return Ok(None);
         }
-        let files = damaged_files(&self.object_dir(digest), &manifest)?;
+        let files = damaged_files(&actual.manifest, &manifest);
         Ok(Some(Corruption { digest: *digest, files }))
     }
 
@@ -330,7 +330,7 @@ impl Store {
     }
 
     fn pipeline_ref(&self, pipeline: &str) -> PathBuf {
-        self.root.join("refs/pipelines").join(format!("{}.json", sanitize(pipeline)))
+        self.root.join("refs/pipelines").join(format!("{}.json", file_safe(pipeline)))
     }
 
     /// The key each stage instance of `pipeline` had in its latest run.
@@ -347,7 +347,7 @@ impl Store {
 
     /// Pins keys under a name, so `gc` keeps them and everything they used.
     pub fn pin(&self, name: &str, keys: &BTreeMap<String, Digest>) -> anyhow::Result<PathBuf> {
-        let path = self.root.join("refs/pins").join(format!("{}.json", sanitize(name)));
+        let path = self.root.join("refs/pins").join(format!("{}.json", file_safe(name)));
         atomic_write(self, &path, &serde_json::to_vec_pretty(keys)?)?;
         Ok(path)
     }
@@ -359,7 +359,9 @@ impl Store {
     }
 }
 
-fn sanitize(name: &str) -> String {
+/// `name` with every character but ASCII letters, digits, `-`, `_` and `.` replaced by `_`,
+/// for file names derived from pipeline, pin and stage names.
+pub fn file_safe(name: &str) -> String {
     name.chars().map(|c| if c.is_ascii_alphanumeric() || "-_.".contains(c) { c } else { '_' }).collect()
 }
 
