@@ -118,7 +118,11 @@ pub fn main(registry: Registry) -> ExitCode {
             if let Some(config) = e.downcast_ref::<ConfigError>() {
                 eprintln!("{config}");
                 let n = config.diagnostics.len();
-                eprintln!("error: {} in {}; nothing was run", if n == 1 { "1 problem".into() } else { format!("{n} problems") }, config.file.display());
+                eprintln!(
+                    "error: {} in {}; nothing was run",
+                    if n == 1 { "1 problem".into() } else { format!("{n} problems") },
+                    config.file.display()
+                );
                 return ExitCode::from(2);
             }
             eprintln!("error: {e:#}");
@@ -271,19 +275,18 @@ fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> any
             Freshness::Pending { reason } => {
                 println!("  pending: {reason}; its key is known once that input is");
                 if let (Some(s), Some(old)) = (&store, last.get(label))
-                    && let Some(before) = crate::plan::previous_preimage(s, old)? {
-                        let unknown = rlmflow_cache::Digest([0; 32]);
-                        let outputs: Vec<Option<Digest>> = states
-                            .iter()
-                            .map(|st| Some(if let Freshness::Cached(r) = st { r.output } else { unknown }))
-                            .collect();
-                        let now = plan.preimage(i, registry, &outputs).unwrap();
-                        for change in now.diff(&before) {
-                            if !matches!(&change, rlmflow_cache::Change::InputChanged { .. }) {
-                                println!("    {}", crate::plan::describe(&p.stages[plan.instances[i].stage].name, &change));
-                            }
+                    && let Some(before) = crate::plan::previous_preimage(s, old)?
+                {
+                    let unknown = rlmflow_cache::Digest([0; 32]);
+                    let outputs: Vec<Option<Digest>> =
+                        states.iter().map(|st| Some(if let Freshness::Cached(r) = st { r.output } else { unknown })).collect();
+                    let now = plan.preimage(i, registry, &outputs).unwrap();
+                    for change in now.diff(&before) {
+                        if !matches!(&change, rlmflow_cache::Change::InputChanged { .. }) {
+                            println!("    {}", crate::plan::describe(&p.stages[plan.instances[i].stage].name, &change));
                         }
                     }
+                }
             }
         }
     }

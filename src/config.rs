@@ -103,8 +103,7 @@ const EXECUTORS: &[&str] = &["local"];
 
 /// Reads and validates a pipeline file.
 pub fn load(file: &Path, registry: &Registry) -> anyhow::Result<Pipeline> {
-    let text = std::fs::read_to_string(file)
-        .map_err(|e| anyhow::anyhow!("cannot read pipeline {}: {e}", file.display()))?;
+    let text = std::fs::read_to_string(file).map_err(|e| anyhow::anyhow!("cannot read pipeline {}: {e}", file.display()))?;
     parse(file, &text, registry).map_err(anyhow::Error::new)
 }
 
@@ -223,11 +222,12 @@ impl Checker {
         let cache = file.parent().unwrap_or(Path::new(".")).join(cache);
         let cache = std::path::absolute(&cache).unwrap_or(cache);
         if let Some(executor) = self.string(header, "pipeline", "executor")
-            && !EXECUTORS.contains(&executor.as_str()) {
-                let help = format!("valid executors: {}{}", EXECUTORS.join(", "), suggest(&executor, EXECUTORS));
-                let msg = format!("unknown executor `{executor}`");
-                self.error(self.line("pipeline.executor"), "pipeline.executor", msg, Some(help));
-            }
+            && !EXECUTORS.contains(&executor.as_str())
+        {
+            let help = format!("valid executors: {}{}", EXECUTORS.join(", "), suggest(&executor, EXECUTORS));
+            let msg = format!("unknown executor `{executor}`");
+            self.error(self.line("pipeline.executor"), "pipeline.executor", msg, Some(help));
+        }
 
         let stages_table = match root.get("stages") {
             Some(Value::Object(t)) if !t.is_empty() => t.clone(),
@@ -277,12 +277,7 @@ impl Checker {
     }
 
     /// Checks one stage table; returns it with its explicit `inputs` (slot -> stage names).
-    fn stage(
-        &mut self,
-        name: &str,
-        table: &Map<String, Value>,
-        registry: &Registry,
-    ) -> Option<(Stage, BTreeMap<String, Vec<String>>)> {
+    fn stage(&mut self, name: &str, table: &Map<String, Value>, registry: &Registry) -> Option<(Stage, BTreeMap<String, Vec<String>>)> {
         let path = format!("stages.{name}");
         let line = self.line(&path);
         let kind_name = self.string(table, &path, "kind").unwrap_or_else(|| name.to_owned());
@@ -386,9 +381,7 @@ impl Checker {
                     }
                     let names = match value {
                         Value::String(s) => vec![s.clone()],
-                        Value::Array(items) if items.iter().all(Value::is_string) => {
-                            items.iter().map(|v| v.as_str().unwrap().to_owned()).collect()
-                        }
+                        Value::Array(items) if items.iter().all(Value::is_string) => items.iter().map(|v| v.as_str().unwrap().to_owned()).collect(),
                         _ => {
                             let msg = "must be a stage name or a list of stage names".into();
                             self.error(self.line(&key), &key, msg, None);
@@ -407,14 +400,7 @@ impl Checker {
         if checked.is_empty() {
             return None;
         }
-        let stage = Stage {
-            name: name.to_owned(),
-            kind,
-            operator: op_name,
-            variants: checked,
-            bindings: Vec::new(),
-            line,
-        };
+        let stage = Stage { name: name.to_owned(), kind, operator: op_name, variants: checked, bindings: Vec::new(), line };
         Some((stage, inputs))
     }
 
@@ -456,16 +442,10 @@ impl Checker {
                         found
                     }
                     None => {
-                        let candidates: Vec<usize> = (0..stages.len())
-                            .filter(|&p| p != i && stages[p].kind.produces == slot.artifact)
-                            .collect();
+                        let candidates: Vec<usize> = (0..stages.len()).filter(|&p| p != i && stages[p].kind.produces == slot.artifact).collect();
                         if slot.arity == Arity::One && candidates.len() > 1 {
                             let list: Vec<&str> = candidates.iter().map(|&p| names[p].as_str()).collect();
-                            let msg = format!(
-                                "ambiguous input `{slot_name}`: stages {} all produce {}",
-                                list.join(", "),
-                                slot.artifact
-                            );
+                            let msg = format!("ambiguous input `{slot_name}`: stages {} all produce {}", list.join(", "), slot.artifact);
                             let help = format!("choose one: inputs = {{ {slot_name} = \"{}\" }}", list[0]);
                             self.error(stages[i].line, &path, msg, Some(help));
                             continue;
@@ -475,13 +455,7 @@ impl Checker {
                 };
                 if providers.is_empty() {
                     if slot.need == Need::Required && !explicit[i].contains_key(slot_name) {
-                        let kinds: Vec<&str> = registry
-                            .catalog
-                            .kinds
-                            .iter()
-                            .filter(|k| k.produces == slot.artifact)
-                            .map(|k| k.name)
-                            .collect();
+                        let kinds: Vec<&str> = registry.catalog.kinds.iter().filter(|k| k.produces == slot.artifact).map(|k| k.name).collect();
                         let msg = format!("missing input `{slot_name}`: no stage produces {}", slot.artifact);
                         let help = format!("add a stage of kind {}", kinds.join(" or "));
                         self.error(stages[i].line, &path, msg, Some(help));

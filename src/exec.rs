@@ -30,11 +30,25 @@ pub enum Message {
     Waiting,
     /// The action was completed by another process meanwhile.
     Reused,
-    Progress { position: u64, length: u64, message: String },
-    Event { name: String, data: Value },
-    CorruptInput { digest: Digest, files: Vec<String> },
-    Done { output: Digest },
-    Failed { message: String },
+    Progress {
+        position: u64,
+        length: u64,
+        message: String,
+    },
+    Event {
+        name: String,
+        data: Value,
+    },
+    CorruptInput {
+        digest: Digest,
+        files: Vec<String>,
+    },
+    Done {
+        output: Digest,
+    },
+    Failed {
+        message: String,
+    },
 }
 
 pub fn send(message: &Message) {
@@ -59,9 +73,7 @@ impl Reporter for StdoutReporter {
 pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, device: Device) -> anyhow::Result<i32> {
     let store = Store::open_existing(store)?.with_context(|| format!("no rlmflow store at {}", store.display()))?;
     let _shared = store.lock_shared()?;
-    let request = store
-        .request(&key)?
-        .with_context(|| format!("the store has no request for action {key}; `rlmflow run` writes it"))?;
+    let request = store.request(&key)?.with_context(|| format!("the store has no request for action {key}; `rlmflow run` writes it"))?;
     let _lock = match store.try_lock_action(&key)? {
         Some(lock) => lock,
         None => {
@@ -75,9 +87,7 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
     }
     store.sweep_tmp(Some(&key))?;
     let preimage = &request.preimage;
-    let op = registry
-        .get(&preimage.operator)
-        .with_context(|| format!("this rlmflow has no operator `{}`", preimage.operator))?;
+    let op = registry.get(&preimage.operator).with_context(|| format!("this rlmflow has no operator `{}`", preimage.operator))?;
 
     let mut inputs: BTreeMap<String, Vec<Input>> = BTreeMap::new();
     for input in &preimage.inputs {

@@ -81,8 +81,7 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                             vec![by_assignment[&(p, key)]]
                         }
                         Arity::All => {
-                            let mut all: Vec<usize> =
-                                (0..instances.len()).filter(|&i| b.providers.contains(&instances[i].stage)).collect();
+                            let mut all: Vec<usize> = (0..instances.len()).filter(|&i| b.providers.contains(&instances[i].stage)).collect();
                             all.sort_by(|&x, &y| instances[x].label.cmp(&instances[y].label));
                             all
                         }
@@ -161,13 +160,7 @@ impl Plan<'_> {
                 map.remove(*key);
             }
         }
-        Some(Preimage {
-            operator: stage.operator.clone(),
-            operator_version: op.spec().version,
-            config,
-            seed: self.pipeline.seed,
-            inputs,
-        })
+        Some(Preimage { operator: stage.operator.clone(), operator_version: op.spec().version, config, seed: self.pipeline.seed, inputs })
     }
 }
 
@@ -176,9 +169,15 @@ impl Plan<'_> {
 pub enum Freshness {
     Cached(Box<ActionRecord>),
     /// Its key is known and not in the store.
-    Stale { key: Digest, reasons: Vec<String>, preimage: Box<Preimage> },
+    Stale {
+        key: Digest,
+        reasons: Vec<String>,
+        preimage: Box<Preimage>,
+    },
     /// An input will be recomputed first, so its key is not known yet.
-    Pending { reason: String },
+    Pending {
+        reason: String,
+    },
 }
 
 /// The freshness of every instance, against `store` (`None`: nothing was ever run).
@@ -326,10 +325,7 @@ operator = "od"
         let p = parse(Path::new("t.toml"), TWO_DIMS, &r).unwrap();
         let plan = plan(&p);
         let labels: Vec<&str> = plan.instances.iter().map(|i| i.label.as_str()).collect();
-        assert_eq!(
-            labels,
-            ["a[x]", "a[y]", "b[p]", "b[q]", "c[a=x,b=p]", "c[a=x,b=q]", "c[a=y,b=p]", "c[a=y,b=q]", "d"]
-        );
+        assert_eq!(labels, ["a[x]", "a[y]", "b[p]", "b[q]", "c[a=x,b=p]", "c[a=x,b=q]", "c[a=y,b=p]", "c[a=y,b=q]", "d"]);
         // c[a=y,b=q] reads a[y] and b[q].
         let c = &plan.instances[7];
         let inputs: Vec<&str> = c.inputs.iter().map(|i| plan.instances[i.providers[0]].label.as_str()).collect();

@@ -134,7 +134,8 @@ impl Executor<'_> {
         let clock = Instant::now();
         let p = self.plan.pipeline;
         let selected = self.states.iter().filter(|s| !matches!(s, State::Excluded)).count();
-        self.events.write("run_started", json!({"run": self.run, "pipeline": p.name, "file": p.file, "instances": selected, "jobs": self.opts.jobs}))?;
+        self.events
+            .write("run_started", json!({"run": self.run, "pipeline": p.name, "file": p.file, "instances": selected, "jobs": self.opts.jobs}))?;
         self.ui.say(format!("rlmflow run {} ({} stage instances, {} threads, run {})", p.file.display(), selected, self.opts.jobs, self.run));
 
         let (tx, rx) = mpsc::channel::<(usize, Report)>();
@@ -216,12 +217,7 @@ impl Executor<'_> {
 
     fn summary(&self) -> Summary {
         let count = |o: Outcome| self.results.iter().flatten().filter(|r| r.0 == o).count();
-        Summary {
-            ran: count(Outcome::Ran),
-            reused: count(Outcome::Reused),
-            failed: count(Outcome::Failed),
-            skipped: count(Outcome::Skipped),
-        }
+        Summary { ran: count(Outcome::Ran), reused: count(Outcome::Reused), failed: count(Outcome::Failed), skipped: count(Outcome::Skipped) }
     }
 
     /// Moves waiting instances whose inputs are settled to ready, reused or skipped.
@@ -237,7 +233,8 @@ impl Executor<'_> {
                 self.states[i] = State::Skipped;
                 self.results[i] = Some((Outcome::Skipped, 0.0));
                 let label = inst.label.clone();
-                self.events.write("stage_finished", json!({"stage": label, "status": "skipped", "reason": format!("upstream {upstream} did not finish")}))?;
+                self.events
+                    .write("stage_finished", json!({"stage": label, "status": "skipped", "reason": format!("upstream {upstream} did not finish")}))?;
                 self.ui.say(format!("  skipped  {label}  (upstream {upstream} did not finish)"));
                 continue;
             }
@@ -252,7 +249,10 @@ impl Executor<'_> {
             if let Some(record) = self.store.fresh(&key)? {
                 self.states[i] = State::Done { output: record.output };
                 self.results[i] = Some((Outcome::Reused, record.duration_s));
-                self.events.write("stage_finished", json!({"stage": inst.label, "status": "reused", "key": key, "output": record.output, "saved_s": record.duration_s}))?;
+                self.events.write(
+                    "stage_finished",
+                    json!({"stage": inst.label, "status": "reused", "key": key, "output": record.output, "saved_s": record.duration_s}),
+                )?;
                 self.ui.say(format!("  reused   {}  ({:.1}s saved)", inst.label, record.duration_s));
                 continue;
             }
@@ -281,25 +281,12 @@ impl Executor<'_> {
             .iter()
             .enumerate()
             .filter(|(i, _)| !matches!(self.states[*i], State::Excluded))
-            .map(|(i, inst)| PlanEntry {
-                label: inst.label.clone(),
-                stage: self.plan.pipeline.stages[inst.stage].name.clone(),
-                key: self.keys[i],
-            })
+            .map(|(i, inst)| PlanEntry { label: inst.label.clone(), stage: self.plan.pipeline.stages[inst.stage].name.clone(), key: self.keys[i] })
             .collect();
-        self.store.write_plan(&RunPlan {
-            run: self.run.clone(),
-            pipeline: self.plan.pipeline.name.clone(),
-            started: now_rfc3339(),
-            instances,
-        })?;
+        self.store.write_plan(&RunPlan { run: self.run.clone(), pipeline: self.plan.pipeline.name.clone(), started: now_rfc3339(), instances })?;
         // Recorded as soon as known, so a killed run still tells `status` what it was doing.
-        let resolved: BTreeMap<String, Digest> = self
-            .keys
-            .iter()
-            .enumerate()
-            .filter_map(|(i, k)| k.map(|k| (self.plan.instances[i].label.clone(), k)))
-            .collect();
+        let resolved: BTreeMap<String, Digest> =
+            self.keys.iter().enumerate().filter_map(|(i, k)| k.map(|k| (self.plan.instances[i].label.clone(), k))).collect();
         self.store.update_last_keys(&self.plan.pipeline.name, &resolved)?;
         self.plan_dirty = false;
         Ok(())
@@ -395,7 +382,10 @@ impl Executor<'_> {
                 self.states[i] = State::Failed;
                 self.results[i] = Some((Outcome::Failed, 0.0));
                 let log = self.log_path(&label);
-                self.events.write("stage_finished", json!({"stage": label, "status": "failed", "key": key, "error": message, "log": log, "duration_s": secs}))?;
+                self.events.write(
+                    "stage_finished",
+                    json!({"stage": label, "status": "failed", "key": key, "error": message, "log": log, "duration_s": secs}),
+                )?;
                 self.ui.say(format!("  FAILED   {label}  {secs:.1}s  {message}\n           log: {}", log.display()));
             }
         }
@@ -491,8 +481,6 @@ impl Ui {
     }
 
     fn bar_style() -> ProgressStyle {
-        ProgressStyle::with_template("  {prefix} [{bar:30}] {pos}/{len} {msg} ({elapsed}, eta {eta})")
-            .unwrap()
-            .progress_chars("=> ")
+        ProgressStyle::with_template("  {prefix} [{bar:30}] {pos}/{len} {msg} ({elapsed}, eta {eta})").unwrap().progress_chars("=> ")
     }
 }

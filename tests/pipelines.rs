@@ -16,7 +16,9 @@ fn root() -> PathBuf {
 #[test]
 fn every_shipped_pipeline_validates() {
     let mut files = vec![root().join("pipeline.toml")];
-    files.extend(std::fs::read_dir(root().join("examples")).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|e| e == "toml")));
+    files.extend(
+        std::fs::read_dir(root().join("examples")).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|e| e == "toml")),
+    );
     for file in files {
         // --dry-run validates everything and writes nothing.
         let (ok, out) = rlmflow(&root(), &["run", file.to_str().unwrap(), "--dry-run"]);
@@ -32,7 +34,8 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     std::fs::copy(root().join("examples/ci.toml"), dir.join("ci.toml")).unwrap();
     let (ok, first) = rlmflow(&dir, &["run", "ci.toml", "--json"]);
     assert!(ok, "{first}");
-    let finished = |log: &str, status: &str| log.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains(&format!("\"status\":\"{status}\""))).count();
+    let finished =
+        |log: &str, status: &str| log.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains(&format!("\"status\":\"{status}\""))).count();
     let stages = finished(&first, "ran");
     assert!(stages >= 1, "{first}");
     let (ok, second) = rlmflow(&dir, &["run", "ci.toml", "--json"]);

@@ -34,8 +34,8 @@ impl Store {
 
         let mut live_keys: BTreeSet<Digest> = BTreeSet::new();
         for file in self.ref_files()? {
-            let keys: std::collections::BTreeMap<String, Digest> = serde_json::from_slice(&fs::read(&file)?)
-                .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+            let keys: std::collections::BTreeMap<String, Digest> =
+                serde_json::from_slice(&fs::read(&file)?).map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
             live_keys.extend(keys.into_values());
         }
         for run in kept_runs {
@@ -109,9 +109,7 @@ impl Store {
 
 fn size_of(path: &Path) -> u64 {
     match fs::symlink_metadata(path) {
-        Ok(m) if m.is_dir() => fs::read_dir(path)
-            .map(|rd| rd.flatten().map(|e| size_of(&e.path())).sum())
-            .unwrap_or(0),
+        Ok(m) if m.is_dir() => fs::read_dir(path).map(|rd| rd.flatten().map(|e| size_of(&e.path())).sum()).unwrap_or(0),
         Ok(m) => m.len(),
         Err(_) => 0,
     }

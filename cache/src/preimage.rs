@@ -90,18 +90,13 @@ impl Preimage {
         if self.operator != old.operator {
             changes.push(Change::Operator { old: old.operator.clone(), new: self.operator.clone() });
         } else if self.operator_version != old.operator_version {
-            changes.push(Change::OperatorVersion {
-                old: old.operator_version,
-                new: self.operator_version,
-            });
+            changes.push(Change::OperatorVersion { old: old.operator_version, new: self.operator_version });
         }
         diff_values("", &old.config, &self.config, &mut changes);
         if self.seed != old.seed {
             changes.push(Change::Seed { old: old.seed, new: self.seed });
         }
-        let slots = |p: &Preimage| -> BTreeSet<(String, String)> {
-            p.inputs.iter().map(|i| (i.slot.clone(), i.label.clone())).collect()
-        };
+        let slots = |p: &Preimage| -> BTreeSet<(String, String)> { p.inputs.iter().map(|i| (i.slot.clone(), i.label.clone())).collect() };
         let (before, after) = (slots(old), slots(self));
         for (slot, label) in after.difference(&before) {
             changes.push(Change::InputAdded { slot: slot.clone(), label: label.clone() });
@@ -112,9 +107,10 @@ impl Preimage {
         for new in &self.inputs {
             let same_slot = |o: &&InputDigest| o.slot == new.slot && o.label == new.label;
             if let Some(o) = old.inputs.iter().find(same_slot)
-                && o.digest != new.digest {
-                    changes.push(Change::InputChanged { slot: new.slot.clone(), label: new.label.clone() });
-                }
+                && o.digest != new.digest
+            {
+                changes.push(Change::InputChanged { slot: new.slot.clone(), label: new.label.clone() });
+            }
         }
         changes
     }
@@ -132,11 +128,7 @@ fn diff_values(prefix: &str, old: &Value, new: &Value, out: &mut Vec<Change>) {
                 }
             }
         }
-        _ if old != new => out.push(Change::Setting {
-            key: prefix.to_owned(),
-            old: Some(old.clone()),
-            new: Some(new.clone()),
-        }),
+        _ if old != new => out.push(Change::Setting { key: prefix.to_owned(), old: Some(old.clone()), new: Some(new.clone()) }),
         _ => {}
     }
 }
@@ -222,10 +214,7 @@ mod tests {
         new.operator_version = 3;
         new.inputs[0].digest = Digest::of(b"t");
         let shown: Vec<String> = new.diff(&old).iter().map(|c| c.to_string()).collect();
-        assert_eq!(
-            shown,
-            ["operator version 2 -> 3", "alpha 4.0 -> 1.0", "radar.bev (unset) -> true", "input scenes changed"]
-        );
+        assert_eq!(shown, ["operator version 2 -> 3", "alpha 4.0 -> 1.0", "radar.bev (unset) -> true", "input scenes changed"]);
         assert!(old.diff(&old).is_empty());
     }
 

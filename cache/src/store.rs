@@ -93,16 +93,10 @@ impl Store {
         let version = root.join("VERSION");
         match fs::read_to_string(&version) {
             Ok(v) if v == STORE_FORMAT => {}
-            Ok(v) => bail!(
-                "{} holds a store of format `{}`; this rlmflow reads `{}`",
-                root.display(),
-                v.trim(),
-                STORE_FORMAT.trim()
-            ),
+            Ok(v) => bail!("{} holds a store of format `{}`; this rlmflow reads `{}`", root.display(), v.trim(), STORE_FORMAT.trim()),
             Err(e) if e.kind() == io::ErrorKind::NotFound => {
                 for dir in ["objects", "actions", "requests", "checkpoints", "runs", "refs/pipelines", "refs/pins", "locks", "tmp", "quarantine"] {
-                    fs::create_dir_all(root.join(dir))
-                        .with_context(|| format!("creating the store at {}", root.display()))?;
+                    fs::create_dir_all(root.join(dir)).with_context(|| format!("creating the store at {}", root.display()))?;
                 }
                 atomic_write(&store, &version, STORE_FORMAT.as_bytes())?;
             }
@@ -157,8 +151,7 @@ impl Store {
 
     /// Re-hashes one object. `Ok(None)` when it matches its digest.
     pub fn check_object(&self, digest: &Digest) -> anyhow::Result<Option<Corruption>> {
-        let manifest = fs::read_to_string(self.manifest_path(digest))
-            .with_context(|| format!("object {} has no manifest", digest.short()))?;
+        let manifest = fs::read_to_string(self.manifest_path(digest)).with_context(|| format!("object {} has no manifest", digest.short()))?;
         let actual = hash_tree(&self.object_dir(digest))?;
         if actual.digest == *digest && crate::Digest::of(manifest.as_bytes()) == *digest {
             return Ok(None);
@@ -186,9 +179,10 @@ impl Store {
             for entry in read_dir_sorted(&shard)? {
                 let name = entry.file_name().unwrap().to_string_lossy().into_owned();
                 if let Some(hex) = name.strip_suffix(".tree")
-                    && let Ok(d) = hex.parse() {
-                        out.push(d);
-                    }
+                    && let Ok(d) = hex.parse()
+                {
+                    out.push(d);
+                }
             }
         }
         Ok(out)
@@ -313,10 +307,7 @@ impl Store {
 
     /// Run ids, oldest first.
     pub fn runs(&self) -> anyhow::Result<Vec<String>> {
-        Ok(read_dir_sorted(&self.root.join("runs"))?
-            .into_iter()
-            .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
-            .collect())
+        Ok(read_dir_sorted(&self.root.join("runs"))?.into_iter().filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned())).collect())
     }
 
     pub fn write_plan(&self, plan: &RunPlan) -> anyhow::Result<()> {
@@ -390,9 +381,9 @@ pub(crate) fn read_dir_sorted(dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
 
 fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> anyhow::Result<Option<T>> {
     match fs::read(path) {
-        Ok(bytes) => serde_json::from_slice(&bytes)
-            .map(Some)
-            .with_context(|| format!("{} is not valid; remove it or run `rlmflow verify`", path.display())),
+        Ok(bytes) => {
+            serde_json::from_slice(&bytes).map(Some).with_context(|| format!("{} is not valid; remove it or run `rlmflow verify`", path.display()))
+        }
         Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(None),
         Err(e) => Err(e).with_context(|| format!("reading {}", path.display())),
     }
@@ -441,13 +432,8 @@ pub(crate) mod tests {
     use crate::tree::tests::tempdir;
 
     pub(crate) fn record_for(store: &Store, seed: u64, content: &[u8]) -> ActionRecord {
-        let preimage = Preimage {
-            operator: "op".into(),
-            operator_version: 1,
-            config: serde_json::json!({}),
-            seed,
-            inputs: Vec::<InputDigest>::new(),
-        };
+        let preimage =
+            Preimage { operator: "op".into(), operator_version: 1, config: serde_json::json!({}), seed, inputs: Vec::<InputDigest>::new() };
         let key = preimage.key();
         let work = store.work_dir(&key).unwrap();
         fs::create_dir_all(work.join("out")).unwrap();

@@ -75,10 +75,7 @@ fn collect(dir: &Path, prefix: &str, out: &mut Vec<String>) -> anyhow::Result<()
 /// missing or extra.
 pub(crate) fn damaged_files(actual: &str, expected: &str) -> Vec<String> {
     let lines = |m: &str| -> Vec<(String, String)> {
-        m.lines()
-            .skip(1)
-            .filter_map(|l| l.splitn(4, ' ').nth(3).map(|p| (p.to_owned(), l.to_owned())))
-            .collect()
+        m.lines().skip(1).filter_map(|l| l.splitn(4, ' ').nth(3).map(|p| (p.to_owned(), l.to_owned()))).collect()
     };
     let expected = lines(expected);
     let found = lines(actual);

@@ -98,8 +98,7 @@ impl Context {
 
     /// The directory of the single artifact bound to `slot`.
     pub fn input(&self, slot: &str) -> anyhow::Result<&Path> {
-        self.optional_input(slot)
-            .with_context(|| format!("stage {} has no `{slot}` input", self.stage))
+        self.optional_input(slot).with_context(|| format!("stage {} has no `{slot}` input", self.stage))
     }
 
     pub fn optional_input(&self, slot: &str) -> Option<&Path> {
@@ -113,12 +112,7 @@ impl Context {
 
     /// A progress handle for `length` units of work.
     pub fn progress(&self, length: u64, message: &str) -> Progress {
-        Progress {
-            reporter: self.reporter.clone(),
-            length,
-            message: message.to_owned(),
-            state: Mutex::new((0, None)),
-        }
+        Progress { reporter: self.reporter.clone(), length, message: message.to_owned(), state: Mutex::new((0, None)) }
     }
 
     /// Records a structured event in the run's JSON event log.
@@ -189,16 +183,7 @@ mod tests {
     #[test]
     fn progress_is_throttled_but_finish_always_reports() {
         let reporter = Arc::new(Count(Mutex::new(Vec::new())));
-        let ctx = Context::new(
-            "s".into(),
-            BTreeMap::new(),
-            "/o".into(),
-            "/c".into(),
-            0,
-            1,
-            Device::Cpu,
-            reporter.clone(),
-        );
+        let ctx = Context::new("s".into(), BTreeMap::new(), "/o".into(), "/c".into(), 0, 1, Device::Cpu, reporter.clone());
         let p = ctx.progress(1000, "work");
         for _ in 0..1000 {
             p.inc(1);

@@ -93,10 +93,28 @@ impl GridRule {
         let sector = if dot > self.direction_dot {
             match (y > half, y < -half) {
                 (true, _) if beside => 1,
-                (true, _) => if ahead { 0 } else { 2 },
+                (true, _) => {
+                    if ahead {
+                        0
+                    } else {
+                        2
+                    }
+                }
                 (_, true) if beside => 6,
-                (_, true) => if ahead { 5 } else { 7 },
-                _ => if ahead { 3 } else { 4 },
+                (_, true) => {
+                    if ahead {
+                        5
+                    } else {
+                        7
+                    }
+                }
+                _ => {
+                    if ahead {
+                        3
+                    } else {
+                        4
+                    }
+                }
             }
         } else if dot < -self.direction_dot {
             if ahead { 8 } else { 9 }

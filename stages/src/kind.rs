@@ -88,12 +88,7 @@ const PAPER_KINDS: &[StageKind] = &[
     StageKind {
         name: "probe",
         produces: "ProbeReport",
-        inputs: &[
-            Slot::one("encoder", ENCODER),
-            Slot::one("scenes", SCENES),
-            Slot::one("labels", LABELS),
-            Slot::one("tokens", TOKENS),
-        ],
+        inputs: &[Slot::one("encoder", ENCODER), Slot::one("scenes", SCENES), Slot::one("labels", LABELS), Slot::one("tokens", TOKENS)],
     },
     StageKind {
         name: "segment",

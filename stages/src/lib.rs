@@ -20,6 +20,4 @@ pub mod scenes;
 
 pub use context::{Context, Device, Input, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};
-pub use operator::{
-    DynOperator, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings,
-};
+pub use operator::{DynOperator, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings};

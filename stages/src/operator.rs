@@ -129,8 +129,7 @@ impl<O: Operator> DynOperator for O {
     }
 
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome> {
-        let typed = parse_settings::<O::Settings>(settings.clone())
-            .map_err(|e| anyhow::anyhow!("invalid settings: {e}"))?;
+        let typed = parse_settings::<O::Settings>(settings.clone()).map_err(|e| anyhow::anyhow!("invalid settings: {e}"))?;
         Operator::run(self, &typed, ctx)
     }
 }
@@ -140,9 +139,7 @@ fn parse_settings<S: Settings>(raw: Value) -> Result<S, SettingError> {
         let key = e.path().to_string();
         let message = e.inner().to_string();
         match unknown_field(&message) {
-            Some((field, valid)) => {
-                SettingError { key, message: format!("unknown setting `{field}`"), valid }
-            }
+            Some((field, valid)) => SettingError { key, message: format!("unknown setting `{field}`"), valid },
             None => SettingError::new(if key == "." { String::new() } else { key }, message),
         }
     })?;
@@ -174,9 +171,7 @@ impl Registry {
     /// errors in the binary that builds the registry, caught by its first test.
     pub fn add(&mut self, op: impl DynOperator + 'static) -> &mut Self {
         let spec = op.spec();
-        let kind = self.catalog.get(spec.kind).unwrap_or_else(|| {
-            panic!("operator `{}` implements unknown stage kind `{}`", spec.name, spec.kind)
-        });
+        let kind = self.catalog.get(spec.kind).unwrap_or_else(|| panic!("operator `{}` implements unknown stage kind `{}`", spec.name, spec.kind));
         for slot in spec.inputs.unwrap_or(&[]) {
             assert!(kind.slot(slot).is_some(), "operator `{}` reads unknown slot `{slot}`", spec.name);
         }

@@ -88,9 +88,7 @@ impl Scenes {
         BufReader::new(file)
             .lines()
             .enumerate()
-            .map(|(i, line)| {
-                serde_json::from_str(&line?).with_context(|| format!("{}:{}: not a frame", path.display(), i + 1))
-            })
+            .map(|(i, line)| serde_json::from_str(&line?).with_context(|| format!("{}:{}: not a frame", path.display(), i + 1)))
             .collect()
     }
 

@@ -22,7 +22,14 @@ fn assert_has(err: &str, parts: &[&str]) {
 #[test]
 fn operator_typo_suggests_the_nearest() {
     let err = error_for("[stages.source]\noperator = \"write-txt\"\n");
-    assert_has(&err, &["p.toml:2: stages.source.operator: unknown operator `write-txt` for stage kind `source`", "valid: write-text", "did you mean `write-text`?"]);
+    assert_has(
+        &err,
+        &[
+            "p.toml:2: stages.source.operator: unknown operator `write-txt` for stage kind `source`",
+            "valid: write-text",
+            "did you mean `write-text`?",
+        ],
+    );
 }
 
 #[test]
@@ -54,7 +61,15 @@ fn bad_variant_setting_points_at_the_variant() {
 #[test]
 fn unknown_pipeline_key_and_executor() {
     let err = error_for("[pipeline]\nnmae = \"x\"\nexecutor = \"hyperqeue\"\n[stages.source]\noperator = \"write-text\"\n");
-    assert_has(&err, &["p.toml:2: pipeline.nmae: unknown key `nmae`", "did you mean `name`?", "p.toml:3: pipeline.executor: unknown executor `hyperqeue`", "valid executors: local"]);
+    assert_has(
+        &err,
+        &[
+            "p.toml:2: pipeline.nmae: unknown key `nmae`",
+            "did you mean `name`?",
+            "p.toml:3: pipeline.executor: unknown executor `hyperqeue`",
+            "valid executors: local",
+        ],
+    );
     assert!(err.contains("2 problems"), "{err}");
 }
 
@@ -74,13 +89,17 @@ fn missing_input() {
 
 #[test]
 fn ambiguous_input() {
-    let err = error_for("[stages.a]\nkind = \"source\"\noperator = \"write-text\"\n[stages.b]\nkind = \"source\"\noperator = \"write-text\"\n[stages.map]\noperator = \"shout\"\n");
+    let err = error_for(
+        "[stages.a]\nkind = \"source\"\noperator = \"write-text\"\n[stages.b]\nkind = \"source\"\noperator = \"write-text\"\n[stages.map]\noperator = \"shout\"\n",
+    );
     assert_has(&err, &["p.toml:7: stages.map: ambiguous input `text`: stages a, b all produce Text", "inputs = { text = \"a\" }"]);
 }
 
 #[test]
 fn artifact_type_mismatch() {
-    let err = error_for("[stages.source]\noperator = \"write-text\"\n[stages.m]\nkind = \"map\"\noperator = \"shout\"\n[stages.map]\noperator = \"shout\"\ninputs = { text = \"m\" }\n");
+    let err = error_for(
+        "[stages.source]\noperator = \"write-text\"\n[stages.m]\nkind = \"map\"\noperator = \"shout\"\n[stages.map]\noperator = \"shout\"\ninputs = { text = \"m\" }\n",
+    );
     assert_has(&err, &["p.toml:8: stages.map.inputs.text: stage `m` produces Mapped, but slot `text` takes Text"]);
 }
 
@@ -94,7 +113,9 @@ fn unknown_input_stage_and_slot() {
 
 #[test]
 fn cycles_are_caught_before_anything_runs() {
-    let err = error_for("[stages.a]\nkind = \"remap\"\noperator = \"echo\"\ninputs = { mapped = \"b\" }\n[stages.b]\nkind = \"remap\"\noperator = \"echo\"\ninputs = { mapped = \"a\" }\n");
+    let err = error_for(
+        "[stages.a]\nkind = \"remap\"\noperator = \"echo\"\ninputs = { mapped = \"b\" }\n[stages.b]\nkind = \"remap\"\noperator = \"echo\"\ninputs = { mapped = \"a\" }\n",
+    );
     assert_has(&err, &["p.toml:1: stages.a: the stages form a cycle: a -> b -> a", "break it by changing one stage's `inputs`"]);
 }
 

@@ -56,10 +56,7 @@ fn early_cutoff_stops_a_rerun_that_reproduces_the_same_bytes() {
 #[test]
 fn variants_fan_out_downstream_and_are_gathered_side_by_side() {
     let s = Scratch::new("variants");
-    s.pipeline(&CHAIN.replace(
-        r#"suffix = "!""#,
-        "[stages.map.variants]\nloud = { suffix = \"!!!\" }\nquiet = { suffix = \".\" }",
-    ));
+    s.pipeline(&CHAIN.replace(r#"suffix = "!""#, "[stages.map.variants]\nloud = { suffix = \"!!!\" }\nquiet = { suffix = \".\" }"));
     let events = s.run();
     let mut ran = events.with_status("ran");
     ran.sort();
@@ -68,10 +65,7 @@ fn variants_fan_out_downstream_and_are_gathered_side_by_side() {
     assert_eq!(listing, "measure[loud] 8\nmeasure[quiet] 6\n");
 
     // Changing one variant reruns only its branch (and the gatherer).
-    s.pipeline(&CHAIN.replace(
-        r#"suffix = "!""#,
-        "[stages.map.variants]\nloud = { suffix = \"!!!!\" }\nquiet = { suffix = \".\" }",
-    ));
+    s.pipeline(&CHAIN.replace(r#"suffix = "!""#, "[stages.map.variants]\nloud = { suffix = \"!!!!\" }\nquiet = { suffix = \".\" }"));
     assert_eq!(s.run().with_status("ran"), ["collect", "map[loud]", "measure[loud]"]);
 }
 
@@ -163,11 +157,15 @@ fn independent_stages_share_the_thread_budget() {
                     [stages.b]\nkind = \"source\"\noperator = \"write-text\"\ntext = \"b\"\nsteps = 2\nstep_ms = 50\n";
     s.pipeline(two_slow);
     let order = |events: &Events| -> Vec<String> {
-        events.0.iter().filter_map(|e| match e["event"].as_str() {
-            Some("stage_started") => Some("start".to_owned()),
-            Some("stage_finished") => Some("finish".to_owned()),
-            _ => None,
-        }).collect()
+        events
+            .0
+            .iter()
+            .filter_map(|e| match e["event"].as_str() {
+                Some("stage_started") => Some("start".to_owned()),
+                Some("stage_finished") => Some("finish".to_owned()),
+                _ => None,
+            })
+            .collect()
     };
     let both = s.run_expecting(0, &["--jobs", "2"]);
     assert_eq!(order(&both), ["start", "start", "finish", "finish"]);

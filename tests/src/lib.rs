@@ -24,11 +24,7 @@ const TEST_KINDS: &[StageKind] = &[
     StageKind { name: "map", produces: "Mapped", inputs: &[Slot::one("text", "Text")] },
     StageKind { name: "measure", produces: "Measure", inputs: &[Slot::one("mapped", "Mapped")] },
     StageKind { name: "remap", produces: "Mapped", inputs: &[Slot::one("mapped", "Mapped")] },
-    StageKind {
-        name: "collect",
-        produces: "Collection",
-        inputs: &[Slot::gather("measures", "Measure"), Slot::gather("mapped", "Mapped")],
-    },
+    StageKind { name: "collect", produces: "Collection", inputs: &[Slot::gather("measures", "Measure"), Slot::gather("mapped", "Mapped")] },
 ];
 
 fn trace(line: String) {

@@ -48,6 +48,9 @@ fn main() {
         let fast = frames_per_second(&map, Path::Fast, 400);
         let exact = frames_per_second(&map, Path::Exact, 8);
         let target = if image == 224 { format!("  target 150 frames/s: {:.2}x", fast / 150.0) } else { String::new() };
-        println!("{image}x{image}, 4 radars, {cores} cores: fast {fast:8.1} frames/s   exact {exact:6.2} frames/s   fast/exact {:.0}x{target}", fast / exact);
+        println!(
+            "{image}x{image}, 4 radars, {cores} cores: fast {fast:8.1} frames/s   exact {exact:6.2} frames/s   fast/exact {:.0}x{target}",
+            fast / exact
+        );
     }
 }

@@ -5,9 +5,9 @@ use std::f64::consts::PI;
 
 use rand::Rng;
 
+use crate::RadarConfig;
 use crate::response::{Path, range_angle};
 use crate::scatter::{MOUNTS, Segment, VehicleBox, scatterers};
-use crate::RadarConfig;
 
 /// How ego-frame points map to image pixels. Rows are range (row 0 at the ego), columns are
 /// azimuth over the full circle: column 0 is straight behind (via the left), the centre column
@@ -76,10 +76,8 @@ impl ImageMap {
                     let mut pixel_taps = Vec::new();
                     for i in 0..range_sub {
                         for j in 0..angle_sub {
-                            let (x, y) = projection.point(
-                                row as f64 + (i as f64 + 0.5) / range_sub as f64,
-                                col as f64 + (j as f64 + 0.5) / angle_sub as f64,
-                            );
+                            let (x, y) =
+                                projection.point(row as f64 + (i as f64 + 0.5) / range_sub as f64, col as f64 + (j as f64 + 0.5) / angle_sub as f64);
                             let (dx, dy) = (x - mount.x, y - mount.y);
                             let (lx, ly) = (dx * cos_yaw + dy * sin_yaw, -dx * sin_yaw + dy * cos_yaw);
                             let r = (lx * lx + ly * ly).sqrt();

@@ -23,7 +23,7 @@ use serde::{Deserialize, Serialize};
 
 pub use image::{ImageMap, Projection};
 pub use response::{Path, RangeAngle};
-pub use scatter::{Mount, Scatterer, Segment, VehicleBox, MOUNTS};
+pub use scatter::{MOUNTS, Mount, Scatterer, Segment, VehicleBox};
 
 /// Speed of light, m/s.
 pub const C: f64 = 299_792_458.0;

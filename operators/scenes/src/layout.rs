@@ -132,9 +132,8 @@ fn overlaps(a: &VehicleBox, b: &VehicleBox, margin: f64) -> bool {
     let (ca, cb) = (a.corners(), b.corners());
     for heading in [a.heading, a.heading + FRAC_PI_2, b.heading, b.heading + FRAC_PI_2] {
         let axis = heading.sin_cos();
-        let project = |k: &[(f64, f64); 4]| {
-            k.iter().map(|p| p.0 * axis.1 + p.1 * axis.0).fold((f64::MAX, f64::MIN), |(lo, hi), v| (lo.min(v), hi.max(v)))
-        };
+        let project =
+            |k: &[(f64, f64); 4]| k.iter().map(|p| p.0 * axis.1 + p.1 * axis.0).fold((f64::MAX, f64::MIN), |(lo, hi), v| (lo.min(v), hi.max(v)));
         let (pa, pb) = (project(&ca), project(&cb));
         if pa.1 + margin < pb.0 || pb.1 + margin < pa.0 {
             return false;

@@ -74,7 +74,10 @@ impl Settings for ProceduralSettings {
             }
         }
         if self.max_vehicles > 20 {
-            return err("max_vehicles", format!("must be at most 20 (scenes over 20 vehicles are dropped, as in the paper), not {}", self.max_vehicles));
+            return err(
+                "max_vehicles",
+                format!("must be at most 20 (scenes over 20 vehicles are dropped, as in the paper), not {}", self.max_vehicles),
+            );
         }
         if self.min_vehicles > self.max_vehicles {
             return err("min_vehicles", format!("must not exceed max_vehicles ({})", self.max_vehicles));
@@ -194,7 +197,18 @@ fn frame(s: &ProceduralSettings, map: &ImageMap, weights: &[f64], seed: u64, ind
         .map(|(i, (v, class))| {
             let (row, col) = map.projection.pixel(v.x, v.y);
             let speed = if v.heading.cos().abs() > 0.5 { rng.random_range(15.0..30.0) } else { rng.random_range(5.0..15.0) };
-            Actor { id: i as u32 + 1, class: class.to_string(), x: v.x, y: v.y, heading: v.heading, length: v.length, width: v.width, speed, row, col }
+            Actor {
+                id: i as u32 + 1,
+                class: class.to_string(),
+                x: v.x,
+                y: v.y,
+                heading: v.heading,
+                length: v.length,
+                width: v.width,
+                speed,
+                row,
+                col,
+            }
         })
         .collect();
     let pixels = image.iter().map(|&v| (v * 255.0).round() as u8).collect();
@@ -212,7 +226,6 @@ fn weighted(weights: &[f64], rng: &mut impl Rng) -> usize {
     }
     weights.len() - 1
 }
-
 
 #[cfg(test)]
 mod tests {
