@@ -1,29 +1,36 @@
-//! The Scenes artifact: per frame, a 360-degree radar range-azimuth heatmap, every actor's
-//! state, and each actor's pixel position in the heatmap.
+//! The Scenes artifact: per frame, radar images, every actor's state, and each actor's pixel
+//! position in the primary image.
 //!
 //! ```text
-//! scenes.json     summary: format, frame count, image size, radar settings, dataset statistics
-//! frames.jsonl    one Frame per line, in frame order
-//! heatmaps.u8     frames x image x image bytes, row-major (rows: range from the ego outwards;
-//!                 columns: azimuth, straight behind at 0, ahead at the centre, the ego's left
-//!                 left of centre); value / 255 is the normalised log power
+//! scenes.mcap   MCAP, unchunked and uncompressed, so that any byte range is readable in place:
+//!               /radar/<view>  foxglove.RawImage (protobuf, mono8), one message per frame per
+//!                              image; value / 255 is the normalised log power
+//!               /actors        the frame's actors, JSON (a Frame), one message per frame
+//! scenes.index  little-endian u64s, per frame: the /actors message's byte offset and length,
+//!               then for each image the byte offset of its pixels, all into scenes.mcap
+//! scenes.json   summary: format, frames, images (the first is the primary), radar range, the
+//!               generator's settings, dataset statistics
 //! ```
+//!
+//! Stock MCAP readers (the Python `mcap` package, Foxglove) read the file as is; the index gives
+//! a training loader random access by frame without parsing it.
 //!
 //! Actor positions are in the ego frame (x forward, y left, metres; headings relative to the
 //! ego's, radians, counter-clockwise).
 
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::io::{BufRead, BufReader, Read, Seek, SeekFrom};
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context as _, bail};
 use serde::{Deserialize, Serialize};
 
 pub const SUMMARY: &str = "scenes.json";
-pub const FRAMES: &str = "frames.jsonl";
-pub const HEATMAPS: &str = "heatmaps.u8";
-pub const FORMAT: u32 = 1;
+pub const MCAP: &str = "scenes.mcap";
+pub const INDEX: &str = "scenes.index";
+pub const FORMAT: u32 = 2;
+pub const ACTORS_TOPIC: &str = "/actors";
 
 /// One actor in one frame.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -37,9 +44,16 @@ pub struct Actor {
     pub length: f64,
     pub width: f64,
     pub speed: f64,
-    /// Pixel coordinates of its centre in the heatmap (pixel centres at integer + 0.5).
+    /// Pixel coordinates of its centre in the primary image (pixel centres at integer + 0.5);
+    /// outside [0, size) where the image does not show it.
     pub row: f64,
     pub col: f64,
+}
+
+impl Actor {
+    pub fn is_vehicle(&self) -> bool {
+        self.class == "car" || self.class == "truck"
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -49,12 +63,23 @@ pub struct Frame {
     pub actors: Vec<Actor>,
 }
 
+/// One image channel.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Image {
+    /// The view, as the radar model names it (`range-azimuth`, `bev`, `radar-front`, ...).
+    pub view: String,
+    pub topic: String,
+    /// Width and height in pixels.
+    pub size: usize,
+}
+
 /// `scenes.json`: what a reader needs, and the dataset statistics the report shows.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Summary {
     pub format: u32,
     pub frames: u64,
-    pub image: usize,
+    /// The images per frame; actor pixels are in the first.
+    pub images: Vec<Image>,
     pub range_max_m: f64,
     /// The generator's settings (operator-specific).
     pub generator: serde_json::Value,
@@ -65,10 +90,19 @@ pub struct Summary {
     pub cells: BTreeMap<String, u64>,
 }
 
-/// Reads a Scenes artifact directory.
+impl Summary {
+    /// u64 entries per frame in `scenes.index`.
+    pub fn index_stride(&self) -> usize {
+        2 + self.images.len()
+    }
+}
+
+/// Reads a Scenes artifact directory, by frame, in place.
 pub struct Scenes {
     dir: PathBuf,
     pub summary: Summary,
+    index: Vec<u64>,
+    mcap: File,
 }
 
 impl Scenes {
@@ -77,28 +111,61 @@ impl Scenes {
         let summary: Summary = serde_json::from_slice(&std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?)
             .with_context(|| format!("{} is not a Scenes summary", path.display()))?;
         if summary.format != FORMAT {
-            bail!("{}: Scenes format {} (this build reads {FORMAT})", path.display(), summary.format);
+            bail!("{}: Scenes format {} (this build reads {FORMAT}); rerun the scenes stage", path.display(), summary.format);
         }
-        Ok(Scenes { dir: dir.to_path_buf(), summary })
+        let index_path = dir.join(INDEX);
+        let bytes = std::fs::read(&index_path).with_context(|| format!("reading {}", index_path.display()))?;
+        let index: Vec<u64> = bytes.chunks_exact(8).map(|b| u64::from_le_bytes(b.try_into().expect("chunks of 8"))).collect();
+        if bytes.len() % 8 != 0 || index.len() as u64 != summary.frames * summary.index_stride() as u64 {
+            bail!("{}: {} bytes, expected {} frames x {} offsets", index_path.display(), bytes.len(), summary.frames, summary.index_stride());
+        }
+        let mcap_path = dir.join(MCAP);
+        let mcap = File::open(&mcap_path).with_context(|| format!("reading {}", mcap_path.display()))?;
+        Ok(Scenes { dir: dir.to_path_buf(), summary, index, mcap })
+    }
+
+    pub fn len(&self) -> u64 {
+        self.summary.frames
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.summary.frames == 0
+    }
+
+    fn entry(&self, index: u64, what: usize) -> anyhow::Result<u64> {
+        if index >= self.summary.frames {
+            bail!("frame {index} is past the end of {} ({} frames)", self.dir.display(), self.summary.frames);
+        }
+        Ok(self.index[index as usize * self.summary.index_stride() + what])
+    }
+
+    fn read_at(&self, offset: u64, len: usize) -> anyhow::Result<Vec<u8>> {
+        let mut out = vec![0u8; len];
+        self.mcap.read_exact_at(&mut out, offset).with_context(|| format!("reading {} at byte {offset}", self.dir.join(MCAP).display()))?;
+        Ok(out)
+    }
+
+    /// Frame `index`'s actors.
+    pub fn frame(&self, index: u64) -> anyhow::Result<Frame> {
+        let (offset, len) = (self.entry(index, 0)?, self.entry(index, 1)?);
+        serde_json::from_slice(&self.read_at(offset, len as usize)?)
+            .with_context(|| format!("{}: frame {index} at byte {offset} is not a frame", self.dir.join(MCAP).display()))
     }
 
     pub fn frames(&self) -> anyhow::Result<Vec<Frame>> {
-        let path = self.dir.join(FRAMES);
-        let file = File::open(&path).with_context(|| format!("reading {}", path.display()))?;
-        BufReader::new(file)
-            .lines()
-            .enumerate()
-            .map(|(i, line)| serde_json::from_str(&line?).with_context(|| format!("{}:{}: not a frame", path.display(), i + 1)))
-            .collect()
+        (0..self.summary.frames).map(|i| self.frame(i)).collect()
     }
 
-    /// The heatmap of frame `index` (image x image bytes).
+    /// Frame `index`'s `image`-th image (size x size bytes, row-major).
+    pub fn image(&self, image: usize, index: u64) -> anyhow::Result<Vec<u8>> {
+        let Some(info) = self.summary.images.get(image) else {
+            bail!("{} has {} images, not {}", self.dir.display(), self.summary.images.len(), image + 1);
+        };
+        self.read_at(self.entry(index, 2 + image)?, info.size * info.size)
+    }
+
+    /// Frame `index`'s primary image.
     pub fn heatmap(&self, index: u64) -> anyhow::Result<Vec<u8>> {
-        let side = self.summary.image;
-        let mut file = File::open(self.dir.join(HEATMAPS))?;
-        file.seek(SeekFrom::Start(index * (side * side) as u64))?;
-        let mut out = vec![0u8; side * side];
-        file.read_exact(&mut out).with_context(|| format!("heatmap {index} is past the end of {HEATMAPS}"))?;
-        Ok(out)
+        self.image(0, index)
     }
 }

@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rlmflow_radar::{ImageMap, Path, RadarConfig, Segment, VehicleBox};
+use rlmflow_radar::{ImageMap, Path, RadarConfig, Segment, VehicleBox, View};
 
 /// A busy highway frame: twelve vehicles on four lanes, two road edges.
 fn scene(seed: u64) -> (Vec<VehicleBox>, Vec<Segment>) {
@@ -44,7 +44,7 @@ fn frames_per_second(map: &ImageMap, path: Path, frames: u64) -> f64 {
 fn main() {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     for image in [64, 224] {
-        let map = ImageMap::new(&RadarConfig { image, ..RadarConfig::default() });
+        let map = ImageMap::new(&RadarConfig { image, ..RadarConfig::default() }, View::RangeAzimuth);
         let fast = frames_per_second(&map, Path::Fast, 400);
         let exact = frames_per_second(&map, Path::Exact, 8);
         let target = if image == 224 { format!("  target 150 frames/s: {:.2}x", fast / 150.0) } else { String::new() };

@@ -11,9 +11,10 @@
 //! [`response`] computes the windowed range-angle response of one radar two ways: the exact
 //! reference synthesises the ADC cube and runs the range and angle FFTs; the fast path adds each
 //! scatterer's closed-form windowed response (a Hann-windowed Dirichlet kernel in range and in
-//! angle), truncated where it is negligible. [`image`] resamples the four radars into one
-//! 360-degree range-azimuth image (merged by maximum where fields overlap), log-scales and
-//! normalises it, and maps actor positions to pixels.
+//! angle), truncated where it is negligible. [`image`] resamples the four radars into a view (by
+//! default one 360-degree range-azimuth image, merged by maximum where fields overlap; also a
+//! Cartesian bird's-eye image and each radar's own map), log-scales and normalises it, and maps
+//! actor positions to pixels.
 
 pub mod image;
 pub mod response;
@@ -21,7 +22,7 @@ pub mod scatter;
 
 use serde::{Deserialize, Serialize};
 
-pub use image::{ImageMap, Projection};
+pub use image::{ImageMap, Projection, View, radar_grids};
 pub use response::{Path, RangeAngle};
 pub use scatter::{MOUNTS, Mount, Scatterer, Segment, VehicleBox};
 

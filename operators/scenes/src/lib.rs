@@ -3,6 +3,7 @@
 
 mod layout;
 mod procedural;
+mod render;
 mod writer;
 
 pub use procedural::{Procedural, ProceduralSettings};

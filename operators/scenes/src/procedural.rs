@@ -6,13 +6,13 @@ use std::collections::BTreeMap;
 use anyhow::Context as _;
 use rand::{Rng, RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rlmflow_radar::{ImageMap, Path, RadarConfig, VehicleBox};
+use rlmflow_radar::{RadarConfig, VehicleBox};
 use rlmflow_stages::grid::{CELLS, Cell, GridRule, SECTORS};
-use rlmflow_stages::scenes::{Actor, Frame};
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, SettingError, Settings};
 use serde::{Deserialize, Serialize};
 
 use crate::layout::{LAYOUTS, Layout};
+use crate::render::{Rendered, Renderer, Scene, Vehicle, check_views};
 use crate::writer::SceneWriter;
 
 pub struct Procedural;
@@ -32,6 +32,9 @@ pub struct ProceduralSettings {
     /// Relative weight of each sector (by key; missing sectors weigh 1).
     pub sector_weights: BTreeMap<String, f64>,
     pub radar: RadarConfig,
+    /// Radar views written per frame (`range-azimuth`, `bev`, `radar-front`, ...); actor pixels
+    /// are recorded in the first.
+    pub images: Vec<String>,
     /// Render through the exact ADC-cube path instead of the fast one (much slower).
     pub exact: bool,
     /// Frames per checkpointed batch (does not change the result).
@@ -49,6 +52,7 @@ impl Default for ProceduralSettings {
             bin_weights: [1.0; 4],
             sector_weights: BTreeMap::new(),
             radar: RadarConfig::default(),
+            images: vec!["range-azimuth".into()],
             exact: false,
             batch: 64,
         }
@@ -101,11 +105,16 @@ impl Settings for ProceduralSettings {
         if self.batch == 0 {
             return err("batch", "must be at least 1".into());
         }
+        check_views(&self.images)?;
         self.radar.check().map_err(|(k, m)| SettingError::new(format!("radar.{k}"), m))
     }
 }
 
 impl ProceduralSettings {
+    fn renderer(&self) -> Renderer {
+        Renderer::new(&self.radar, &check_views(&self.images).expect("settings were checked"), self.exact)
+    }
+
     fn cell_weights(&self) -> Vec<f64> {
         (0..CELLS)
             .map(|i| {
@@ -134,8 +143,8 @@ impl Operator for Procedural {
     }
 
     fn run(&self, s: &ProceduralSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-        let map = ImageMap::new(&s.radar);
-        let mut writer = SceneWriter::resume(&ctx.checkpoint_dir, s.radar.image).context("opening the checkpoint")?;
+        let renderer = s.renderer();
+        let mut writer = SceneWriter::resume(&ctx.checkpoint_dir, renderer.images()).context("opening the checkpoint")?;
         let progress = ctx.progress(s.frames, "frames");
         progress.set_position(writer.done());
         let weights = s.cell_weights();
@@ -145,10 +154,10 @@ impl Operator for Procedural {
             let end = (start + s.batch).min(s.frames);
             let indices: Vec<u64> = (start..end).collect();
             let chunk = indices.len().div_ceil(threads);
-            let batch: Vec<(Frame, Vec<u8>)> = std::thread::scope(|scope| {
+            let batch: Vec<Rendered> = std::thread::scope(|scope| {
                 let handles: Vec<_> = indices
                     .chunks(chunk)
-                    .map(|part| scope.spawn(|| part.iter().map(|&i| frame(s, &map, &weights, ctx.seed, i)).collect::<Vec<_>>()))
+                    .map(|part| scope.spawn(|| part.iter().map(|&i| frame(s, &renderer, &weights, ctx.seed, i)).collect::<Vec<_>>()))
                     .collect();
                 handles.into_iter().flat_map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect()
             });
@@ -168,7 +177,7 @@ impl Operator for Procedural {
 }
 
 /// Frame `index`: deterministic in (seed, index) whatever the batch or thread split.
-fn frame(s: &ProceduralSettings, map: &ImageMap, weights: &[f64], seed: u64, index: u64) -> (Frame, Vec<u8>) {
+fn frame(s: &ProceduralSettings, renderer: &Renderer, weights: &[f64], seed: u64, index: u64) -> Rendered {
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15));
     let chosen = &s.layouts[rng.random_range(0..s.layouts.len())];
     let kind = LAYOUTS.iter().find(|l| *l == chosen).expect("layouts were checked against LAYOUTS");
@@ -176,43 +185,20 @@ fn frame(s: &ProceduralSettings, map: &ImageMap, weights: &[f64], seed: u64, ind
     let rule = GridRule::default();
     let wanted = rng.random_range(s.min_vehicles..=s.max_vehicles);
     let mut placed: Vec<VehicleBox> = Vec::new();
-    let mut classes = Vec::new();
+    let mut vehicles = Vec::new();
     let mut attempts = 0;
     while placed.len() < wanted && attempts < wanted * 8 {
         attempts += 1;
         let truck = rng.random_bool(s.truck_fraction);
         let size = if truck { (rng.random_range(8.0..12.0), 2.5) } else { (rng.random_range(4.0..5.0), rng.random_range(1.7..1.9)) };
         let target = Cell::from_index(weighted(weights, &mut rng));
-        if let Some(v) = layout.place(target, size, &rule, &placed, &mut rng) {
-            placed.push(v);
-            classes.push(if truck { "truck" } else { "car" });
+        if let Some(body) = layout.place(target, size, &rule, &placed, &mut rng) {
+            placed.push(body);
+            let speed = if body.heading.cos().abs() > 0.5 { rng.random_range(15.0..30.0) } else { rng.random_range(5.0..15.0) };
+            vehicles.push(Vehicle { id: placed.len() as u32, class: if truck { "truck" } else { "car" }, body, speed });
         }
     }
-    let path = if s.exact { Path::Exact } else { Path::Fast };
-    let image = map.render(&placed, &layout.edges, path, &mut rng);
-    let actors = placed
-        .iter()
-        .zip(&classes)
-        .enumerate()
-        .map(|(i, (v, class))| {
-            let (row, col) = map.projection.pixel(v.x, v.y);
-            let speed = if v.heading.cos().abs() > 0.5 { rng.random_range(15.0..30.0) } else { rng.random_range(5.0..15.0) };
-            Actor {
-                id: i as u32 + 1,
-                class: class.to_string(),
-                x: v.x,
-                y: v.y,
-                heading: v.heading,
-                length: v.length,
-                width: v.width,
-                speed,
-                row,
-                col,
-            }
-        })
-        .collect();
-    let pixels = image.iter().map(|&v| (v * 255.0).round() as u8).collect();
-    (Frame { index, scenario: kind.to_string(), actors }, pixels)
+    renderer.render(index, Scene { scenario: kind.to_string(), vehicles, edges: layout.edges }, &mut rng)
 }
 
 fn weighted(weights: &[f64], rng: &mut impl Rng) -> usize {
@@ -248,21 +234,21 @@ mod tests {
         (out, ckpt)
     }
 
-    fn run(s: &ProceduralSettings, name: &str, threads: usize, prefill: Option<u64>) -> (Vec<u8>, String) {
+    fn run(s: &ProceduralSettings, name: &str, threads: usize, prefill: Option<u64>) -> Vec<u8> {
         let (out, ckpt) = dirs(name);
         if let Some(n) = prefill {
             // A previous attempt recorded `n` frames, then was killed while writing the next
             // batch (extra bytes past the recorded count).
-            let mut writer = SceneWriter::resume(&ckpt, s.radar.image).unwrap();
-            let map = ImageMap::new(&s.radar);
-            let frames: Vec<_> = (0..n).map(|i| frame(s, &map, &s.cell_weights(), 7, i)).collect();
+            let renderer = s.renderer();
+            let mut writer = SceneWriter::resume(&ckpt, renderer.images()).unwrap();
+            let frames: Vec<_> = (0..n).map(|i| frame(s, &renderer, &s.cell_weights(), 7, i)).collect();
             writer.append(&frames).unwrap();
             let side = s.radar.image as u64;
-            std::fs::OpenOptions::new().append(true).open(ckpt.join("heatmaps.u8.part")).unwrap().set_len(n * side * side + 100).unwrap();
+            std::fs::OpenOptions::new().append(true).open(ckpt.join("image-0.u8.part")).unwrap().set_len(n * side * side + 100).unwrap();
         }
         let mut ctx = Context::new("scenes".into(), BTreeMap::new(), out.clone(), ckpt, 7, threads, Device::Cpu, Arc::new(Silent));
         Operator::run(&Procedural, s, &mut ctx).unwrap();
-        (std::fs::read(out.join("heatmaps.u8")).unwrap(), std::fs::read_to_string(out.join("frames.jsonl")).unwrap())
+        std::fs::read(out.join("scenes.mcap")).unwrap()
     }
 
     fn small() -> ProceduralSettings {
@@ -280,7 +266,7 @@ mod tests {
     #[test]
     fn the_artifact_reads_back_with_actor_pixels_and_statistics() {
         let (out, ckpt) = dirs("read");
-        let s = small();
+        let s = ProceduralSettings { images: vec!["range-azimuth".into(), "bev".into(), "radar-left".into()], ..small() };
         let mut ctx = Context::new("scenes".into(), BTreeMap::new(), out.clone(), ckpt, 3, 2, Device::Cpu, Arc::new(Silent));
         let outcome = Operator::run(&Procedural, &s, &mut ctx).unwrap();
         let scenes = Scenes::open(&out).unwrap();
@@ -297,8 +283,20 @@ mod tests {
                 assert!(a.row >= 0.0 && a.row < 32.0 * 40.0 / 44.0 + 1.0 && (0.0..32.0).contains(&a.col), "{a:?}");
             }
         }
+        let topics: Vec<&str> = scenes.summary.images.iter().map(|i| i.topic.as_str()).collect();
+        assert_eq!(topics, ["/radar/range-azimuth", "/radar/bev", "/radar/radar-left"]);
+        // Random access by frame through the index equals what the renderer made.
+        let renderer = s.renderer();
+        for i in [0, 13, 23] {
+            let (frame, images) = frame(&s, &renderer, &s.cell_weights(), 3, i);
+            assert_eq!(scenes.frame(i).unwrap(), frame);
+            for (k, image) in images.iter().enumerate() {
+                assert_eq!(&scenes.image(k, i).unwrap(), image, "frame {i} image {k}");
+            }
+        }
         assert_eq!(scenes.heatmap(23).unwrap().len(), 32 * 32);
         assert!(scenes.heatmap(24).is_err());
+        assert!(scenes.image(3, 0).is_err());
     }
 
     #[test]
@@ -309,5 +307,10 @@ mod tests {
         assert_eq!(check(serde_json::json!({"sector_weights": {"left_lane": 2.0}})).key, "sector_weights.left_lane");
         assert_eq!(check(serde_json::json!({"radar": {"range_max_m": 60.0}})).key, "radar.range_max_m");
         assert_eq!(check(serde_json::json!({"radar": {"imag": 64}})).key, "radar.imag");
+        assert_eq!(
+            check(serde_json::json!({"images": ["polar"]})).message,
+            "unknown view `polar`; valid: range-azimuth, bev, radar-front, radar-left, radar-back, radar-right"
+        );
+        assert_eq!(check(serde_json::json!({"images": ["bev", "bev"]})).message, "`bev` is listed twice");
     }
 }
