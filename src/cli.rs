@@ -97,6 +97,10 @@ enum Command {
     },
     /// List stage kinds and operators with their default settings.
     Operators,
+    /// Create the managed Python environment (pinned packages from the lock compiled into this
+    /// binary) if it is missing, and print where it is. Stages that need it also create it on
+    /// first use.
+    Setup,
     /// Run one action from the store (the engine's child-process entry point).
     #[command(hide = true)]
     Exec {
@@ -206,6 +210,12 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 .collect();
             let path = store.pin(&name, &keys)?;
             println!("pinned {} cached stage instances in {}", keys.len(), path.display());
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Setup => {
+            let env = rlmflow_python::ensure(&mut |note| eprintln!("{note}"))?;
+            println!("Python {} environment: {}", env.version, env.root.display());
+            println!("site-packages: {}", env.site_packages.display());
             Ok(ExitCode::SUCCESS)
         }
         Command::Operators => {

@@ -6,9 +6,13 @@ use rlmflow_stages::{Catalog, Registry};
 fn registry() -> Registry {
     let mut registry = Registry::new(Catalog::paper());
     registry.add(rlmflow_scenes::Procedural);
+    #[cfg(feature = "python")]
+    registry.add(rlmflow_scenes::HighwayEnv);
     registry
 }
 
 fn main() -> ExitCode {
+    #[cfg(feature = "python")]
+    rlmflow_python::embed::pin_home();
     rlmflow::cli::main(registry())
 }

@@ -1,9 +1,15 @@
 //! The `scenes` stage kind's operators. `procedural` (pure Rust) places vehicles, without
-//! dynamics, on sampled road layouts and renders them through the shared radar model.
+//! dynamics, on sampled road layouts; `highway-env` (with the `highway` feature) simulates
+//! traffic in highway-env through the embedded Python. Both render through the shared radar
+//! model and write the same Scenes artifact.
 
+#[cfg(feature = "highway")]
+mod highway;
 mod layout;
 mod procedural;
 mod render;
 mod writer;
 
+#[cfg(feature = "highway")]
+pub use highway::{HighwayEnv, HighwaySettings, ScenarioMix};
 pub use procedural::{Procedural, ProceduralSettings};

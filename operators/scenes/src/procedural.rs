@@ -4,7 +4,7 @@
 use std::collections::BTreeMap;
 
 use anyhow::Context as _;
-use rand::{Rng, RngExt, SeedableRng};
+use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rlmflow_radar::{RadarConfig, VehicleBox};
 use rlmflow_stages::grid::{CELLS, Cell, GridRule, SECTORS};
@@ -12,7 +12,7 @@ use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settin
 use serde::{Deserialize, Serialize};
 
 use crate::layout::{LAYOUTS, Layout};
-use crate::render::{Rendered, Renderer, Scene, Vehicle, check_views};
+use crate::render::{Rendered, Renderer, Scene, Vehicle, check_views, parallel_map, weighted};
 use crate::writer::SceneWriter;
 
 pub struct Procedural;
@@ -148,19 +148,12 @@ impl Operator for Procedural {
         let progress = ctx.progress(s.frames, "frames");
         progress.set_position(writer.done());
         let weights = s.cell_weights();
-        let threads = ctx.threads.max(1);
+
         while writer.done() < s.frames {
             let start = writer.done();
             let end = (start + s.batch).min(s.frames);
             let indices: Vec<u64> = (start..end).collect();
-            let chunk = indices.len().div_ceil(threads);
-            let batch: Vec<Rendered> = std::thread::scope(|scope| {
-                let handles: Vec<_> = indices
-                    .chunks(chunk)
-                    .map(|part| scope.spawn(|| part.iter().map(|&i| frame(s, &renderer, &weights, ctx.seed, i)).collect::<Vec<_>>()))
-                    .collect();
-                handles.into_iter().flat_map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect()
-            });
+            let batch = parallel_map(&indices, ctx.threads, |&i| frame(s, &renderer, &weights, ctx.seed, i));
             writer.append(&batch)?;
             progress.set_position(writer.done());
         }
@@ -199,18 +192,6 @@ fn frame(s: &ProceduralSettings, renderer: &Renderer, weights: &[f64], seed: u64
         }
     }
     renderer.render(index, Scene { scenario: kind.to_string(), vehicles, edges: layout.edges }, &mut rng)
-}
-
-fn weighted(weights: &[f64], rng: &mut impl Rng) -> usize {
-    let total: f64 = weights.iter().sum();
-    let mut x = rng.random::<f64>() * total;
-    for (i, w) in weights.iter().enumerate() {
-        if x < *w {
-            return i;
-        }
-        x -= w;
-    }
-    weights.len() - 1
 }
 
 #[cfg(test)]

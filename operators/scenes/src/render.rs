@@ -2,7 +2,7 @@
 //! images of every configured view and the actors with their primary-image pixels. Shared by
 //! both scene operators.
 
-use rand::Rng;
+use rand::{Rng, RngExt};
 use rlmflow_radar::{ImageMap, Path, RadarConfig, Segment, VehicleBox, View, radar_grids};
 use rlmflow_stages::SettingError;
 use rlmflow_stages::scenes::{Actor, Frame, Image};
@@ -83,4 +83,27 @@ impl Renderer {
             .collect();
         (Frame { index, scenario: scene.scenario, actors }, images)
     }
+}
+
+/// `f` over `items` on up to `threads` scoped threads, results in order.
+pub fn parallel_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> R + Sync) -> Vec<R> {
+    let chunk = items.len().div_ceil(threads.max(1)).max(1);
+    std::thread::scope(|scope| {
+        let f = &f;
+        let handles: Vec<_> = items.chunks(chunk).map(|part| scope.spawn(move || part.iter().map(f).collect::<Vec<R>>())).collect();
+        handles.into_iter().flat_map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect()
+    })
+}
+
+/// An index drawn with probability proportional to `weights`.
+pub fn weighted(weights: &[f64], rng: &mut impl Rng) -> usize {
+    let total: f64 = weights.iter().sum();
+    let mut x = rng.random::<f64>() * total;
+    for (i, w) in weights.iter().enumerate() {
+        if x < *w {
+            return i;
+        }
+        x -= w;
+    }
+    weights.len() - 1
 }

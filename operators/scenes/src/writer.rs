@@ -22,9 +22,17 @@ pub struct SceneWriter {
     dir: PathBuf,
     images: Vec<Image>,
     done: u64,
+    cursor: serde_json::Value,
 }
 
-const DONE: &str = "frames-done";
+/// Frames recorded complete, and the operator's own resume state, written atomically together.
+#[derive(Default, serde::Serialize, serde::Deserialize)]
+struct Progress {
+    frames: u64,
+    cursor: serde_json::Value,
+}
+
+const PROGRESS: &str = "progress.json";
 const FRAMES: &str = "frames.jsonl.part";
 /// Nominal time between frames in the MCAP timeline (10 Hz).
 const FRAME_PERIOD_NS: u64 = 100_000_000;
@@ -34,8 +42,9 @@ const FRAME_SCHEMA: &str = r#"{"type":"object","properties":{"index":{"type":"in
 impl SceneWriter {
     /// Opens the parts in `checkpoint`, cut back to the last complete batch.
     pub fn resume(checkpoint: &Path, images: Vec<Image>) -> anyhow::Result<SceneWriter> {
-        let done: u64 = fs::read_to_string(checkpoint.join(DONE)).ok().and_then(|s| s.trim().parse().ok()).unwrap_or(0);
-        let writer = SceneWriter { dir: checkpoint.to_path_buf(), images, done };
+        let progress: Progress = fs::read(checkpoint.join(PROGRESS)).ok().and_then(|b| serde_json::from_slice(&b).ok()).unwrap_or_default();
+        let done = progress.frames;
+        let writer = SceneWriter { dir: checkpoint.to_path_buf(), images, done, cursor: progress.cursor };
         let frames = writer.dir.join(FRAMES);
         if done == 0 {
             File::create(&frames)?;
@@ -64,8 +73,18 @@ impl SceneWriter {
         self.done
     }
 
+    /// The resume state recorded with the last complete batch (null if none).
+    pub fn cursor(&self) -> &serde_json::Value {
+        &self.cursor
+    }
+
     /// Appends a batch of rendered frames and records it as complete.
     pub fn append(&mut self, batch: &[Rendered]) -> anyhow::Result<()> {
+        self.append_with_cursor(batch, serde_json::Value::Null)
+    }
+
+    /// Appends a batch and records it as complete together with the operator's resume state.
+    pub fn append_with_cursor(&mut self, batch: &[Rendered], cursor: serde_json::Value) -> anyhow::Result<()> {
         let mut frames = OpenOptions::new().append(true).open(self.dir.join(FRAMES))?;
         let mut parts: Vec<File> = (0..self.images.len()).map(|k| OpenOptions::new().append(true).open(self.image_part(k))).collect::<Result<_, _>>()?;
         for (frame, images) in batch {
@@ -81,9 +100,10 @@ impl SceneWriter {
         }
         frames.sync_data()?;
         self.done += batch.len() as u64;
-        let tmp = self.dir.join(format!("{DONE}.tmp"));
-        fs::write(&tmp, self.done.to_string())?;
-        fs::rename(tmp, self.dir.join(DONE))?;
+        self.cursor = cursor;
+        let tmp = self.dir.join(format!("{PROGRESS}.tmp"));
+        fs::write(&tmp, serde_json::to_vec(&Progress { frames: self.done, cursor: self.cursor.clone() })?)?;
+        fs::rename(tmp, self.dir.join(PROGRESS))?;
         Ok(())
     }
 
