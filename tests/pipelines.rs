@@ -1,5 +1,6 @@
 //! The shipped pipelines through the real `rlmflow` binary: every one validates, and the CI
-//! pipeline runs twice with the second run reusing every stage.
+//! pipeline runs twice with the second run reusing every stage; its Scenes artifacts read the
+//! same through a stock MCAP reader (the Python `mcap` package) as through rlmflow's index.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -43,4 +44,61 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     assert_eq!((finished(&second, "reused"), finished(&second, "ran")), (stages, 0), "{second}");
     let (ok, verify) = rlmflow(&dir, &["verify", "ci.toml"]);
     assert!(ok, "{verify}");
+    let artifacts = scenes_artifacts(&dir.join(".rlmflow/objects"));
+    assert_eq!(artifacts.len(), 2, "one per scenes stage: {artifacts:?}");
+    for artifact in artifacts {
+        a_stock_mcap_reader_agrees(&artifact);
+    }
+}
+
+fn scenes_artifacts(objects: &Path) -> Vec<PathBuf> {
+    let mut found = Vec::new();
+    for shard in std::fs::read_dir(objects).unwrap() {
+        for object in std::fs::read_dir(shard.unwrap().path()).unwrap() {
+            let path = object.unwrap().path();
+            if path.join("scenes.mcap").exists() {
+                found.push(path);
+            }
+        }
+    }
+    found
+}
+
+/// Reads `scenes.mcap` with the Python `mcap` package (protobuf decoding from
+/// `mcap-protobuf-support`) in the managed environment and compares every message with what
+/// rlmflow's reader returns through `scenes.index`.
+fn a_stock_mcap_reader_agrees(artifact: &Path) {
+    const READ: &str = r#"
+import json, sys
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+out = {"actors": [], "images": {}}
+protobuf = DecoderFactory()
+with open(sys.argv[1], "rb") as f:
+    for schema, channel, message in make_reader(f).iter_messages():
+        if channel.topic == "/actors":
+            assert channel.message_encoding == "json"
+            out["actors"].append(json.loads(message.data))
+        else:
+            decoded = protobuf.decoder_for(channel.message_encoding, schema)(message.data)
+            assert schema.name == "foxglove.RawImage" and decoded.encoding == "mono8"
+            out["images"].setdefault(channel.topic, []).append([decoded.width, decoded.height, list(decoded.data)])
+json.dump(out, sys.stdout)
+"#;
+    let env = rlmflow_python::ensure(&mut |_| {}).unwrap();
+    let out = Command::new(&env.python).arg("-c").arg(READ).arg(artifact.join("scenes.mcap")).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let read: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let scenes = rlmflow_stages::scenes::Scenes::open(artifact).unwrap();
+    let frames = scenes.frames().unwrap();
+    assert_eq!(read["actors"], serde_json::to_value(&frames).unwrap(), "{}", artifact.display());
+    for (k, image) in scenes.summary.images.iter().enumerate() {
+        let decoded = read["images"][&image.topic].as_array().unwrap();
+        assert_eq!(decoded.len() as u64, scenes.len());
+        for (i, d) in decoded.iter().enumerate() {
+            assert_eq!(d[0], image.size);
+            assert_eq!(d[1], image.size);
+            assert_eq!(d[2], serde_json::to_value(scenes.image(k, i as u64).unwrap()).unwrap(), "{} frame {i}", image.topic);
+        }
+    }
 }

@@ -242,7 +242,7 @@ fn simulate(s: &HighwaySettings, scenario: &str, seed: u64) -> anyhow::Result<Ep
 /// A Python `bytes` of native f64s.
 fn floats(value: &Bound<'_, PyAny>) -> anyhow::Result<Vec<f64>> {
     let bytes: &[u8] = value.extract().map_err(|e| anyhow::anyhow!("expected bytes from highway.py: {e}"))?;
-    if bytes.len() % 8 != 0 {
+    if !bytes.len().is_multiple_of(8) {
         bail!("highway.py returned {} bytes, not whole f64s", bytes.len());
     }
     Ok(bytes.chunks_exact(8).map(|b| f64::from_ne_bytes(b.try_into().expect("8 bytes"))).collect())
@@ -278,7 +278,9 @@ fn choose_ego(
         (0..snap.rows.len()).filter(|&j| j != e).map(|j| (j, relative(&snap.rows[e], &snap.rows[j]))).filter(|(_, b)| b.x.hypot(b.y) <= range).collect()
     };
     let candidates: Vec<usize> = if s.balance_cells { (0..snap.rows.len()).collect() } else { vec![0] };
-    let mut best: Option<(f64, usize, Vec<(usize, VehicleBox)>)> = None;
+    // (score, ego row, its neighbours)
+    type Choice = (f64, usize, Vec<(usize, VehicleBox)>);
+    let mut best: Option<Choice> = None;
     for e in candidates {
         let around = neighbours(e);
         if around.len() > s.max_vehicles {
@@ -313,4 +315,91 @@ fn choose_ego(
         })
         .collect();
     Some(Scene { scenario: String::new(), vehicles, edges })
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::PathBuf;
+    use std::sync::Arc;
+
+    use rlmflow_stages::context::Silent;
+    use rlmflow_stages::scenes::Scenes;
+    use rlmflow_stages::{Device, DynOperator};
+
+    use super::*;
+
+    fn run(s: &HighwaySettings, name: &str, checkpoint: Option<PathBuf>) -> (PathBuf, Outcome) {
+        // As the binary's main does; std serialises environment access between test threads.
+        embed::pin_home();
+        let root = std::env::temp_dir().join(format!("rlmflow-highway-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let out = root.join("out");
+        let ckpt = checkpoint.unwrap_or(root.join("ckpt"));
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::create_dir_all(&ckpt).unwrap();
+        let mut ctx = Context::new("scenes".into(), BTreeMap::new(), out.clone(), ckpt, 11, 2, Device::Cpu, Arc::new(Silent));
+        let outcome = Operator::run(&HighwayEnv, s, &mut ctx).unwrap();
+        (out, outcome)
+    }
+
+    fn small(scenarios: &[&str]) -> HighwaySettings {
+        HighwaySettings {
+            frames: 12,
+            episode_frames: 4,
+            scenarios: scenarios.iter().map(|s| (s.to_string(), ScenarioMix::default())).collect(),
+            radar: RadarConfig { image: 32, ..RadarConfig::default() },
+            ..HighwaySettings::default()
+        }
+    }
+
+    #[test]
+    fn scenes_are_deterministic_and_resume_to_the_same_bytes() {
+        let s = small(&["highway", "two-way"]);
+        let (a, outcome) = run(&s, "a", None);
+        let (b, _) = run(&s, "b", None);
+        let bytes = |dir: &PathBuf| std::fs::read(dir.join("scenes.mcap")).unwrap();
+        assert_eq!(bytes(&a), bytes(&b));
+        assert_eq!(outcome.metrics["frames"], 12);
+        // A run stopped after its first two episodes leaves them in its checkpoint; a run for
+        // all frames resumes there and writes the same bytes as the uninterrupted run.
+        let partial = std::env::temp_dir().join(format!("rlmflow-highway-partial-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&partial);
+        std::fs::create_dir_all(&partial).unwrap();
+        run(&HighwaySettings { frames: 8, ..s.clone() }, "first", Some(partial.clone()));
+        let (c, outcome) = run(&s, "rest", Some(partial));
+        assert_eq!(outcome.metrics["episodes"], 3);
+        assert_eq!(bytes(&c), bytes(&a));
+    }
+
+    #[test]
+    fn every_scenario_runs_and_the_mix_yields_opposing_and_crossing_traffic() {
+        let s = HighwaySettings { frames: 36, episode_frames: 6, ..small(&SCENARIOS) };
+        let (out, outcome) = run(&s, "mix", None);
+        let scenes = Scenes::open(&out).unwrap();
+        let frames = scenes.frames().unwrap();
+        assert_eq!(frames.len(), 36);
+        let per: BTreeMap<String, u64> = serde_json::from_value(outcome.metrics["frames_per_scenario"].clone()).unwrap();
+        assert_eq!(per.values().sum::<u64>(), 36);
+        let rule = GridRule::default();
+        let sectors: std::collections::BTreeSet<usize> =
+            frames.iter().flat_map(|f| &f.actors).filter_map(|a| rule.classify(a.x, a.y, a.heading)).map(|c| c.sector).collect();
+        assert!(sectors.iter().any(|&k| k == 8 || k == 9), "no opposing traffic in {sectors:?}");
+        assert!(sectors.iter().any(|&k| k >= 10), "no crossing traffic in {sectors:?}");
+        for f in &frames {
+            assert!(f.actors.len() <= 20);
+            assert!(f.actors.iter().all(|a| a.x.hypot(a.y) <= s.radar.range_max_m));
+        }
+    }
+
+    #[test]
+    fn unknown_scenarios_and_impossible_settings_name_their_key() {
+        let check = |v: serde_json::Value| HighwayEnv.settings(v).unwrap_err();
+        let e = check(serde_json::json!({"scenarios": {"highwya": {}}}));
+        assert_eq!(e.key, "scenarios.highwya");
+        assert!(e.valid.contains(&"highway".to_string()));
+        assert_eq!(check(serde_json::json!({"scenarios": {"merge": {"density": 0.0}}})).key, "scenarios.merge.density");
+        assert_eq!(check(serde_json::json!({"scenarios": {"merge": {"speed": 1.0}}})).key, "scenarios.merge.speed");
+        assert_eq!(check(serde_json::json!({"max_vehicles": 25})).key, "max_vehicles");
+        assert_eq!(check(serde_json::json!({"scenarios": {}})).key, "scenarios");
+    }
 }
