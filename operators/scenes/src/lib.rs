@@ -11,5 +11,7 @@ mod render;
 mod writer;
 
 #[cfg(feature = "highway")]
-pub use highway::{HighwayEnv, HighwaySettings, ScenarioMix};
+pub use highway::{HighwayEnv, HighwaySettings, SCENARIOS, ScenarioMix};
 pub use procedural::{Procedural, ProceduralSettings};
+pub use render::{Rendered, Renderer, Scene, Vehicle};
+pub use writer::SceneWriter;
