@@ -127,10 +127,103 @@ impl GridRule {
     }
 }
 
+/// One frame's grid: vehicles per cell, walkers, applicable traffic signs.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Grid {
+    /// Indexed by [`Cell::index`].
+    pub counts: [u32; CELLS],
+    pub walkers: u32,
+    pub signs: Vec<String>,
+}
+
+impl Default for Grid {
+    fn default() -> Self {
+        Grid { counts: [0; CELLS], walkers: 0, signs: Vec::new() }
+    }
+}
+
+impl Grid {
+    pub fn get(&self, bin: usize, sector: usize) -> u32 {
+        self.counts[Cell { bin, sector }.index()]
+    }
+
+    pub fn set(&mut self, bin: usize, sector: usize, n: u32) {
+        self.counts[Cell { bin, sector }.index()] = n;
+    }
+
+    pub fn bin_total(&self, bin: usize) -> u32 {
+        (0..SECTORS.len()).map(|s| self.get(bin, s)).sum()
+    }
+
+    pub fn vehicles(&self) -> u32 {
+        self.counts.iter().sum()
+    }
+
+    /// The paper's JSON, keys in the paper's order: per bin `total_vehicles` then the non-zero
+    /// sectors; then `traffic_signs` and `walkers`.
+    pub fn to_json(&self) -> String {
+        let mut out = String::from("{");
+        for (bin, name) in DISTANCE_BINS.iter().enumerate() {
+            out += &format!("\"{name}\":{{\"total_vehicles\":{}", self.bin_total(bin));
+            for (sector, key) in SECTORS.iter().enumerate() {
+                let n = self.get(bin, sector);
+                if n > 0 {
+                    out += &format!(",\"{key}\":{n}");
+                }
+            }
+            out += "},";
+        }
+        out += &format!("\"traffic_signs\":{},\"walkers\":{}}}", serde_json::to_string(&self.signs).expect("strings"), self.walkers);
+        out
+    }
+
+    /// Reads the paper's JSON (also `applicable_traffic_signs`, the prompt's spelling). A bin's
+    /// `total_vehicles` must equal the sum of its sectors.
+    pub fn from_json(value: &serde_json::Value) -> Result<Grid, String> {
+        let object = value.as_object().ok_or("a grid is a JSON object")?;
+        let mut grid = Grid::default();
+        for (key, v) in object {
+            if let Some(bin) = DISTANCE_BINS.iter().position(|b| b == key) {
+                let sectors = v.as_object().ok_or_else(|| format!("`{key}` must be an object"))?;
+                let mut total = None;
+                for (k, n) in sectors {
+                    let n = n.as_u64().ok_or_else(|| format!("`{key}.{k}` must be a count"))? as u32;
+                    match SECTORS.iter().position(|s| s == k) {
+                        Some(sector) => grid.set(bin, sector, n),
+                        None if k == "total_vehicles" => total = Some(n),
+                        None => return Err(format!("unknown key `{key}.{k}`; valid: total_vehicles, {}", SECTORS.join(", "))),
+                    }
+                }
+                if let Some(t) = total.filter(|&t| t != grid.bin_total(bin)) {
+                    return Err(format!("`{key}.total_vehicles` is {t} but its sectors add up to {}", grid.bin_total(bin)));
+                }
+            } else if key == "walkers" {
+                grid.walkers = v.as_u64().ok_or("`walkers` must be a count")? as u32;
+            } else if key == "traffic_signs" || key == "applicable_traffic_signs" {
+                grid.signs = serde_json::from_value(v.clone()).map_err(|_| format!("`{key}` must be a list of strings"))?;
+            } else {
+                return Err(format!("unknown key `{key}`; valid: {}, traffic_signs, walkers", DISTANCE_BINS.join(", ")));
+            }
+        }
+        Ok(grid)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use std::f64::consts::PI;
+
+    #[test]
+    fn the_papers_json_reads_and_writes_back() {
+        let text = r#"{"0-10m":{"total_vehicles":3,"in_lane_front_side":1,"right_lane_back_side":2},"10-20m":{"total_vehicles":5,"in_lane_back_side":1,"right_lane_front_side":3,"right_lane_back_side":1},"20-30m":{"total_vehicles":4,"opposing_lane_front":4},"30-40m":{"total_vehicles":2,"in_lane_front_side":1,"right_lane_front_side":1},"traffic_signs":[],"walkers":0}"#;
+        let grid = Grid::from_json(&serde_json::from_str(text).unwrap()).unwrap();
+        assert_eq!(grid.vehicles(), 14);
+        assert_eq!(grid.get(2, 8), 4);
+        assert_eq!(grid.to_json(), text);
+        let bad = serde_json::json!({"0-10m": {"total_vehicles": 2, "left_side": 1}});
+        assert_eq!(Grid::from_json(&bad).unwrap_err(), "`0-10m.total_vehicles` is 2 but its sectors add up to 1");
+    }
 
     #[test]
     fn the_paper_rule_classifies_each_sector() {

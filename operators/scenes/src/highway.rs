@@ -155,7 +155,10 @@ impl Operator for HighwayEnv {
     }
 
     fn run(&self, s: &HighwaySettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-        let env = rlmflow_python::ensure(&mut |note| ctx.event("python", serde_json::json!({ "note": note })))?;
+        let env = rlmflow_python::ensure(&mut |note| {
+            ctx.event("python", serde_json::json!({ "note": note }));
+            ctx.progress(0, note).set_position(0);
+        })?;
         embed::start(&env)?;
         let renderer = Renderer::new(&s.radar, &check_views(&s.images).expect("settings were checked"), s.exact);
         let mut writer = SceneWriter::resume(&ctx.checkpoint_dir, renderer.images()).context("opening the checkpoint")?;
