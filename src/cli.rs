@@ -97,6 +97,12 @@ enum Command {
     },
     /// List stage kinds and operators with their default settings.
     Operators,
+    /// Parse captions into the paper's grid JSON with the LLM-free parser: one caption per line,
+    /// or JSON lines with a `caption` field; writes one grid JSON per line. Warnings go to stderr.
+    Parse {
+        /// Default: standard input.
+        file: Option<PathBuf>,
+    },
     /// Create the managed Python environment (pinned packages from the lock compiled into this
     /// binary) if it is missing, and print where it is. Stages that need it also create it on
     /// first use.
@@ -212,6 +218,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             println!("pinned {} cached stage instances in {}", keys.len(), path.display());
             Ok(ExitCode::SUCCESS)
         }
+        Command::Parse { file } => parse_captions(file.as_deref()),
         Command::Setup => {
             let env = rlmflow_python::ensure(&mut |note| eprintln!("{note}"))?;
             println!("Python {} environment: {}", env.version, env.root.display());
@@ -334,4 +341,33 @@ fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow
 
 fn indent(text: &str) -> String {
     text.lines().map(|l| format!("    {l}")).collect::<Vec<_>>().join("\n")
+}
+
+fn parse_captions(file: Option<&Path>) -> anyhow::Result<ExitCode> {
+    use std::io::{BufRead, Write};
+    let name = file.map_or("<stdin>".to_string(), |f| f.display().to_string());
+    let input: Box<dyn BufRead> = match file {
+        Some(f) => Box::new(std::io::BufReader::new(std::fs::File::open(f).with_context(|| format!("reading {}", f.display()))?)),
+        None => Box::new(std::io::stdin().lock()),
+    };
+    let mut out = std::io::BufWriter::new(std::io::stdout().lock());
+    for (i, line) in input.lines().enumerate() {
+        let line = line.with_context(|| format!("{name}:{}", i + 1))?;
+        let caption = if line.trim_start().starts_with('{') {
+            let value: serde_json::Value = serde_json::from_str(&line).with_context(|| format!("{name}:{}: not JSON", i + 1))?;
+            match value.get("caption").and_then(|c| c.as_str()) {
+                Some(c) => c.to_string(),
+                None => bail!("{name}:{}: a JSON line needs a string field `caption`", i + 1),
+            }
+        } else {
+            line
+        };
+        let parsed = rlmflow_parser::parse(&caption);
+        for warning in &parsed.warnings {
+            eprintln!("{name}:{}: warning: {warning}", i + 1);
+        }
+        writeln!(out, "{}", parsed.grid.to_json())?;
+    }
+    out.flush()?;
+    Ok(ExitCode::SUCCESS)
 }

@@ -102,3 +102,26 @@ json.dump(out, sys.stdout)
         }
     }
 }
+
+#[test]
+fn parse_reads_plain_and_json_lines_and_names_the_bad_line() {
+    let dir = std::env::temp_dir().join(format!("rlmflow-parse-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let captions = dir.join("captions.jsonl");
+    std::fs::write(
+        &captions,
+        "Within zero to ten meters there is one car directly ahead of us in the same lane.\n{\"frame\": 3, \"caption\": \"Further away, two vehicles are in the left adjacent lane behind us.\"}\nnothing here\n",
+    )
+    .unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_rlmflow")).args(["parse", captions.to_str().unwrap()]).output().unwrap();
+    assert!(out.status.success());
+    let lines: Vec<String> = String::from_utf8(out.stdout).unwrap().lines().map(String::from).collect();
+    assert_eq!(lines.len(), 3);
+    assert!(lines[0].starts_with(r#"{"0-10m":{"total_vehicles":1,"in_lane_front_side":1}"#), "{}", lines[0]);
+    assert!(lines[1].contains(r#""30-40m":{"total_vehicles":2,"left_lane_back_side":2}"#), "{}", lines[1]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("captions.jsonl:3: warning: no distance bin recognised"));
+    std::fs::write(&captions, "{\"text\": \"no caption field\"}\n").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_rlmflow")).args(["parse", captions.to_str().unwrap()]).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("captions.jsonl:1: a JSON line needs a string field `caption`"));
+}
