@@ -56,7 +56,8 @@ pub fn parse(caption: &str) -> Parsed {
     // The last assignment (bin, sector, count, its words): a following count-less clause may
     // refine its sector ("in the lane to our right, behind us").
     let mut last: Option<(usize, usize, u32, Vec<String>)> = None;
-    let clauses = tokens.split_inclusive(|t| matches!(t, Token::Stop | Token::End) || matches!(t, Token::Word(w) if CLAUSE_WORDS.contains(&w.as_str())));
+    let clauses =
+        tokens.split_inclusive(|t| matches!(t, Token::Stop | Token::End) || matches!(t, Token::Word(w) if CLAUSE_WORDS.contains(&w.as_str())));
     let mut new_sentence = false;
     for clause in clauses {
         // Refinement stays within a sentence.
@@ -162,15 +163,19 @@ fn bins(tokens: Vec<Token>) -> Vec<Token> {
     let mut i = 0;
     while i < tokens.len() {
         // NUM (to | - | and) NUM [unit]
-        if let (Some(Token::Number(a)), Some(Token::Number(b))) = (tokens.get(i), tokens.get(i + 2)) {
-            if word(tokens.get(i + 1), &["to", "-", "and"]) && b > a && b - a == 10 && a % 10 == 0 && *a <= 30 {
-                out.push(Token::Bin(*a as usize / 10));
-                i += 3;
-                if word(tokens.get(i), &UNITS) {
-                    i += 1;
-                }
-                continue;
+        if let (Some(Token::Number(a)), Some(Token::Number(b))) = (tokens.get(i), tokens.get(i + 2))
+            && word(tokens.get(i + 1), &["to", "-", "and"])
+            && b > a
+            && b - a == 10
+            && a.is_multiple_of(10)
+            && *a <= 30
+        {
+            out.push(Token::Bin(*a as usize / 10));
+            i += 3;
+            if word(tokens.get(i), &UNITS) {
+                i += 1;
             }
+            continue;
         }
         out.push(tokens[i].clone());
         i += 1;
@@ -188,17 +193,13 @@ fn bins(tokens: Vec<Token>) -> Vec<Token> {
         let mut j = 0;
         while j < sentence.len() {
             let at = |k: usize, w: &str| matches!(sentence.get(j + k), Some(Token::Word(x)) if x == w);
-            let (bin, len) = if (at(0, "very") || at(0, "extremely")) && at(1, "close") {
-                (Some(0), 2)
-            } else if at(0, "immediate") && at(1, "vicinity") {
+            let (bin, len) = if ((at(0, "very") || at(0, "extremely")) && at(1, "close")) || (at(0, "immediate") && at(1, "vicinity")) {
                 (Some(0), 2)
             } else if at(0, "close") {
                 (Some(1), 1)
             } else if (at(0, "moderate") || at(0, "medium")) && at(1, "distance") {
                 (Some(2), 2)
-            } else if (at(0, "further") || at(0, "farther")) && (at(1, "away") || at(1, "out")) {
-                (Some(3), 2)
-            } else if at(0, "safe") && at(1, "distance") {
+            } else if ((at(0, "further") || at(0, "farther")) && (at(1, "away") || at(1, "out"))) || (at(0, "safe") && at(1, "distance")) {
                 (Some(3), 2)
             } else {
                 (None, 1)
@@ -288,15 +289,15 @@ fn signs(words: &[&str]) -> Vec<String> {
     let mut names = Vec::new();
     let mut i = 0;
     while i < words.len() {
-        if ["a", "an"].contains(&words[i]) {
-            if let Some(end) = words[i + 1..].iter().position(|w| *w == "sign") {
-                let name: Vec<&str> = words[i + 1..i + 1 + end].iter().copied().filter(|w| !["traffic", "applicable"].contains(w)).collect();
-                if !name.is_empty() && end <= 3 {
-                    names.push(name.join(" "));
-                }
-                i += end + 1;
-                continue;
+        if ["a", "an"].contains(&words[i])
+            && let Some(end) = words[i + 1..].iter().position(|w| *w == "sign")
+        {
+            let name: Vec<&str> = words[i + 1..i + 1 + end].iter().copied().filter(|w| !["traffic", "applicable"].contains(w)).collect();
+            if !name.is_empty() && end <= 3 {
+                names.push(name.join(" "));
             }
+            i += end + 1;
+            continue;
         }
         i += 1;
     }

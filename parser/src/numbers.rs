@@ -3,8 +3,26 @@
 use crate::Token;
 
 const ONES: [&str; 20] = [
-    "zero", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten", "eleven", "twelve", "thirteen", "fourteen", "fifteen",
-    "sixteen", "seventeen", "eighteen", "nineteen",
+    "zero",
+    "one",
+    "two",
+    "three",
+    "four",
+    "five",
+    "six",
+    "seven",
+    "eight",
+    "nine",
+    "ten",
+    "eleven",
+    "twelve",
+    "thirteen",
+    "fourteen",
+    "fifteen",
+    "sixteen",
+    "seventeen",
+    "eighteen",
+    "nineteen",
 ];
 const TENS: [&str; 10] = ["", "", "twenty", "thirty", "forty", "fifty", "sixty", "seventy", "eighty", "ninety"];
 
@@ -12,7 +30,7 @@ const TENS: [&str; 10] = ["", "", "twenty", "thirty", "forty", "fifty", "sixty",
 pub fn number_word(n: u32) -> String {
     match n {
         0..=19 => ONES[n as usize].into(),
-        20..=99 if n % 10 == 0 => TENS[n as usize / 10].into(),
+        20..=99 if n.is_multiple_of(10) => TENS[n as usize / 10].into(),
         20..=99 => format!("{}-{}", TENS[n as usize / 10], ONES[n as usize % 10]),
         _ => n.to_string(),
     }
@@ -62,4 +80,18 @@ pub(crate) fn words_to_numbers(tokens: Vec<Token>) -> Vec<Token> {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn words_and_numbers_round_trip() {
+        for n in 0..100 {
+            let text = format!("{} cars", number_word(n));
+            assert_eq!(crate::numbers::words_to_numbers(crate::tokenize(&text))[0], Token::Number(n), "{text}");
+        }
+        assert_eq!(words_to_numbers(crate::tokenize("a pair of cars"))[0], Token::Number(2));
+    }
 }

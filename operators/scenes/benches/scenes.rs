@@ -10,7 +10,7 @@ use std::time::Instant;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rlmflow_radar::RadarConfig;
-use rlmflow_scenes::{HighwayEnv, HighwaySettings, Procedural, ProceduralSettings, SceneWriter, ScenarioMix};
+use rlmflow_scenes::{HighwayEnv, HighwaySettings, Procedural, ProceduralSettings, ScenarioMix, SceneWriter};
 use rlmflow_stages::context::Silent;
 use rlmflow_stages::scenes::{Actor, Frame, Image, Scenes};
 use rlmflow_stages::{Context, Device, Operator};

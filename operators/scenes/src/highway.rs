@@ -187,7 +187,8 @@ impl Operator for HighwayEnv {
             }
             let start = writer.done();
             let numbered: Vec<(u64, Scene, u64)> = scenes.into_iter().enumerate().map(|(i, (scene, seed))| (start + i as u64, scene, seed)).collect();
-            let batch = parallel_map(&numbered, ctx.threads, |(i, scene, seed)| renderer.render(*i, scene.clone(), &mut ChaCha8Rng::seed_from_u64(*seed)));
+            let batch =
+                parallel_map(&numbered, ctx.threads, |(i, scene, seed)| renderer.render(*i, scene.clone(), &mut ChaCha8Rng::seed_from_u64(*seed)));
             cursor.episodes += 1;
             writer.append_with_cursor(&batch, serde_json::to_value(&cursor)?)?;
             progress.set_position(writer.done());
@@ -203,7 +204,10 @@ impl Operator for HighwayEnv {
         ctx.event("dataset", metrics.clone());
         Ok(Outcome {
             metrics,
-            summary: format!("{} frames from {} episodes ({} dropped), {covered}/{CELLS} cells covered", summary.frames, cursor.episodes, cursor.dropped),
+            summary: format!(
+                "{} frames from {} episodes ({} dropped), {covered}/{CELLS} cells covered",
+                summary.frames, cursor.episodes, cursor.dropped
+            ),
         })
     }
 }
@@ -278,7 +282,11 @@ fn choose_ego(
     counts.resize(CELLS, 0);
     let range = s.radar.range_max_m;
     let neighbours = |e: usize| -> Vec<(usize, VehicleBox)> {
-        (0..snap.rows.len()).filter(|&j| j != e).map(|j| (j, relative(&snap.rows[e], &snap.rows[j]))).filter(|(_, b)| b.x.hypot(b.y) <= range).collect()
+        (0..snap.rows.len())
+            .filter(|&j| j != e)
+            .map(|j| (j, relative(&snap.rows[e], &snap.rows[j])))
+            .filter(|(_, b)| b.x.hypot(b.y) <= range)
+            .collect()
     };
     let candidates: Vec<usize> = if s.balance_cells { (0..snap.rows.len()).collect() } else { vec![0] };
     // (score, ego row, its neighbours)
@@ -289,12 +297,9 @@ fn choose_ego(
         if around.len() > s.max_vehicles {
             continue;
         }
-        let score: f64 = around
-            .iter()
-            .filter_map(|(_, b)| rule.classify(b.x, b.y, b.heading))
-            .map(|cell| 1.0 / (1.0 + counts[cell.index()] as f64))
-            .sum::<f64>()
-            + rng.random::<f64>() * 1e-6;
+        let score: f64 =
+            around.iter().filter_map(|(_, b)| rule.classify(b.x, b.y, b.heading)).map(|cell| 1.0 / (1.0 + counts[cell.index()] as f64)).sum::<f64>()
+                + rng.random::<f64>() * 1e-6;
         if best.as_ref().is_none_or(|(b, _, _)| score > *b) {
             best = Some((score, e, around));
         }

@@ -40,8 +40,8 @@ pub fn check_views(images: &[String]) -> Result<Vec<View>, SettingError> {
     }
     let mut views = Vec::new();
     for name in images {
-        let view = View::parse(name)
-            .ok_or_else(|| SettingError::new("images", format!("unknown view `{name}`; valid: {}", View::NAMES.join(", "))))?;
+        let view =
+            View::parse(name).ok_or_else(|| SettingError::new("images", format!("unknown view `{name}`; valid: {}", View::NAMES.join(", "))))?;
         if views.contains(&view) {
             return Err(SettingError::new("images", format!("`{name}` is listed twice")));
         }
@@ -78,7 +78,18 @@ impl Renderer {
             .map(|v| {
                 let (row, col) = primary.pixel(v.body.x, v.body.y);
                 let b = v.body;
-                Actor { id: v.id, class: v.class.into(), x: b.x, y: b.y, heading: b.heading, length: b.length, width: b.width, speed: v.speed, row, col }
+                Actor {
+                    id: v.id,
+                    class: v.class.into(),
+                    x: b.x,
+                    y: b.y,
+                    heading: b.heading,
+                    length: b.length,
+                    width: b.width,
+                    speed: v.speed,
+                    row,
+                    col,
+                }
             })
             .collect();
         (Frame { index, scenario: scene.scenario, actors }, images)

@@ -86,7 +86,8 @@ impl SceneWriter {
     /// Appends a batch and records it as complete together with the operator's resume state.
     pub fn append_with_cursor(&mut self, batch: &[Rendered], cursor: serde_json::Value) -> anyhow::Result<()> {
         let mut frames = OpenOptions::new().append(true).open(self.dir.join(FRAMES))?;
-        let mut parts: Vec<File> = (0..self.images.len()).map(|k| OpenOptions::new().append(true).open(self.image_part(k))).collect::<Result<_, _>>()?;
+        let mut parts: Vec<File> =
+            (0..self.images.len()).map(|k| OpenOptions::new().append(true).open(self.image_part(k))).collect::<Result<_, _>>()?;
         for (frame, images) in batch {
             assert_eq!(images.len(), self.images.len(), "one image per view");
             for ((part, pixels), info) in parts.iter_mut().zip(images).zip(&self.images) {
@@ -130,7 +131,8 @@ impl SceneWriter {
         let channels: Vec<u16> =
             self.images.iter().map(|i| out.add_channel(image_schema, &i.topic, "protobuf", &BTreeMap::new())).collect::<Result<_, _>>()?;
         let mut frames = BufReader::new(File::open(self.dir.join(FRAMES))?).lines();
-        let mut parts: Vec<BufReader<File>> = (0..self.images.len()).map(|k| File::open(self.image_part(k)).map(BufReader::new)).collect::<Result<_, _>>()?;
+        let mut parts: Vec<BufReader<File>> =
+            (0..self.images.len()).map(|k| File::open(self.image_part(k)).map(BufReader::new)).collect::<Result<_, _>>()?;
         let mut message = Vec::new();
         for i in 0..self.done {
             let line = frames.next().context("the frames part is shorter than its record")??;
