@@ -24,6 +24,11 @@ use serde::{Deserialize, Serialize};
 
 /// The pinned packages, one `name==version` per line.
 pub const LOCK: &str = include_str!("../requirements.lock");
+/// The lock's `name==version` lines.
+fn pinned() -> impl Iterator<Item = &'static str> {
+    LOCK.lines().filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
+}
+
 /// Python older than this cannot install the lock (numpy 2.4 needs 3.11).
 pub const MIN_VERSION: (u32, u32) = (3, 11);
 const READY: &str = "rlmflow-env.json";
@@ -50,7 +55,7 @@ fn base_interpreter() -> PathBuf {
     return PathBuf::from("python3");
 }
 
-pub fn data_dir() -> anyhow::Result<PathBuf> {
+fn data_dir() -> anyhow::Result<PathBuf> {
     if let Some(p) = std::env::var_os("RLMFLOW_HOME") {
         return Ok(p.into());
     }
@@ -100,12 +105,6 @@ fn env_dir(version: &str) -> anyhow::Result<PathBuf> {
     Ok(data_dir()?.join("python").join(format!("env-{}", &digest[..16])))
 }
 
-/// The ready environment, if it exists (never creates one).
-pub fn find() -> anyhow::Result<Option<Environment>> {
-    let version = interpreter_version(&base_interpreter())?;
-    read_ready(&env_dir(&version)?)
-}
-
 fn read_ready(root: &Path) -> anyhow::Result<Option<Environment>> {
     match fs::read(root.join(READY)) {
         Ok(bytes) => Ok(Some(serde_json::from_slice(&bytes).with_context(|| format!("{} is damaged; delete {}", READY, root.display()))?)),
@@ -145,7 +144,7 @@ fn create(python: &Path, scratch: &Path, root: &Path, version: &str, note: &mut 
     run(Command::new(python).arg("-m").arg("venv").arg(scratch), "creating the venv")?;
     let lock_file = scratch.join("requirements.lock");
     fs::write(&lock_file, LOCK)?;
-    note(&format!("installing {} pinned packages", LOCK.lines().filter(|l| !l.trim().is_empty() && !l.starts_with('#')).count()));
+    note(&format!("installing {} pinned packages", pinned().count()));
     let venv_python = scratch.join("bin/python");
     run(
         Command::new(&venv_python)
@@ -181,7 +180,7 @@ mod tests {
 
     #[test]
     fn the_lock_pins_every_package() {
-        for line in LOCK.lines().filter(|l| !l.trim().is_empty() && !l.starts_with('#')) {
+        for line in pinned() {
             let (name, version) = line.split_once("==").unwrap_or_else(|| panic!("`{line}` is not name==version"));
             assert!(!name.is_empty() && version.chars().all(|c| c.is_ascii_digit() || c == '.'), "`{line}`");
         }

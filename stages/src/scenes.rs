@@ -91,6 +91,16 @@ pub struct Summary {
 }
 
 impl Summary {
+    /// Vehicles over all frames.
+    pub fn vehicles(&self) -> u64 {
+        self.vehicles_per_scene.iter().enumerate().map(|(n, frames)| n as u64 * frames).sum()
+    }
+
+    /// Grid cells with at least one vehicle.
+    pub fn cells_covered(&self) -> usize {
+        self.cells.values().filter(|&&n| n > 0).count()
+    }
+
     /// u64 entries per frame in `scenes.index`.
     pub fn index_stride(&self) -> usize {
         2 + self.images.len()

@@ -73,7 +73,7 @@ class Simulation:
             self.road.vehicles[index] = ego
             self.road.vehicles.insert(0, self.road.vehicles.pop(index))
         self.dt = 1.0 / SIMULATION_HZ
-        self.lanes = [(key, lane) for key, lane in self._lanes()]
+        self.lanes = list(self._lanes())
         for v in self.road.vehicles:
             self._adopt(v)
         self._refill()
@@ -100,11 +100,15 @@ class Simulation:
             if len(self.road.vehicles) >= self.target:
                 break
             anchor = self.road.vehicles[self.rng.integers(len(self.road.vehicles))]
-            near = [(k, l) for k, l in self.lanes if abs(l.local_coordinates(anchor.position)[1]) < 40 and -60 < l.local_coordinates(anchor.position)[0] < l.length + 60]
+            near = []
+            for key, lane in self.lanes:
+                along, lateral = lane.local_coordinates(anchor.position)
+                if abs(lateral) < 40 and -60 < along < lane.length + 60:
+                    near.append((key, lane, along))
             if not near:
                 continue
-            key, lane = near[self.rng.integers(len(near))]
-            s = lane.local_coordinates(anchor.position)[0] + self.rng.uniform(-70.0, 70.0)
+            key, lane, along = near[self.rng.integers(len(near))]
+            s = along + self.rng.uniform(-70.0, 70.0)
             if not 0.0 <= s <= lane.length:
                 continue
             position = lane.position(s, 0.0)

@@ -180,23 +180,21 @@ impl Operator for HighwayEnv {
                 if scenes.len() == wanted {
                     break;
                 }
-                match choose_ego(s, &rule, snap, &snapshots.edges, &mut cursor.cells, &mut rng) {
-                    Some(scene) => scenes.push((Scene { scenario: scenario.clone(), ..scene }, rng.random::<u64>())),
+                match choose_ego(s, &rule, scenario, snap, &snapshots.edges, &mut cursor.cells, &mut rng) {
+                    Some(scene) => scenes.push((scene, rng.random::<u64>())),
                     None => cursor.dropped += 1,
                 }
             }
             let start = writer.done();
             let numbered: Vec<(u64, Scene, u64)> = scenes.into_iter().enumerate().map(|(i, (scene, seed))| (start + i as u64, scene, seed)).collect();
-            let batch =
-                parallel_map(&numbered, ctx.threads, |(i, scene, seed)| renderer.render(*i, scene.clone(), &mut ChaCha8Rng::seed_from_u64(*seed)));
+            let batch = parallel_map(&numbered, ctx.threads, |(i, scene, seed)| renderer.render(*i, scene, &mut ChaCha8Rng::seed_from_u64(*seed)));
             cursor.episodes += 1;
             writer.append_with_cursor(&batch, serde_json::to_value(&cursor)?)?;
             progress.set_position(writer.done());
         }
         progress.finish();
         let summary = writer.finish(&ctx.output_dir, s.radar.range_max_m, serde_json::to_value(s)?)?;
-        let covered = summary.cells.values().filter(|&&n| n > 0).count();
-        let vehicles: u64 = summary.vehicles_per_scene.iter().enumerate().map(|(n, f)| n as u64 * f).sum();
+        let (covered, vehicles) = (summary.cells_covered(), summary.vehicles());
         let metrics = serde_json::json!({
             "frames": summary.frames, "vehicles": vehicles, "cells_covered": covered, "episodes": cursor.episodes,
             "dropped_frames": cursor.dropped, "frames_per_scenario": summary.frames_per_scenario, "cells": summary.cells,
@@ -274,6 +272,7 @@ fn relative(ego: &[f64; COLUMNS], other: &[f64; COLUMNS]) -> VehicleBox {
 fn choose_ego(
     s: &HighwaySettings,
     rule: &GridRule,
+    scenario: &str,
     snap: &Snapshot,
     edges: &[Segment],
     counts: &mut Vec<u64>,
@@ -322,7 +321,7 @@ fn choose_ego(
             Vehicle { id: r[0] as u32, class: if r[7] > 0.5 { "truck" } else { "car" }, body, speed: r[6] }
         })
         .collect();
-    Some(Scene { scenario: String::new(), vehicles, edges })
+    Some(Scene { scenario: scenario.to_string(), vehicles, edges })
 }
 
 #[cfg(test)]

@@ -159,8 +159,7 @@ impl Operator for Procedural {
         }
         progress.finish();
         let summary = writer.finish(&ctx.output_dir, s.radar.range_max_m, serde_json::to_value(s)?)?;
-        let covered = summary.cells.values().filter(|&&n| n > 0).count();
-        let vehicles: u64 = summary.vehicles_per_scene.iter().enumerate().map(|(n, f)| n as u64 * f).sum();
+        let (covered, vehicles) = (summary.cells_covered(), summary.vehicles());
         ctx.event("dataset", serde_json::json!({"frames": summary.frames, "vehicles": vehicles, "cells_covered": covered}));
         Ok(Outcome {
             metrics: serde_json::json!({"frames": summary.frames, "vehicles": vehicles, "cells_covered": covered, "frames_per_scenario": summary.frames_per_scenario}),
@@ -191,7 +190,7 @@ fn frame(s: &ProceduralSettings, renderer: &Renderer, weights: &[f64], seed: u64
             vehicles.push(Vehicle { id: placed.len() as u32, class: if truck { "truck" } else { "car" }, body, speed });
         }
     }
-    renderer.render(index, Scene { scenario: kind.to_string(), vehicles, edges: layout.edges }, &mut rng)
+    renderer.render(index, &Scene { scenario: kind.to_string(), vehicles, edges: layout.edges }, &mut rng)
 }
 
 #[cfg(test)]

@@ -67,14 +67,14 @@ impl Renderer {
             .collect()
     }
 
-    pub fn render(&self, index: u64, scene: Scene, rng: &mut impl Rng) -> Rendered {
+    pub fn render(&self, index: u64, scene: &Scene, rng: &mut impl Rng) -> Rendered {
         let bodies: Vec<VehicleBox> = scene.vehicles.iter().map(|v| v.body).collect();
         let grids = radar_grids(&self.cfg, &bodies, &scene.edges, self.path, rng);
         let images = self.maps.iter().map(|m| m.merge(&grids).iter().map(|&v| (v * 255.0).round() as u8).collect()).collect();
         let primary = &self.maps[0].projection;
         let actors = scene
             .vehicles
-            .into_iter()
+            .iter()
             .map(|v| {
                 let (row, col) = primary.pixel(v.body.x, v.body.y);
                 let b = v.body;
@@ -92,7 +92,7 @@ impl Renderer {
                 }
             })
             .collect();
-        (Frame { index, scenario: scene.scenario, actors }, images)
+        (Frame { index, scenario: scene.scenario.clone(), actors }, images)
     }
 }
 

@@ -114,13 +114,22 @@ impl SceneWriter {
         let stats = self.write_mcap(&mcap_path).with_context(|| format!("writing {}", mcap_path.display()))?;
         let index = index(&mcap_path, &self.images, self.done).with_context(|| format!("indexing {}", mcap_path.display()))?;
         fs::write(output.join(INDEX), index.iter().flat_map(|o| o.to_le_bytes()).collect::<Vec<u8>>())?;
-        let summary = Summary { format: FORMAT, frames: self.done, images: self.images, range_max_m, generator, ..stats };
+        let summary = Summary {
+            format: FORMAT,
+            frames: self.done,
+            images: self.images,
+            range_max_m,
+            generator,
+            vehicles_per_scene: stats.vehicles_per_scene(),
+            frames_per_scenario: stats.per_scenario,
+            cells: stats.cells,
+        };
         fs::write(output.join(SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
         Ok(summary)
     }
 
     /// Streams the parts into an MCAP file; returns the dataset statistics.
-    fn write_mcap(&self, path: &Path) -> anyhow::Result<Summary> {
+    fn write_mcap(&self, path: &Path) -> anyhow::Result<Statistics> {
         let mut stats = Statistics::new();
         let options = mcap::WriteOptions::new().use_chunks(false).compression(None).library(concat!("rlmflow ", env!("CARGO_PKG_VERSION")));
         let mut out = options.create(BufWriter::new(File::create(path)?))?;
@@ -166,7 +175,7 @@ impl SceneWriter {
         }
         out.finish()?;
         out.into_inner().into_inner().map_err(|e| e.into_error())?.sync_all()?;
-        Ok(stats.summary())
+        Ok(stats)
     }
 }
 
@@ -241,19 +250,9 @@ impl Statistics {
         }
     }
 
-    fn summary(mut self) -> Summary {
-        while self.per_scene.len() > 1 && self.per_scene.last() == Some(&0) {
-            self.per_scene.pop();
-        }
-        Summary {
-            format: FORMAT,
-            frames: 0,
-            images: Vec::new(),
-            range_max_m: 0.0,
-            generator: serde_json::Value::Null,
-            frames_per_scenario: self.per_scenario,
-            vehicles_per_scene: self.per_scene,
-            cells: self.cells,
-        }
+    /// Frames per vehicle count, without trailing empty counts.
+    fn vehicles_per_scene(&self) -> Vec<u64> {
+        let used = self.per_scene.iter().rposition(|&n| n > 0).map_or(1, |last| last + 1);
+        self.per_scene[..used].to_vec()
     }
 }
