@@ -125,3 +125,12 @@ fn parse_reads_plain_and_json_lines_and_names_the_bad_line() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("captions.jsonl:1: a JSON line needs a string field `caption`"));
 }
+
+#[test]
+fn setup_reports_the_managed_environment_the_stages_use() {
+    let env = rlmflow_python::ensure(&mut |_| {}).unwrap();
+    let (ok, out) = rlmflow(&root(), &["setup"]);
+    assert!(ok, "{out}");
+    assert!(out.contains(&format!("environment: {}", env.root.display())), "{out}");
+    assert!(env.site_packages.join("highway_env").is_dir(), "{}", env.site_packages.display());
+}
