@@ -6,6 +6,7 @@ use rlmflow_stages::{Catalog, Registry};
 fn registry() -> Registry {
     let mut registry = Registry::new(Catalog::paper());
     registry.add(rlmflow_scenes::Procedural);
+    registry.add(rlmflow_labels::EgoGrid);
     #[cfg(feature = "python")]
     registry.add(rlmflow_scenes::HighwayEnv);
     registry

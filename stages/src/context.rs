@@ -96,6 +96,14 @@ impl Context {
         Context { stage, inputs, output_dir, checkpoint_dir, seed, threads, device, reporter }
     }
 
+    /// A context for running an operator on its own (tests, benchmarks): one artifact per named
+    /// input slot, on the CPU, reporting nothing.
+    pub fn standalone(stage: &str, inputs: &[(&str, &Path)], output_dir: &Path, checkpoint_dir: &Path, seed: u64, threads: usize) -> Context {
+        let inputs =
+            inputs.iter().map(|(slot, path)| (slot.to_string(), vec![Input { label: slot.to_string(), path: path.to_path_buf() }])).collect();
+        Context::new(stage.into(), inputs, output_dir.into(), checkpoint_dir.into(), seed, threads, Device::Cpu, Arc::new(Silent))
+    }
+
     /// The directory of the single artifact bound to `slot`.
     pub fn input(&self, slot: &str) -> anyhow::Result<&Path> {
         self.optional_input(slot).with_context(|| format!("stage {} has no `{slot}` input", self.stage))

@@ -7,16 +7,21 @@
 //! * [`context`]: what an operator is given when it runs: input paths, an output directory, a
 //!   checkpoint directory that survives a crash, the seed, a thread budget and a progress handle.
 //!
-//! * [`grid`] and [`scenes`]: artifact formats shared by more than one operator family (the
-//!   paper's ego grid; the Scenes directory layout and its reader).
+//! * [`grid`]: the paper's ego grid and its JSON.
+//! * [`scenes`], [`labels`], [`captions`], [`tokens`]: each artifact's directory layout, its
+//!   writer-side line formats and its reader; [`npy`] for their dense arrays.
 //!
 //! Nothing here knows about scheduling, caching or processes; nothing here knows machine learning.
 
+pub mod captions;
 pub mod context;
 pub mod grid;
 pub mod kind;
+pub mod labels;
+pub mod npy;
 pub mod operator;
 pub mod scenes;
+pub mod tokens;
 
 pub use context::{Context, Device, Input, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};

@@ -36,7 +36,7 @@ pub const ACTORS_TOPIC: &str = "/actors";
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Actor {
     pub id: u32,
-    /// `car`, `truck`, `walker` or `sign`.
+    /// `car`, `truck`, `walker`, or `sign:<name>` for a traffic sign (`sign:stop`, `sign:speed limit`).
     pub class: String,
     pub x: f64,
     pub y: f64,
@@ -53,6 +53,11 @@ pub struct Actor {
 impl Actor {
     pub fn is_vehicle(&self) -> bool {
         self.class == "car" || self.class == "truck"
+    }
+
+    /// The sign's name, for a traffic sign.
+    pub fn sign(&self) -> Option<&str> {
+        self.class.strip_prefix("sign:")
     }
 }
 
