@@ -7,6 +7,7 @@ fn registry() -> Registry {
     let mut registry = Registry::new(Catalog::paper());
     registry.add(rlmflow_scenes::Procedural);
     registry.add(rlmflow_labels::EgoGrid);
+    registry.add(rlmflow_captions::Template);
     #[cfg(feature = "python")]
     registry.add(rlmflow_scenes::HighwayEnv);
     registry

@@ -78,7 +78,11 @@ pub fn parse(caption: &str) -> Parsed {
             continue;
         }
         if has("sign") || has("signs") {
-            grid.signs = signs(&words);
+            for name in signs(&words) {
+                if !grid.signs.contains(&name) {
+                    grid.signs.push(name);
+                }
+            }
             continue;
         }
         let named = sector(&words);
@@ -119,6 +123,8 @@ pub fn parse(caption: &str) -> Parsed {
     if !seen_bin {
         warnings.push("no distance bin recognised; the grid is empty".into());
     }
+    // Labels list signs sorted; the order of mention carries no meaning.
+    grid.signs.sort();
     Parsed { grid, warnings }
 }
 
@@ -281,7 +287,7 @@ fn sector(words: &[&str]) -> Option<usize> {
 }
 
 /// Traffic sign names in a clause about signs: `no ... signs` is none; otherwise each
-/// `a|an NAME sign` and a `signs: A, B` list.
+/// `a|an NAME sign` (NAME up to three words).
 fn signs(words: &[&str]) -> Vec<String> {
     if words.contains(&"no") || words.contains(&"none") || words.contains(&"not") {
         return Vec::new();
