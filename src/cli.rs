@@ -366,8 +366,14 @@ fn parse_captions(file: Option<&Path>) -> anyhow::Result<ExitCode> {
         for warning in &parsed.warnings {
             eprintln!("{name}:{}: warning: {warning}", i + 1);
         }
-        writeln!(out, "{}", parsed.grid.to_json())?;
+        if let Err(e) = writeln!(out, "{}", parsed.grid.to_json()) {
+            return quiet_on_closed_pipe(e);
+        }
     }
-    out.flush()?;
-    Ok(ExitCode::SUCCESS)
+    out.flush().map_or_else(quiet_on_closed_pipe, |()| Ok(ExitCode::SUCCESS))
+}
+
+/// A reader that stops early (`rlmflow parse ... | head`) is not an error.
+fn quiet_on_closed_pipe(e: std::io::Error) -> anyhow::Result<ExitCode> {
+    if e.kind() == std::io::ErrorKind::BrokenPipe { Ok(ExitCode::SUCCESS) } else { Err(e.into()) }
 }

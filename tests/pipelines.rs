@@ -1,6 +1,8 @@
 //! The shipped pipelines through the real `rlmflow` binary: every one validates, and the CI
-//! pipeline runs twice with the second run reusing every stage; its Scenes artifacts read the
-//! same through a stock MCAP reader (the Python `mcap` package) as through rlmflow's index.
+//! pipeline runs twice with the second run reusing every stage. Its artifacts then hold up from
+//! outside: the Scenes read the same through a stock MCAP reader (the Python `mcap` package) as
+//! through rlmflow's index; `rlmflow parse` reads every caption back to its frame's labels; and
+//! Python's `tokenizers`, given `tokenizer.json`, produces the stored token ids.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -44,24 +46,65 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     assert_eq!((finished(&second, "reused"), finished(&second, "ran")), (stages, 0), "{second}");
     let (ok, verify) = rlmflow(&dir, &["verify", "ci.toml"]);
     assert!(ok, "{verify}");
-    let artifacts = scenes_artifacts(&dir.join(".rlmflow/objects"));
-    assert_eq!(artifacts.len(), 2, "one per scenes stage: {artifacts:?}");
-    for artifact in artifacts {
+    let objects = dir.join(".rlmflow/objects");
+    let scenes = artifacts(&objects, "scenes.mcap");
+    assert_eq!(scenes.len(), 2, "one per scenes stage: {scenes:?}");
+    for artifact in scenes {
         a_stock_mcap_reader_agrees(&artifact);
     }
+    let [labels, captions, tokens] = ["labels.jsonl", "captions.jsonl", "tokenizer.json"].map(|file| {
+        let found = artifacts(&objects, file);
+        assert_eq!(found.len(), 1, "{file}: {found:?}");
+        found[0].clone()
+    });
+    every_caption_parses_to_its_labels(&labels, &captions);
+    python_tokenizers_gives_the_same_ids(&captions, &tokens);
 }
 
-fn scenes_artifacts(objects: &Path) -> Vec<PathBuf> {
+/// The artifact directories in a store that hold `file`.
+fn artifacts(objects: &Path, file: &str) -> Vec<PathBuf> {
     let mut found = Vec::new();
     for shard in std::fs::read_dir(objects).unwrap() {
         for object in std::fs::read_dir(shard.unwrap().path()).unwrap() {
             let path = object.unwrap().path();
-            if path.join("scenes.mcap").exists() {
+            if path.join(file).exists() {
                 found.push(path);
             }
         }
     }
     found
+}
+
+fn every_caption_parses_to_its_labels(labels: &Path, captions_dir: &Path) {
+    let labels = rlmflow_stages::labels::Labels::open(labels).unwrap();
+    let captions = rlmflow_stages::captions::Captions::open(captions_dir).unwrap();
+    let (ok, out) = rlmflow(&root(), &["parse", captions_dir.join("captions.jsonl").to_str().unwrap()]);
+    assert!(ok, "{out}");
+    let grids: Vec<&str> = out.lines().collect();
+    assert_eq!(grids.len(), captions.captions.len());
+    for (caption, parsed) in captions.captions.iter().zip(grids) {
+        assert_eq!(parsed, labels.frames[caption.frame as usize].grid.to_json(), "{}", caption.caption);
+    }
+}
+
+fn python_tokenizers_gives_the_same_ids(captions: &Path, tokens: &Path) {
+    const ENCODE: &str = r#"
+import json, sys
+import numpy as np
+from tokenizers import Tokenizer
+tokenizer = Tokenizer.from_file(sys.argv[1] + "/tokenizer.json")
+ids = np.load(sys.argv[1] + "/tokens.npy")
+captions = [json.loads(l)["caption"] for l in open(sys.argv[2] + "/captions.jsonl")]
+assert ids.shape[0] == len(captions), (ids.shape, len(captions))
+for row, caption in zip(ids, captions):
+    assert tokenizer.encode(caption).ids == row.tolist(), caption
+print(len(captions))
+"#;
+    let env = rlmflow_python::ensure(&mut |_| {}).unwrap();
+    let out = Command::new(&env.python).arg("-c").arg(ENCODE).arg(tokens).arg(captions).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let checked: usize = String::from_utf8_lossy(&out.stdout).trim().parse().unwrap();
+    assert!(checked > 0);
 }
 
 /// Reads `scenes.mcap` with the Python `mcap` package (protobuf decoding from

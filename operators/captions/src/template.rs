@@ -225,8 +225,7 @@ fn bin_sentence(grid: &Grid, bin: usize, numbers: bool, pick: &mut Pick<impl Rng
         pick.one(&BIN_WORDS[bin]).to_owned()
     };
     let transition = if bin == 0 { "" } else { pick.one(&TRANSITIONS) };
-    let intro = format!("{transition}{}", if pick.index(2) == 0 { intro } else { intro.to_lowercase() });
-    let intro = capitalise(&intro);
+    let intro = if transition.is_empty() { intro } else { format!("{transition}{}{}", intro[..1].to_lowercase(), &intro[1..]) };
     let total = grid.bin_total(bin);
     if total == 0 {
         return format!(
@@ -248,10 +247,11 @@ fn bin_sentence(grid: &Grid, bin: usize, numbers: bool, pick: &mut Pick<impl Rng
     }
     let list = join(&items, pick);
     match pick.index(4) {
-        0 => format!("{intro}, there {} {} in total, with {list}.", is_are(total), vehicles(total, pick)),
+        0 if total > 1 => format!("{intro}, there {} {} in total, with {list}.", is_are(total), vehicles(total, pick)),
         1 => format!("{intro}, I can see {list}."),
         2 => format!("{intro}, there {} {list}.", is_are(grid.get(bin, sectors[0]))),
-        _ => format!("{intro}, we have {} altogether: {list}.", vehicles(total, pick)),
+        _ if total > 1 => format!("{intro}, we have {} altogether: {list}.", vehicles(total, pick)),
+        _ => format!("{intro}, I can see {list}."),
     }
 }
 
