@@ -28,9 +28,10 @@ pub struct Parsed {
     pub warnings: Vec<String>,
 }
 
-#[derive(Clone, Debug, PartialEq)]
-enum Token {
-    Word(String),
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Token<'a> {
+    /// Lower case, a slice of the lower-cased caption.
+    Word(&'a str),
     Number(u32),
     /// A distance-bin mention.
     Bin(usize),
@@ -46,7 +47,8 @@ const VEHICLE_WORDS: [&str; 6] = ["vehicle", "vehicles", "car", "cars", "truck",
 const WALKER_WORDS: [&str; 4] = ["walker", "walkers", "pedestrian", "pedestrians"];
 
 pub fn parse(caption: &str) -> Parsed {
-    let tokens = bins(numbers::words_to_numbers(tokenize(caption)));
+    let lower = caption.to_ascii_lowercase();
+    let tokens = bins(numbers::words_to_numbers(tokenize(&lower)));
     let mut grid = Grid::default();
     let mut warnings = Vec::new();
     let mut bin: Option<usize> = None;
@@ -55,9 +57,8 @@ pub fn parse(caption: &str) -> Parsed {
     let mut seen_bin = false;
     // The last assignment (bin, sector, count, its words): a following count-less clause may
     // refine its sector ("in the lane to our right, behind us").
-    let mut last: Option<(usize, usize, u32, Vec<String>)> = None;
-    let clauses =
-        tokens.split_inclusive(|t| matches!(t, Token::Stop | Token::End) || matches!(t, Token::Word(w) if CLAUSE_WORDS.contains(&w.as_str())));
+    let mut last: Option<(usize, usize, u32, Vec<&str>)> = None;
+    let clauses = tokens.split_inclusive(|t| matches!(t, Token::Stop | Token::End) || matches!(t, Token::Word(w) if CLAUSE_WORDS.contains(w)));
     let mut new_sentence = false;
     for clause in clauses {
         // Refinement stays within a sentence.
@@ -71,7 +72,7 @@ pub fn parse(caption: &str) -> Parsed {
             pending = None;
             last = None;
         }
-        let words: Vec<&str> = clause.iter().filter_map(|t| if let Token::Word(w) = t { Some(w.as_str()) } else { None }).collect();
+        let words: Vec<&str> = clause.iter().filter_map(|t| if let Token::Word(w) = t { Some(*w) } else { None }).collect();
         let has = |w: &str| words.contains(&w);
         if WALKER_WORDS.iter().any(|w| has(w)) {
             grid.walkers = count(clause, &words).unwrap_or(0);
@@ -99,7 +100,7 @@ pub fn parse(caption: &str) -> Parsed {
             (None, Some(n)) => pending = Some(n),
             (Some(_), None) if pending.is_none() => {
                 if let Some((b, old, n, before)) = last.take() {
-                    let joined: Vec<&str> = before.iter().map(String::as_str).chain(words.iter().copied()).collect();
+                    let joined: Vec<&str> = before.iter().chain(words.iter()).copied().collect();
                     if let Some(refined) = sector(&joined) {
                         grid.set(b, old, grid.get(b, old) - n);
                         grid.set(b, refined, grid.get(b, refined) + n);
@@ -112,7 +113,7 @@ pub fn parse(caption: &str) -> Parsed {
                 match bin {
                     Some(b) => {
                         grid.set(b, s, grid.get(b, s) + n);
-                        last = Some((b, s, n, words.iter().map(|w| w.to_string()).collect()));
+                        last = Some((b, s, n, words.clone()));
                     }
                     None => warnings.push(format!("`{}`: vehicles before any distance bin", words.join(" "))),
                 }
@@ -128,43 +129,45 @@ pub fn parse(caption: &str) -> Parsed {
     Parsed { grid, warnings }
 }
 
-/// Lower-case words, numbers and clause punctuation.
-fn tokenize(text: &str) -> Vec<Token> {
-    let mut out = Vec::new();
-    let mut chars = text.chars().peekable();
-    while let Some(&c) = chars.peek() {
-        if c.is_ascii_alphabetic() || c == '\'' {
-            let mut w = String::new();
-            while let Some(&c) = chars.peek().filter(|c| c.is_ascii_alphabetic() || **c == '\'') {
-                w.push(c.to_ascii_lowercase());
-                chars.next();
+/// Words, numbers and clause punctuation of a lower-cased caption.
+fn tokenize(text: &str) -> Vec<Token<'_>> {
+    let bytes = text.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len() / 5);
+    let mut i = 0;
+    while i < bytes.len() {
+        let c = bytes[i];
+        if c.is_ascii_alphabetic() || c == b'\'' {
+            let start = i;
+            while i < bytes.len() && (bytes[i].is_ascii_alphabetic() || bytes[i] == b'\'') {
+                i += 1;
             }
-            out.push(Token::Word(w));
-        } else if c.is_ascii_digit() {
+            out.push(Token::Word(&text[start..i]));
+            continue;
+        }
+        if c.is_ascii_digit() {
             let mut n: u32 = 0;
-            while let Some(d) = chars.peek().and_then(|c| c.to_digit(10)) {
-                n = n.saturating_mul(10).saturating_add(d);
-                chars.next();
+            while i < bytes.len() && bytes[i].is_ascii_digit() {
+                n = n.saturating_mul(10).saturating_add(u32::from(bytes[i] - b'0'));
+                i += 1;
             }
             out.push(Token::Number(n));
-        } else {
-            if matches!(c, '.' | '!' | '?') {
-                out.push(Token::End);
-            } else if matches!(c, ',' | ';' | ':' | '(' | ')') {
-                out.push(Token::Stop);
-            } else if c == '-' {
-                out.push(Token::Word("-".into()));
-            }
-            chars.next();
+            continue;
         }
+        match c {
+            b'.' | b'!' | b'?' => out.push(Token::End),
+            b',' | b';' | b':' | b'(' | b')' => out.push(Token::Stop),
+            b'-' => out.push(Token::Word("-")),
+            _ => {}
+        }
+        i += 1;
     }
     out
 }
 
 /// Replaces distance-bin mentions with [`Token::Bin`]: numeric ranges everywhere, qualitative
 /// phrases only in sentences without a numeric range.
-fn bins(tokens: Vec<Token>) -> Vec<Token> {
-    let word = |t: Option<&Token>, options: &[&str]| matches!(t, Some(Token::Word(w)) if options.contains(&w.as_str()));
+fn bins(tokens: Vec<Token<'_>>) -> Vec<Token<'_>> {
+    let word = |t: Option<&Token>, options: &[&str]| matches!(t, Some(Token::Word(w)) if options.contains(w));
     let mut out = Vec::with_capacity(tokens.len());
     let mut i = 0;
     while i < tokens.len() {
@@ -183,7 +186,7 @@ fn bins(tokens: Vec<Token>) -> Vec<Token> {
             }
             continue;
         }
-        out.push(tokens[i].clone());
+        out.push(tokens[i]);
         i += 1;
     }
     // Qualitative mentions, per sentence without a numeric one.
@@ -198,7 +201,7 @@ fn bins(tokens: Vec<Token>) -> Vec<Token> {
         }
         let mut j = 0;
         while j < sentence.len() {
-            let at = |k: usize, w: &str| matches!(sentence.get(j + k), Some(Token::Word(x)) if x == w);
+            let at = |k: usize, w: &str| matches!(sentence.get(j + k), Some(Token::Word(x)) if *x == w);
             let (bin, len) = if ((at(0, "very") || at(0, "extremely")) && at(1, "close")) || (at(0, "immediate") && at(1, "vicinity")) {
                 (Some(0), 2)
             } else if at(0, "close") {
@@ -212,7 +215,7 @@ fn bins(tokens: Vec<Token>) -> Vec<Token> {
             };
             match bin {
                 Some(b) => result.push(Token::Bin(b)),
-                None => result.push(sentence[j].clone()),
+                None => result.push(sentence[j]),
             }
             j += len;
         }

@@ -37,7 +37,7 @@ pub fn number_word(n: u32) -> String {
 }
 
 /// Replaces number words (and "a pair of", "a couple of") with numbers.
-pub(crate) fn words_to_numbers(tokens: Vec<Token>) -> Vec<Token> {
+pub(crate) fn words_to_numbers(tokens: Vec<Token<'_>>) -> Vec<Token<'_>> {
     let value = |t: Option<&Token>| -> Option<(u32, bool)> {
         let Some(Token::Word(w)) = t else { return None };
         if let Some(i) = ONES.iter().position(|o| o == w) {
@@ -45,7 +45,7 @@ pub(crate) fn words_to_numbers(tokens: Vec<Token>) -> Vec<Token> {
         }
         TENS.iter().position(|o| !o.is_empty() && o == w).map(|i| (i as u32 * 10, true))
     };
-    let is = |t: Option<&Token>, w: &str| matches!(t, Some(Token::Word(x)) if x == w);
+    let is = |t: Option<&Token>, w: &str| matches!(t, Some(Token::Word(x)) if *x == w);
     let mut out = Vec::with_capacity(tokens.len());
     let mut i = 0;
     while i < tokens.len() {
@@ -74,7 +74,7 @@ pub(crate) fn words_to_numbers(tokens: Vec<Token>) -> Vec<Token> {
                 i += 1;
             }
             None => {
-                out.push(tokens[i].clone());
+                out.push(tokens[i]);
                 i += 1;
             }
         }

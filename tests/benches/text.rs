@@ -1,0 +1,82 @@
+//! `cargo bench -p rlmflow-e2e --bench text`: the text half of the pipeline on a corpus of
+//! procedural scenes. Labels frames/s and template captions/s on one core; parser captions/s on
+//! one core against its target (>= 50,000, printed as a ratio; above 1.00 meets it); BPE
+//! training plus tokenisation captions/s on one core and on every core.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use rlmflow_captions::{Template, TemplateSettings};
+use rlmflow_labels::{EgoGrid, EgoGridSettings};
+use rlmflow_radar::RadarConfig;
+use rlmflow_scenes::{Procedural, ProceduralSettings};
+use rlmflow_stages::captions::Captions;
+use rlmflow_stages::{Context, Operator};
+use rlmflow_tokens::{Bpe, BpeSettings};
+
+const FRAMES: u64 = 2000;
+const PARSER_TARGET: f64 = 50_000.0;
+
+fn scratch(root: &Path, name: &str) -> (PathBuf, PathBuf) {
+    let (out, ckpt) = (root.join(name), root.join(format!("{name}-ckpt")));
+    std::fs::create_dir_all(&out).unwrap();
+    std::fs::create_dir_all(&ckpt).unwrap();
+    (out, ckpt)
+}
+
+/// Runs `op` as stage `name` reading `inputs`; returns the output directory and the seconds taken.
+fn stage<O: Operator>(root: &Path, name: &str, op: &O, s: &O::Settings, inputs: &[(&str, &Path)], threads: usize) -> (PathBuf, f64) {
+    let (out, ckpt) = scratch(root, name);
+    let mut ctx = Context::standalone(name, inputs, &out, &ckpt, 1, threads);
+    let t0 = Instant::now();
+    op.run(s, &mut ctx).unwrap();
+    (out, t0.elapsed().as_secs_f64())
+}
+
+fn main() {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let root = std::env::temp_dir().join(format!("rlmflow-bench-text-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    println!("text stages on {FRAMES} procedural frames ({cores} cores here):");
+    let mut captions_dir = PathBuf::new();
+    for image in [64, 224] {
+        let scenes = ProceduralSettings {
+            frames: FRAMES,
+            max_vehicles: 20,
+            radar: RadarConfig { image, ..RadarConfig::default() },
+            ..ProceduralSettings::default()
+        };
+        let (scenes_dir, _) = stage(&root, &format!("scenes-{image}"), &Procedural, &scenes, &[], cores);
+        let (labels_dir, t) = stage(&root, &format!("labels-{image}"), &EgoGrid, &EgoGridSettings::default(), &[("scenes", &scenes_dir)], 1);
+        println!("  labels (ego-grid), {image:3} px masks, one core   {:>10.0} frames/s", FRAMES as f64 / t);
+        let (dir, t) = stage(&root, &format!("captions-{image}"), &Template, &TemplateSettings::default(), &[("labels", &labels_dir)], 1);
+        if image == 64 {
+            println!("  captions (template, 5 per frame), one core  {:>10.0} captions/s", 5.0 * FRAMES as f64 / t);
+            captions_dir = dir;
+        }
+    }
+
+    let captions = Captions::open(&captions_dir).unwrap();
+    let texts: Vec<&str> = captions.captions.iter().map(|c| c.caption.as_str()).collect();
+    let mut best = f64::MAX;
+    for _ in 0..3 {
+        let t0 = Instant::now();
+        let vehicles: u32 = texts.iter().map(|t| rlmflow_parser::parse(t).grid.vehicles()).sum();
+        best = best.min(t0.elapsed().as_secs_f64());
+        assert!(vehicles > 0);
+    }
+    let rate = texts.len() as f64 / best;
+    let words = texts.iter().map(|t| t.split_whitespace().count()).sum::<usize>() as f64 / texts.len() as f64;
+    println!(
+        "  parser, {words:.0}-word captions, one core        {rate:>10.0} captions/s  target {PARSER_TARGET}: {:.2}x ({})",
+        rate / PARSER_TARGET,
+        if rate >= PARSER_TARGET { "meets" } else { "MISSES" }
+    );
+
+    for threads in [1, cores] {
+        let s = BpeSettings::default();
+        let (_, t) = stage(&root, &format!("tokens-{threads}"), &Bpe, &s, &[("captions", &captions_dir)], threads);
+        println!("  tokens (bpe {} vocab: train + encode), {threads} core(s) {:>8.0} captions/s", s.vocab, texts.len() as f64 / t);
+    }
+    std::fs::remove_dir_all(&root).unwrap();
+}
