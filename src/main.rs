@@ -8,6 +8,7 @@ fn registry() -> Registry {
     registry.add(rlmflow_scenes::Procedural);
     registry.add(rlmflow_labels::EgoGrid);
     registry.add(rlmflow_captions::Template);
+    registry.add(rlmflow_captions::Llm);
     registry.add(rlmflow_tokens::Bpe);
     #[cfg(feature = "python")]
     registry.add(rlmflow_scenes::HighwayEnv);

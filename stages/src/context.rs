@@ -120,7 +120,7 @@ impl Context {
 
     /// A progress handle for `length` units of work.
     pub fn progress(&self, length: u64, message: &str) -> Progress {
-        Progress { reporter: self.reporter.clone(), length, message: message.to_owned(), state: Mutex::new((0, None)) }
+        Progress { reporter: self.reporter.clone(), length, message: Mutex::new(message.to_owned()), state: Mutex::new((0, None)) }
     }
 
     /// Records a structured event in the run's JSON event log.
@@ -133,7 +133,7 @@ impl Context {
 pub struct Progress {
     reporter: Arc<dyn Reporter>,
     length: u64,
-    message: String,
+    message: Mutex<String>,
     /// Position, and when it was last reported.
     state: Mutex<(u64, Option<Instant>)>,
 }
@@ -153,6 +153,11 @@ impl Progress {
         self.maybe_report(&mut state, false);
     }
 
+    /// Replaces the message shown beside the position (running totals, say).
+    pub fn set_message(&self, message: String) {
+        *self.message.lock().unwrap() = message;
+    }
+
     pub fn finish(&self) {
         let mut state = self.state.lock().unwrap();
         self.maybe_report(&mut state, true);
@@ -162,7 +167,7 @@ impl Progress {
         let now = Instant::now();
         if force || state.1.is_none_or(|last| now - last >= Self::INTERVAL) {
             state.1 = Some(now);
-            self.reporter.progress(state.0, self.length, &self.message);
+            self.reporter.progress(state.0, self.length, &self.message.lock().unwrap());
         }
     }
 }

@@ -2,12 +2,14 @@
 //! any OpenAI-compatible chat-completions endpoint with the paper's prompts and checks every
 //! answer with the LLM-free parser. Both write the same Captions artifact.
 
+mod llm;
 mod template;
 
 use std::path::Path;
 
 use rlmflow_stages::captions::{self, Caption};
 
+pub use llm::{Llm, LlmSettings, NO_NUMBERS, OnMismatch, SYSTEM_PROMPT, user_prompt};
 pub use template::{Template, TemplateSettings, VARIANTS, caption, caption_variant};
 
 /// Writes the Captions artifact: the lines, then the summary.

@@ -1,0 +1,897 @@
+//! The `llm` operator: captions from any OpenAI-compatible chat-completions endpoint, asked
+//! with the paper's prompts (appendix, "Natural Language Caption Generation") and checked with
+//! the LLM-free parser.
+//!
+//! * Prompt: the paper's system prompt; the user prompt holds the frame's grid as JSON with
+//!   numbers as words and the sector keys of each bin shuffled (`total_vehicles` first, as in the
+//!   paper's example), the explanation of every distance bin and of every key present, the final
+//!   instruction, and, for a `no_distance_numbers` share of frames, "Do not add any distance bin
+//!   numbers". Shuffles and that choice are seeded per frame.
+//! * Requests: `concurrency` at a time; timeouts, connection failures, 429, 5xx and malformed
+//!   answers are retried up to `retries` times with exponential backoff from `backoff_s`
+//!   (a `Retry-After` header wins); any other 4xx stops the stage with the server's message.
+//! * Every answer is stored under the digest of its request (endpoint, model, body, and the
+//!   attempt number) in `response_cache`, so an interrupted or repeated run, or one that only
+//!   changes how answers are judged, never asks twice for the same captions.
+//! * Fidelity: each caption is parsed back; captions whose grid differs from the frame's are
+//!   asked for again up to `regenerate` times, then dropped or kept (`on_mismatch`). The
+//!   first-answer fidelity rate, regenerations, drops and token counts are reported.
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::time::Duration;
+
+use anyhow::{Context as _, anyhow, bail};
+use rand::seq::SliceRandom;
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rlmflow_parser::{number_word, parse};
+use rlmflow_stages::captions::Caption;
+use rlmflow_stages::grid::{DISTANCE_BINS, Grid, SECTORS};
+use rlmflow_stages::labels::{FrameLabel, Labels};
+use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, SettingError, Settings};
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+
+use crate::write_captions;
+
+pub struct Llm;
+
+/// What happens to captions that still disagree with their grid after the last regeneration.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OnMismatch {
+    Drop,
+    Keep,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LlmSettings {
+    /// The API root; requests go to `{base_url}/chat/completions`.
+    pub base_url: String,
+    pub model: String,
+    /// The environment variable holding the API key; empty for an endpoint without one.
+    pub api_key_env: String,
+    pub temperature: f64,
+    pub top_p: f64,
+    pub max_tokens: u32,
+    /// Captions per frame (the request's `n`).
+    pub n: usize,
+    /// Share of frames whose prompt adds "Do not add any distance bin numbers".
+    pub no_distance_numbers: f64,
+    /// Times a frame's disagreeing captions are asked for again.
+    pub regenerate: u32,
+    pub on_mismatch: OnMismatch,
+    /// Requests in flight at once.
+    pub concurrency: usize,
+    /// Seconds a request may take.
+    pub timeout_s: f64,
+    /// Retries of a request after a timeout, a connection failure, 429, 5xx or a malformed answer.
+    pub retries: u32,
+    /// Seconds before the first retry; doubled each time, at most a minute.
+    pub backoff_s: f64,
+    /// Where answers are kept by request digest; empty: `$XDG_CACHE_HOME/rlmflow/llm`
+    /// (`~/.cache/rlmflow/llm`).
+    pub response_cache: String,
+}
+
+impl Default for LlmSettings {
+    fn default() -> Self {
+        LlmSettings {
+            base_url: "https://api.openai.com/v1".into(),
+            model: "gpt-4.1-mini".into(),
+            api_key_env: "OPENAI_API_KEY".into(),
+            temperature: 0.5,
+            top_p: 0.9,
+            max_tokens: 400,
+            n: 5,
+            no_distance_numbers: 0.5,
+            regenerate: 2,
+            on_mismatch: OnMismatch::Drop,
+            concurrency: 8,
+            timeout_s: 120.0,
+            retries: 6,
+            backoff_s: 1.0,
+            response_cache: String::new(),
+        }
+    }
+}
+
+impl Settings for LlmSettings {
+    const NON_RESULT: &'static [&'static str] = &["api_key_env", "concurrency", "timeout_s", "retries", "backoff_s", "response_cache"];
+
+    fn check(&self) -> Result<(), SettingError> {
+        let err = |key: &str, message: String| Err(SettingError::new(key, message));
+        if !(self.base_url.starts_with("http://") || self.base_url.starts_with("https://")) {
+            return err("base_url", format!("must start with http:// or https://, not `{}`", self.base_url));
+        }
+        if self.model.trim().is_empty() {
+            return err("model", "must name a model".into());
+        }
+        if !(0.0..=2.0).contains(&self.temperature) {
+            return err("temperature", format!("must be in [0, 2], not {}", self.temperature));
+        }
+        if !(self.top_p > 0.0 && self.top_p <= 1.0) {
+            return err("top_p", format!("must be in (0, 1], not {}", self.top_p));
+        }
+        if self.max_tokens == 0 {
+            return err("max_tokens", "must be at least 1".into());
+        }
+        if !(1..=128).contains(&self.n) {
+            return err("n", format!("must be in 1..=128, not {}", self.n));
+        }
+        if !(0.0..=1.0).contains(&self.no_distance_numbers) {
+            return err("no_distance_numbers", format!("must be in [0, 1], not {}", self.no_distance_numbers));
+        }
+        if self.concurrency == 0 {
+            return err("concurrency", "must be at least 1".into());
+        }
+        if !(self.timeout_s > 0.0) {
+            return err("timeout_s", format!("must be positive, not {}", self.timeout_s));
+        }
+        if !(self.backoff_s >= 0.0) {
+            return err("backoff_s", format!("must be >= 0, not {}", self.backoff_s));
+        }
+        Ok(())
+    }
+}
+
+pub const SYSTEM_PROMPT: &str = "You are an expert at describing traffic scenes from the perspective of a driver talking to a passenger. Only output the final caption. Do not include explanations. Also do not use short word forms with apostrophe, use the full expansion of words only.";
+
+const BIN_EXPLANATIONS: [&str; 4] = [
+    "Objects within 0 to 10 meters from the ego vehicle. These are very close and may require immediate attention.",
+    "Objects within 10 to 20 meters from the ego vehicle. These are close and should be monitored closely.",
+    "Objects within 20 to 30 meters from the ego vehicle. These are at a moderate distance and should be noted.",
+    "Objects within 30 to 40 meters from the ego vehicle. These are at a safe distance but still relevant.",
+];
+
+/// The sector keys' explanations, in `SECTORS` order.
+const SECTOR_EXPLANATIONS: [&str; 12] = [
+    "Vehicles in the left adjacent lane ahead of the ego vehicle.",
+    "Vehicles directly to the left side of the ego vehicle.",
+    "Vehicles in the left adjacent lane behind the ego vehicle.",
+    "Vehicles directly ahead of the ego vehicle in the same lane.",
+    "Vehicles directly behind the ego vehicle in the same lane.",
+    "Vehicles in the right adjacent lane ahead of the ego vehicle.",
+    "Vehicles directly to the right side of the ego vehicle.",
+    "Vehicles in the right adjacent lane behind the ego vehicle.",
+    "Vehicles in the opposing lane ahead of the ego vehicle.",
+    "Vehicles in the opposing lane behind the ego vehicle.",
+    "Vehicles in perpendicular or intersecting lanes ahead of the ego vehicle.",
+    "Vehicles in perpendicular or intersecting lanes behind the ego vehicle.",
+];
+
+const INSTRUCTION: &str = "Given this data, generate natural language sentences describing the scene. Only provide the description. Do not explain how you arrived at it. Include all the fields provided even if is empty.";
+pub const NO_NUMBERS: &str = "Do not add any distance bin numbers.";
+
+/// The user prompt for a grid: the JSON (numbers as words, sectors shuffled within each bin),
+/// the key explanations and the instruction.
+pub fn user_prompt(grid: &Grid, no_numbers: bool, rng: &mut impl rand::Rng) -> String {
+    let quote = |s: &str| serde_json::to_string(s).expect("strings serialise");
+    let mut json = String::from("{\n");
+    let mut present = vec![false; SECTORS.len()];
+    for (bin, name) in DISTANCE_BINS.iter().enumerate() {
+        let mut sectors: Vec<usize> = (0..SECTORS.len()).filter(|&s| grid.get(bin, s) > 0).collect();
+        sectors.shuffle(rng);
+        json += &format!("  \"{name}\": {{\n    \"total_vehicles\": {}", quote(&number_word(grid.bin_total(bin))));
+        for s in sectors {
+            present[s] = true;
+            json += &format!(",\n    \"{}\": {}", SECTORS[s], quote(&number_word(grid.get(bin, s))));
+        }
+        json += "\n  },\n";
+    }
+    let signs: Vec<String> = grid.signs.iter().map(|s| quote(s)).collect();
+    json += &format!("  \"applicable_traffic_signs\": [{}],\n  \"walkers\": {}\n}}", signs.join(", "), quote(&number_word(grid.walkers)));
+
+    let mut out = format!("Here is the JSON data:\n{json}\n\nHere is the description of every key in the JSON data:\n\n");
+    for (name, text) in DISTANCE_BINS.iter().zip(BIN_EXPLANATIONS) {
+        out += &format!("Distance Bin - {name}: {text}\n");
+    }
+    out += "\n- total_vehicles: Total number of vehicles in the distance bin.\n";
+    for (s, text) in SECTOR_EXPLANATIONS.iter().enumerate().filter(|(s, _)| present[*s]) {
+        out += &format!("- {}: {text}\n", SECTORS[s]);
+    }
+    out += "- applicable_traffic_signs: Traffic signs that are applicable to the ego vehicle.\n- walkers: Pedestrians in the scene.\n\n";
+    out += INSTRUCTION;
+    if no_numbers {
+        out += " ";
+        out += NO_NUMBERS;
+    }
+    out
+}
+
+impl Operator for Llm {
+    type Settings = LlmSettings;
+
+    fn spec(&self) -> OperatorSpec {
+        OperatorSpec {
+            name: "llm",
+            kind: "captions",
+            version: 1,
+            inputs: None,
+            summary: "captions from an OpenAI-compatible endpoint with the paper's prompts, checked by the parser",
+        }
+    }
+
+    fn run(&self, s: &LlmSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        let labels = Labels::open(ctx.input("labels")?)?;
+        let client = Client::new(s, &ctx.stage)?;
+        let (frames, seed) = (&labels.frames, ctx.seed);
+        let progress = ctx.progress(frames.len() as u64, "frames");
+        let results: Mutex<Vec<Option<FrameCaptions>>> = Mutex::new(vec![None; frames.len()]);
+        let next = AtomicUsize::new(0);
+        let failed = AtomicBool::new(false);
+        let first_error: Mutex<Option<anyhow::Error>> = Mutex::new(None);
+        std::thread::scope(|scope| {
+            for _ in 0..s.concurrency.min(frames.len().max(1)) {
+                scope.spawn(|| {
+                    while !failed.load(Ordering::Relaxed) {
+                        let i = next.fetch_add(1, Ordering::Relaxed);
+                        let Some(label) = frames.get(i) else { break };
+                        match caption_frame(s, label, seed, &client) {
+                            Ok(done) => {
+                                results.lock().unwrap()[i] = Some(done);
+                                progress.set_message(client.stats.line());
+                                progress.inc(1);
+                            }
+                            Err(e) => {
+                                failed.store(true, Ordering::Relaxed);
+                                first_error.lock().unwrap().get_or_insert(e.context(format!("frame {}", label.frame)));
+                            }
+                        }
+                    }
+                });
+            }
+        });
+        progress.finish();
+        if let Some(e) = first_error.into_inner().unwrap() {
+            return Err(e);
+        }
+
+        let results: Vec<FrameCaptions> = results.into_inner().unwrap().into_iter().map(|r| r.expect("every frame ran")).collect();
+        let mut captions = Vec::new();
+        let mut tally = Tally::default();
+        for (label, r) in frames.iter().zip(&results) {
+            captions.extend(r.captions.iter().map(|c| Caption { frame: label.frame, split: label.split, caption: c.clone() }));
+            tally.add(r);
+        }
+        let stats = client.stats.json();
+        let metrics = json!({
+            "captions": captions.len(),
+            "first_answer_fidelity": tally.first_ok as f64 / tally.first_total.max(1) as f64,
+            "regenerated": tally.regenerated,
+            "dropped": tally.dropped,
+            "kept_mismatched": tally.kept_mismatched,
+            "frames_without_captions": tally.empty_frames,
+            "requests": stats,
+        });
+        write_captions(&ctx.output_dir, frames.len() as u64, &captions, json!({"settings": s, "statistics": metrics}))?;
+        ctx.event("captions", metrics.clone());
+        Ok(Outcome {
+            summary: format!(
+                "{} captions for {} frames; {:.1}% faithful on first answer, {} regenerated, {} dropped, {} kept unfaithful; {}",
+                captions.len(),
+                frames.len(),
+                100.0 * metrics["first_answer_fidelity"].as_f64().unwrap_or(0.0),
+                tally.regenerated,
+                tally.dropped,
+                tally.kept_mismatched,
+                client.stats.line()
+            ),
+            metrics,
+        })
+    }
+}
+
+/// One frame's outcome.
+#[derive(Clone, Debug, Default)]
+struct FrameCaptions {
+    captions: Vec<String>,
+    /// Captions in the first answer, and how many of them matched the grid.
+    first_total: u64,
+    first_ok: u64,
+    /// Captions asked for again.
+    regenerated: u64,
+    dropped: u64,
+    kept_mismatched: u64,
+}
+
+#[derive(Default)]
+struct Tally {
+    first_total: u64,
+    first_ok: u64,
+    regenerated: u64,
+    dropped: u64,
+    kept_mismatched: u64,
+    empty_frames: u64,
+}
+
+impl Tally {
+    fn add(&mut self, r: &FrameCaptions) {
+        self.first_total += r.first_total;
+        self.first_ok += r.first_ok;
+        self.regenerated += r.regenerated;
+        self.dropped += r.dropped;
+        self.kept_mismatched += r.kept_mismatched;
+        self.empty_frames += u64::from(r.captions.is_empty());
+    }
+}
+
+/// Asks for a frame's captions until `n` agree with its grid or the regenerations run out.
+fn caption_frame(s: &LlmSettings, label: &FrameLabel, seed: u64, client: &Client) -> anyhow::Result<FrameCaptions> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ label.frame.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let no_numbers = rng.random_bool(s.no_distance_numbers);
+    let prompt = user_prompt(&label.grid, no_numbers, &mut rng);
+    let mut out = FrameCaptions::default();
+    let mut mismatched = Vec::new();
+    for attempt in 0..=s.regenerate {
+        let needed = s.n - out.captions.len();
+        if needed == 0 {
+            break;
+        }
+        if attempt > 0 {
+            out.regenerated += needed as u64;
+        }
+        let answers = client.complete(&request_body(s, &prompt, needed), attempt)?;
+        for caption in answers.into_iter().take(needed) {
+            let ok = parse(&caption).grid == label.grid;
+            if attempt == 0 {
+                out.first_total += 1;
+                out.first_ok += u64::from(ok);
+            }
+            if ok { out.captions.push(caption) } else { mismatched.push(caption) }
+        }
+    }
+    let missing = s.n - out.captions.len();
+    match s.on_mismatch {
+        OnMismatch::Keep => {
+            let kept = missing.min(mismatched.len());
+            out.kept_mismatched = kept as u64;
+            out.captions.extend(mismatched.drain(..kept));
+            out.dropped = mismatched.len() as u64;
+        }
+        OnMismatch::Drop => out.dropped = mismatched.len() as u64,
+    }
+    Ok(out)
+}
+
+fn request_body(s: &LlmSettings, prompt: &str, n: usize) -> String {
+    json!({
+        "model": s.model,
+        "messages": [{"role": "system", "content": SYSTEM_PROMPT}, {"role": "user", "content": prompt}],
+        "temperature": s.temperature,
+        "top_p": s.top_p,
+        "max_tokens": s.max_tokens,
+        "n": n,
+    })
+    .to_string()
+}
+
+/// Request counters, shared by the workers.
+#[derive(Default)]
+struct Stats {
+    sent: AtomicU64,
+    cached: AtomicU64,
+    retries: AtomicU64,
+    prompt_tokens: AtomicU64,
+    completion_tokens: AtomicU64,
+}
+
+impl Stats {
+    fn line(&self) -> String {
+        let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
+        format!(
+            "{} requests ({} from cache, {} retries), {} prompt + {} completion tokens",
+            get(&self.sent) + get(&self.cached),
+            get(&self.cached),
+            get(&self.retries),
+            get(&self.prompt_tokens),
+            get(&self.completion_tokens)
+        )
+    }
+
+    fn json(&self) -> Value {
+        let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
+        json!({"sent": get(&self.sent), "from_cache": get(&self.cached), "retries": get(&self.retries), "prompt_tokens": get(&self.prompt_tokens), "completion_tokens": get(&self.completion_tokens)})
+    }
+}
+
+/// A chat-completions endpoint behind the response cache.
+struct Client {
+    agent: ureq::Agent,
+    url: String,
+    auth: Option<String>,
+    cache: PathBuf,
+    /// What, besides the body, identifies an answer: endpoint and model.
+    identity: String,
+    retries: u32,
+    backoff: Duration,
+    stats: Stats,
+}
+
+/// Answers that are worth asking again.
+enum Failure {
+    Retry(String, Option<Duration>),
+    Fatal(anyhow::Error),
+}
+
+impl Client {
+    fn new(s: &LlmSettings, stage: &str) -> anyhow::Result<Client> {
+        let auth = if s.api_key_env.is_empty() {
+            None
+        } else {
+            let key = std::env::var(&s.api_key_env).map_err(|_| {
+                anyhow!(
+                    "the API key is read from the environment variable {} (stages.{stage}.api_key_env), which is not set; set it, or set api_key_env = \"\" for an endpoint without keys",
+                    s.api_key_env
+                )
+            })?;
+            Some(format!("Bearer {key}"))
+        };
+        let cache = if s.response_cache.is_empty() { default_cache_dir()? } else { PathBuf::from(&s.response_cache) };
+        std::fs::create_dir_all(&cache).with_context(|| format!("creating the response cache {}", cache.display()))?;
+        let config = ureq::Agent::config_builder().timeout_global(Some(Duration::from_secs_f64(s.timeout_s))).http_status_as_error(false).build();
+        Ok(Client {
+            agent: config.into(),
+            url: format!("{}/chat/completions", s.base_url.trim_end_matches('/')),
+            auth,
+            cache,
+            identity: format!("{}\n{}", s.base_url.trim_end_matches('/'), s.model),
+            retries: s.retries,
+            backoff: Duration::from_secs_f64(s.backoff_s),
+            stats: Stats::default(),
+        })
+    }
+
+    /// The captions in the answer to `body` (the `attempt`-th time this body is asked).
+    fn complete(&self, body: &str, attempt: u32) -> anyhow::Result<Vec<String>> {
+        let digest = blake3::hash(format!("{}\n{attempt}\n{body}", self.identity).as_bytes()).to_hex();
+        let path = self.cache.join(format!("{digest}.json"));
+        if let Ok(text) = std::fs::read_to_string(&path)
+            && let Ok(captions) = self.captions(&text)
+        {
+            self.stats.cached.fetch_add(1, Ordering::Relaxed);
+            return Ok(captions);
+        }
+        let mut tries = 0;
+        loop {
+            let failure = match self.post(body) {
+                Ok(text) => match self.captions(&text) {
+                    Ok(captions) => {
+                        self.stats.sent.fetch_add(1, Ordering::Relaxed);
+                        self.count_tokens(&text);
+                        let tmp = path.with_extension(format!("tmp{}", std::process::id()));
+                        std::fs::write(&tmp, &text)
+                            .and_then(|()| std::fs::rename(&tmp, &path))
+                            .with_context(|| format!("storing the answer in {}", path.display()))?;
+                        return Ok(captions);
+                    }
+                    Err(e) => Failure::Retry(format!("malformed answer: {e}"), None),
+                },
+                Err(f) => f,
+            };
+            match failure {
+                Failure::Fatal(e) => return Err(e),
+                Failure::Retry(why, _) if tries >= self.retries => bail!("{}: gave up after {} tries: {why}", self.url, tries + 1),
+                Failure::Retry(_, wait) => {
+                    let backoff = self.backoff.saturating_mul(1 << tries.min(16)).min(Duration::from_secs(60));
+                    std::thread::sleep(wait.unwrap_or(backoff));
+                    tries += 1;
+                    self.stats.retries.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        }
+    }
+
+    fn post(&self, body: &str) -> Result<String, Failure> {
+        let mut request = self.agent.post(&self.url).header("Content-Type", "application/json");
+        if let Some(auth) = &self.auth {
+            request = request.header("Authorization", auth);
+        }
+        let mut response = match request.send(body) {
+            Ok(r) => r,
+            Err(
+                e @ (ureq::Error::Timeout(_)
+                | ureq::Error::Io(_)
+                | ureq::Error::ConnectionFailed
+                | ureq::Error::Protocol(_)
+                | ureq::Error::BodyStalled),
+            ) => {
+                return Err(Failure::Retry(e.to_string(), None));
+            }
+            Err(e) => return Err(Failure::Fatal(anyhow!("{}: {e}", self.url))),
+        };
+        let status = response.status().as_u16();
+        let retry_after =
+            response.headers().get("retry-after").and_then(|v| v.to_str().ok()?.trim().parse::<f64>().ok()).map(Duration::from_secs_f64);
+        let text = response.body_mut().read_to_string().map_err(|e| Failure::Retry(format!("reading the answer: {e}"), None))?;
+        match status {
+            200..=299 => Ok(text),
+            429 | 500..=599 => Err(Failure::Retry(format!("{status}: {}", server_message(&text)), retry_after)),
+            _ => {
+                let hint = match status {
+                    401 | 403 => "; check the API key",
+                    404 => "; check base_url and model",
+                    _ => "",
+                };
+                Err(Failure::Fatal(anyhow!("{} answered {status}: {}{hint}", self.url, server_message(&text))))
+            }
+        }
+    }
+
+    fn captions(&self, text: &str) -> anyhow::Result<Vec<String>> {
+        let value: Value = serde_json::from_str(text).context("not JSON")?;
+        let choices = value["choices"].as_array().context("no `choices`")?;
+        choices
+            .iter()
+            .map(|c| {
+                c["message"]["content"]
+                    .as_str()
+                    .map(|t| t.split_whitespace().collect::<Vec<_>>().join(" "))
+                    .context("a choice without `message.content`")
+            })
+            .collect()
+    }
+
+    fn count_tokens(&self, text: &str) {
+        if let Ok(value) = serde_json::from_str::<Value>(text) {
+            self.stats.prompt_tokens.fetch_add(value["usage"]["prompt_tokens"].as_u64().unwrap_or(0), Ordering::Relaxed);
+            self.stats.completion_tokens.fetch_add(value["usage"]["completion_tokens"].as_u64().unwrap_or(0), Ordering::Relaxed);
+        }
+    }
+}
+
+/// The `error.message` of an OpenAI-style error body, else the body itself (shortened).
+fn server_message(text: &str) -> String {
+    serde_json::from_str::<Value>(text)
+        .ok()
+        .and_then(|v| v["error"]["message"].as_str().map(str::to_owned))
+        .unwrap_or_else(|| text.chars().take(300).collect())
+}
+
+fn default_cache_dir() -> anyhow::Result<PathBuf> {
+    let base = match std::env::var_os("XDG_CACHE_HOME").filter(|v| !v.is_empty()) {
+        Some(dir) => PathBuf::from(dir),
+        None => Path::new(&std::env::var_os("HOME").context("neither XDG_CACHE_HOME nor HOME is set; set response_cache")?).join(".cache"),
+    };
+    Ok(base.join("rlmflow").join("llm"))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::HashMap;
+    use std::io::{BufRead, BufReader, Read, Write};
+    use std::net::{TcpListener, TcpStream};
+    use std::sync::Arc;
+
+    use rlmflow_stages::captions::Captions;
+    use rlmflow_stages::grid::CELLS;
+    use rlmflow_stages::labels::{self, MaskGeometry, Split};
+    use rlmflow_stages::npy::{Dtype, NpyWriter};
+
+    use super::*;
+
+    /// What the fake endpoint does with one request.
+    enum Reply {
+        Captions(usize),
+        Status(u16, &'static str),
+        Malformed,
+        Slow(Duration),
+    }
+
+    /// Which answers start with a caption of another grid.
+    #[derive(Clone, Copy, PartialEq)]
+    enum Wrong {
+        Never,
+        /// The first answer to each prompt.
+        FirstAnswer,
+        Always,
+    }
+
+    /// A chat-completions endpoint on localhost. It reads the grid back out of the prompt and
+    /// answers with template captions of it; `script(request number, prompt, n)` picks the reply.
+    struct FakeLlm {
+        url: String,
+        requests: Arc<AtomicUsize>,
+        bodies: Arc<Mutex<Vec<Value>>>,
+    }
+
+    type Script = dyn Fn(usize, &str, usize) -> Reply + Send + Sync;
+
+    impl FakeLlm {
+        fn start(script: Box<Script>, wrong: Wrong) -> FakeLlm {
+            let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+            let url = format!("http://{}/v1", listener.local_addr().unwrap());
+            let requests = Arc::new(AtomicUsize::new(0));
+            let bodies = Arc::new(Mutex::new(Vec::new()));
+            let (r, b) = (requests.clone(), bodies.clone());
+            let script: Arc<Script> = script.into();
+            let answered = Arc::new(Mutex::new(std::collections::HashSet::new()));
+            std::thread::spawn(move || {
+                for stream in listener.incoming() {
+                    let (r, b, script, answered) = (r.clone(), b.clone(), script.clone(), answered.clone());
+                    std::thread::spawn(move || {
+                        serve(stream.unwrap(), &r, &b, &*script, &|prompt: &str| match wrong {
+                            Wrong::Never => false,
+                            Wrong::Always => true,
+                            Wrong::FirstAnswer => answered.lock().unwrap().insert(prompt.to_owned()),
+                        })
+                    });
+                }
+            });
+            FakeLlm { url, requests, bodies }
+        }
+    }
+
+    /// `wrong(prompt)` says whether this answer starts with a wrong caption.
+    fn serve(mut stream: TcpStream, requests: &AtomicUsize, bodies: &Mutex<Vec<Value>>, script: &Script, wrong: &dyn Fn(&str) -> bool) {
+        let mut reader = BufReader::new(stream.try_clone().unwrap());
+        loop {
+            let mut length = 0;
+            let mut auth = String::new();
+            loop {
+                let mut line = String::new();
+                if reader.read_line(&mut line).unwrap_or(0) == 0 {
+                    return;
+                }
+                let line = line.trim_end();
+                if line.is_empty() {
+                    break;
+                }
+                let lower = line.to_ascii_lowercase();
+                if let Some(v) = lower.strip_prefix("content-length:") {
+                    length = v.trim().parse().unwrap();
+                }
+                if lower.starts_with("authorization:") {
+                    auth = line["authorization:".len()..].trim().to_owned();
+                }
+            }
+            let mut body = vec![0; length];
+            reader.read_exact(&mut body).unwrap();
+            let body: Value = serde_json::from_slice(&body).unwrap();
+            let number = requests.fetch_add(1, Ordering::SeqCst);
+            let prompt = body["messages"][1]["content"].as_str().unwrap().to_owned();
+            let n = body["n"].as_u64().unwrap() as usize;
+            bodies.lock().unwrap().push(body);
+            let (status, text, retry_after) = match script(number, &prompt, n) {
+                _ if auth != "Bearer sk-test" => (401, r#"{"error": {"message": "Incorrect API key provided"}}"#.to_owned(), ""),
+                Reply::Captions(k) => (200, answer(&prompt, k, wrong(&prompt)), ""),
+                Reply::Status(code, message) => (code, format!(r#"{{"error": {{"message": "{message}"}}}}"#), "Retry-After: 0\r\n"),
+                Reply::Malformed => (200, r#"{"choices": [{"message": "#.to_owned(), ""),
+                Reply::Slow(d) => {
+                    // Past the client's timeout: nobody reads this answer.
+                    std::thread::sleep(d);
+                    (200, answer(&prompt, n, false), "")
+                }
+            };
+            let head = format!("HTTP/1.1 {status} X\r\nContent-Type: application/json\r\nContent-Length: {}\r\n{retry_after}\r\n", text.len());
+            if stream.write_all(head.as_bytes()).and_then(|()| stream.write_all(text.as_bytes())).is_err() {
+                return;
+            }
+        }
+    }
+
+    /// The grid in a prompt's JSON, numbers read back from words.
+    fn prompt_grid(prompt: &str) -> Grid {
+        let words: HashMap<String, u64> = (0..100).map(|n| (number_word(n), n as u64)).collect();
+        let json = &prompt[prompt.find('{').unwrap()..prompt.find("\n\nHere is the description").unwrap()];
+        let mut value: Value = serde_json::from_str(json).unwrap();
+        fn numbers(v: &mut Value, words: &HashMap<String, u64>) {
+            match v {
+                Value::String(s) if words.contains_key(s.as_str()) => *v = json!(words[s.as_str()]),
+                Value::Object(m) => m.values_mut().for_each(|v| numbers(v, words)),
+                _ => {}
+            }
+        }
+        numbers(&mut value, &words);
+        Grid::from_json(&value).unwrap()
+    }
+
+    fn answer(prompt: &str, k: usize, wrong_first: bool) -> String {
+        let grid = prompt_grid(prompt);
+        let mut rng = ChaCha8Rng::seed_from_u64(prompt.len() as u64);
+        let no_numbers = prompt.contains(NO_NUMBERS);
+        let choices: Vec<Value> = (0..k)
+            .map(|i| {
+                let mut g = grid.clone();
+                if wrong_first && i == 0 {
+                    g.counts[i % CELLS] += 1;
+                }
+                json!({"index": i, "message": {"role": "assistant", "content": crate::caption(&g, !no_numbers, &mut rng)}})
+            })
+            .collect();
+        json!({"choices": choices, "usage": {"prompt_tokens": 700, "completion_tokens": 150 * k}}).to_string()
+    }
+
+    fn scratch(name: &str) -> PathBuf {
+        let root = std::env::temp_dir().join(format!("rlmflow-llm-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        for d in ["labels", "out", "ckpt", "cache"] {
+            std::fs::create_dir_all(root.join(d)).unwrap();
+        }
+        root
+    }
+
+    /// A Labels artifact of `frames` random grids (1 x 1 masks).
+    fn write_labels(root: &Path, frames: u64) -> Vec<Grid> {
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let grids: Vec<Grid> = (0..frames)
+            .map(|_| {
+                let mut g = Grid::default();
+                for _ in 0..rng.random_range(0..8) {
+                    g.counts[rng.random_range(0..CELLS)] += 1;
+                }
+                g.walkers = rng.random_range(0..3);
+                g
+            })
+            .collect();
+        let dir = root.join("labels");
+        let lines: String =
+            grids.iter().enumerate().map(|(i, g)| FrameLabel { frame: i as u64, split: Split::Train, grid: g.clone() }.to_line() + "\n").collect();
+        std::fs::write(dir.join(labels::LINES), lines).unwrap();
+        let mut masks = NpyWriter::create(&dir.join(labels::MASKS), Dtype::U8, frames as usize, &[1, 1]).unwrap();
+        for _ in 0..frames {
+            masks.write_u8(&[0]).unwrap();
+        }
+        masks.finish().unwrap();
+        let summary = labels::Summary {
+            format: labels::FORMAT,
+            frames,
+            train: frames,
+            test: 0,
+            rule: Default::default(),
+            mask: MaskGeometry { size: 1, radius_px: 1.0, sigma_px: 1.0 },
+            cells: Default::default(),
+            vehicles_per_frame: vec![],
+        };
+        std::fs::write(dir.join(labels::SUMMARY), serde_json::to_vec(&summary).unwrap()).unwrap();
+        grids
+    }
+
+    fn settings(server: &FakeLlm, root: &Path) -> LlmSettings {
+        LlmSettings {
+            base_url: server.url.clone(),
+            model: "fake".into(),
+            api_key_env: "RLMFLOW_TEST_LLM_KEY".into(),
+            n: 3,
+            concurrency: 3,
+            timeout_s: 0.5,
+            backoff_s: 0.01,
+            response_cache: root.join("cache").display().to_string(),
+            ..LlmSettings::default()
+        }
+    }
+
+    fn run(root: &Path, s: &LlmSettings) -> anyhow::Result<Outcome> {
+        // SAFETY: every test sets the same value; nothing reads it concurrently in a way that
+        // could see a torn write.
+        unsafe { std::env::set_var("RLMFLOW_TEST_LLM_KEY", "sk-test") };
+        let _ = std::fs::remove_dir_all(root.join("out"));
+        std::fs::create_dir_all(root.join("out")).unwrap();
+        let mut ctx = Context::standalone("captions", &[("labels", &root.join("labels"))], &root.join("out"), &root.join("ckpt"), 5, 1);
+        Operator::run(&Llm, s, &mut ctx)
+    }
+
+    #[test]
+    fn failures_are_retried_wrong_captions_regenerated_and_answers_never_asked_twice() {
+        let root = scratch("main");
+        let grids = write_labels(&root, 12);
+        let server = FakeLlm::start(
+            Box::new(|number, _, n| match number {
+                0 => Reply::Status(429, "Rate limit reached"),
+                1 => Reply::Status(500, "The server had an error"),
+                2 => Reply::Malformed,
+                3 => Reply::Slow(Duration::from_millis(1500)),
+                _ => Reply::Captions(n),
+            }),
+            Wrong::FirstAnswer,
+        );
+        let s = settings(&server, &root);
+        let outcome = run(&root, &s).unwrap();
+        let m = &outcome.metrics;
+        assert_eq!(m["requests"]["retries"], 4, "{m}");
+        // Each frame's first answer has one wrong caption of three; it is asked for again, and
+        // the second answer is right.
+        assert_eq!(m["first_answer_fidelity"].as_f64().unwrap(), 2.0 / 3.0, "{m}");
+        assert_eq!((m["regenerated"].as_u64(), m["dropped"].as_u64()), (Some(12), Some(12)), "{m}");
+        assert_eq!(m["captions"], 12 * 3, "{m}");
+        let captions = Captions::open(&root.join("out")).unwrap();
+        for c in &captions.captions {
+            assert_eq!(parse(&c.caption).grid, grids[c.frame as usize], "{}", c.caption);
+        }
+        assert_eq!((m["requests"]["sent"].as_u64(), m["requests"]["prompt_tokens"].as_u64()), (Some(24), Some(700 * 24)), "{m}");
+
+        // The same run again asks nothing: every answer comes from the response cache.
+        let sent = server.requests.load(Ordering::SeqCst);
+        let again = run(&root, &s).unwrap();
+        assert_eq!(server.requests.load(Ordering::SeqCst), sent);
+        assert_eq!(again.metrics["requests"]["from_cache"], 24);
+        assert_eq!(std::fs::read(root.join("out/captions.jsonl")).unwrap(), captions_bytes(&captions));
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    fn captions_bytes(c: &Captions) -> Vec<u8> {
+        c.captions.iter().map(|c| c.to_line() + "\n").collect::<String>().into_bytes()
+    }
+
+    #[test]
+    fn unfaithful_captions_are_dropped_or_kept_as_configured() {
+        let root = scratch("mismatch");
+        write_labels(&root, 4);
+        let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Always);
+        let s = LlmSettings { regenerate: 1, ..settings(&server, &root) };
+        let dropped = run(&root, &s).unwrap().metrics;
+        // Per frame: three asked, one wrong; one asked again, wrong again.
+        assert_eq!((dropped["captions"].as_u64(), dropped["dropped"].as_u64(), dropped["kept_mismatched"].as_u64()), (Some(8), Some(8), Some(0)));
+        let kept = run(&root, &LlmSettings { on_mismatch: OnMismatch::Keep, ..s }).unwrap().metrics;
+        assert_eq!((kept["captions"].as_u64(), kept["dropped"].as_u64(), kept["kept_mismatched"].as_u64()), (Some(12), Some(4), Some(4)));
+        assert_eq!(kept["requests"]["from_cache"], 8, "judging differently asks nothing again");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn client_errors_stop_the_stage_with_the_servers_message() {
+        let root = scratch("4xx");
+        write_labels(&root, 2);
+        let server = FakeLlm::start(Box::new(|_, _, _| Reply::Status(400, "Invalid value for 'top_p'")), Wrong::Never);
+        let e = run(&root, &settings(&server, &root)).unwrap_err();
+        assert!(format!("{e:#}").contains("answered 400: Invalid value for 'top_p'"), "{e:#}");
+        let s = LlmSettings { retries: 2, ..settings(&server, &root) };
+        let server = FakeLlm::start(Box::new(|_, _, _| Reply::Status(503, "overloaded")), Wrong::Never);
+        let e = run(&root, &LlmSettings { base_url: server.url.clone(), concurrency: 1, ..s }).unwrap_err();
+        assert!(format!("{e:#}").contains("gave up after 3 tries: 503: overloaded"), "{e:#}");
+        assert_eq!(server.requests.load(Ordering::SeqCst), 3);
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn a_missing_or_wrong_key_is_named() {
+        let root = scratch("key");
+        write_labels(&root, 1);
+        let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Never);
+        let s = LlmSettings { api_key_env: "RLMFLOW_TEST_UNSET_KEY".into(), ..settings(&server, &root) };
+        let e = run(&root, &s).unwrap_err().to_string();
+        assert!(e.contains("RLMFLOW_TEST_UNSET_KEY (stages.captions.api_key_env)"), "{e}");
+        let e = run(&root, &LlmSettings { api_key_env: String::new(), ..s }).unwrap_err();
+        assert!(format!("{e:#}").contains("answered 401: Incorrect API key provided; check the API key"), "{e:#}");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn requests_carry_the_papers_prompts_and_sampling_settings() {
+        let root = scratch("prompt");
+        write_labels(&root, 6);
+        let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Never);
+        run(&root, &LlmSettings { no_distance_numbers: 1.0, ..settings(&server, &root) }).unwrap();
+        let bodies = server.bodies.lock().unwrap();
+        assert_eq!(bodies.len(), 6);
+        for body in bodies.iter() {
+            assert_eq!(
+                (body["temperature"].as_f64(), body["top_p"].as_f64(), body["max_tokens"].as_u64(), body["n"].as_u64()),
+                (Some(0.5), Some(0.9), Some(400), Some(3))
+            );
+            assert_eq!(body["messages"][0]["content"], SYSTEM_PROMPT);
+            let prompt = body["messages"][1]["content"].as_str().unwrap();
+            assert!(prompt.starts_with("Here is the JSON data:\n{\n  \"0-10m\": {\n    \"total_vehicles\": \""), "{prompt}");
+            assert!(prompt.contains("\"walkers\": \"") && prompt.contains("\"applicable_traffic_signs\": []"), "{prompt}");
+            assert!(prompt.contains("Distance Bin - 30-40m: Objects within 30 to 40 meters from the ego vehicle."), "{prompt}");
+            assert!(prompt.ends_with(&format!("{INSTRUCTION} {NO_NUMBERS}")), "{prompt}");
+        }
+        // Keys are shuffled within a bin: over many prompts, two sectors appear in both orders.
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let mut grid = Grid::default();
+        grid.set(0, 0, 2);
+        grid.set(0, 9, 1);
+        let orders: std::collections::BTreeSet<bool> = (0..20)
+            .map(|_| {
+                let p = user_prompt(&grid, false, &mut rng);
+                p.find("left_lane_front_side\": \"two\"").unwrap() < p.find("opposing_lane_back\": \"one\"").unwrap()
+            })
+            .collect();
+        assert_eq!(orders.len(), 2);
+        assert!(!user_prompt(&grid, false, &mut rng).contains(NO_NUMBERS));
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+}
