@@ -128,10 +128,10 @@ impl Settings for LlmSettings {
         if self.concurrency == 0 {
             return err("concurrency", "must be at least 1".into());
         }
-        if !(self.timeout_s > 0.0) {
+        if !self.timeout_s.is_finite() || self.timeout_s <= 0.0 {
             return err("timeout_s", format!("must be positive, not {}", self.timeout_s));
         }
-        if !(self.backoff_s >= 0.0) {
+        if self.backoff_s.is_nan() || self.backoff_s < 0.0 {
             return err("backoff_s", format!("must be >= 0, not {}", self.backoff_s));
         }
         Ok(())

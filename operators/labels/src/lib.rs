@@ -66,7 +66,7 @@ impl Settings for EgoGridSettings {
         if !(0.0..1.0).contains(&self.rule.direction_dot) {
             return Err(SettingError::new("rule.direction_dot", format!("must be in [0, 1), not {}", self.rule.direction_dot)));
         }
-        if !(self.rule.beside_m >= 0.0) {
+        if self.rule.beside_m.is_nan() || self.rule.beside_m < 0.0 {
             return Err(SettingError::new("rule.beside_m", format!("must be >= 0, not {}", self.rule.beside_m)));
         }
         if !(0.0..1.0).contains(&self.test_fraction) {
