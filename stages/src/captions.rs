@@ -9,10 +9,9 @@
 //! The lines are what `rlmflow parse` reads, so a Captions artifact can be checked against its
 //! labels from the command line.
 
-use std::fs;
 use std::path::Path;
 
-use anyhow::{Context as _, bail};
+use anyhow::bail;
 use serde::{Deserialize, Serialize};
 
 use crate::labels::Split;
@@ -52,19 +51,9 @@ pub struct Captions {
 
 impl Captions {
     pub fn open(dir: &Path) -> anyhow::Result<Captions> {
-        let path = dir.join(SUMMARY);
-        let summary: Summary = serde_json::from_slice(&fs::read(&path).with_context(|| format!("reading {}", path.display()))?)
-            .with_context(|| format!("{} is not a Captions summary", path.display()))?;
-        if summary.format != FORMAT {
-            bail!("{}: Captions format {} (this build reads {FORMAT}); rerun the captions stage", path.display(), summary.format);
-        }
+        let summary: Summary = crate::read_summary(dir, SUMMARY, "Captions", "captions", FORMAT)?;
         let path = dir.join(LINES);
-        let text = fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-        let captions = text
-            .lines()
-            .enumerate()
-            .map(|(i, l)| serde_json::from_str(l).with_context(|| format!("{}:{}: not a caption line", path.display(), i + 1)))
-            .collect::<anyhow::Result<Vec<Caption>>>()?;
+        let captions: Vec<Caption> = crate::read_lines(&path, |l| serde_json::from_str(l).map_err(|e| format!("not a caption line: {e}")))?;
         if captions.len() as u64 != summary.captions {
             bail!("{}: {} captions, but the summary says {}", path.display(), captions.len(), summary.captions);
         }

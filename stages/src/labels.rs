@@ -11,7 +11,6 @@
 //!               target in [0, 1]
 //! ```
 
-use std::fs;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context as _, bail};
@@ -111,19 +110,9 @@ pub struct Labels {
 
 impl Labels {
     pub fn open(dir: &Path) -> anyhow::Result<Labels> {
-        let path = dir.join(SUMMARY);
-        let summary: Summary = serde_json::from_slice(&fs::read(&path).with_context(|| format!("reading {}", path.display()))?)
-            .with_context(|| format!("{} is not a Labels summary", path.display()))?;
-        if summary.format != FORMAT {
-            bail!("{}: Labels format {} (this build reads {FORMAT}); rerun the labels stage", path.display(), summary.format);
-        }
+        let summary: Summary = crate::read_summary(dir, SUMMARY, "Labels", "labels", FORMAT)?;
         let path = dir.join(LINES);
-        let text = fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-        let frames = text
-            .lines()
-            .enumerate()
-            .map(|(i, l)| FrameLabel::from_line(l).map_err(|e| anyhow::anyhow!("{}:{}: {e}", path.display(), i + 1)))
-            .collect::<anyhow::Result<Vec<_>>>()?;
+        let frames = crate::read_lines(&path, FrameLabel::from_line)?;
         if frames.len() as u64 != summary.frames || frames.iter().enumerate().any(|(i, f)| f.frame != i as u64) {
             bail!("{}: expected frames 0..{} in order", path.display(), summary.frames);
         }

@@ -122,12 +122,7 @@ pub struct Scenes {
 
 impl Scenes {
     pub fn open(dir: &Path) -> anyhow::Result<Scenes> {
-        let path = dir.join(SUMMARY);
-        let summary: Summary = serde_json::from_slice(&std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?)
-            .with_context(|| format!("{} is not a Scenes summary", path.display()))?;
-        if summary.format != FORMAT {
-            bail!("{}: Scenes format {} (this build reads {FORMAT}); rerun the scenes stage", path.display(), summary.format);
-        }
+        let summary: Summary = crate::read_summary(dir, SUMMARY, "Scenes", "scenes", FORMAT)?;
         let index_path = dir.join(INDEX);
         let bytes = std::fs::read(&index_path).with_context(|| format!("reading {}", index_path.display()))?;
         let index: Vec<u64> = bytes.chunks_exact(8).map(|b| u64::from_le_bytes(b.try_into().expect("chunks of 8"))).collect();

@@ -8,10 +8,9 @@
 //! tokens.json     summary: vocabulary size, context, special token ids, counts
 //! ```
 
-use std::fs;
 use std::path::Path;
 
-use anyhow::{Context as _, bail};
+use anyhow::bail;
 use serde::{Deserialize, Serialize};
 
 use crate::npy::Npy;
@@ -55,12 +54,7 @@ pub struct Tokens {
 
 impl Tokens {
     pub fn open(dir: &Path) -> anyhow::Result<Tokens> {
-        let path = dir.join(SUMMARY);
-        let summary: Summary = serde_json::from_slice(&fs::read(&path).with_context(|| format!("reading {}", path.display()))?)
-            .with_context(|| format!("{} is not a Tokens summary", path.display()))?;
-        if summary.format != FORMAT {
-            bail!("{}: Tokens format {} (this build reads {FORMAT}); rerun the tokens stage", path.display(), summary.format);
-        }
+        let summary: Summary = crate::read_summary(dir, SUMMARY, "Tokens", "tokens", FORMAT)?;
         let ids = Npy::open(&dir.join(IDS))?;
         if ids.shape != [summary.captions as usize, summary.context] {
             bail!("{}: shape {:?}, expected [{}, {}]", dir.join(IDS).display(), ids.shape, summary.captions, summary.context);
