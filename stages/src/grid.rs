@@ -10,7 +10,10 @@
 //! longitudinal offset is within `beside_m` (2.5 m: about half a car length) of the ego's centre;
 //! only the left and right lanes have beside sectors, so an in-lane, opposing or other vehicle
 //! within the band counts as front when x >= 0. Lanes further out than the adjacent ones count
-//! as left or right. Headings are body headings.
+//! as left or right. Direction compares body headings by default (the paper's "forward
+//! vectors"); `heading = "lane"` compares the headings of the lanes the two drive in instead, so
+//! a vehicle changing lanes or turning keeps its lane's direction (where the Scenes artifact
+//! records no lane, the body heading stands in).
 
 use serde::{Deserialize, Serialize};
 
@@ -48,11 +51,22 @@ pub struct GridRule {
     pub direction_dot: f64,
     /// Half-width of the beside band along x.
     pub beside_m: f64,
+    /// Which headings the direction test compares.
+    pub heading: Heading,
+}
+
+/// The headings the direction test compares: the vehicles' bodies, or their lanes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Heading {
+    #[default]
+    Body,
+    Lane,
 }
 
 impl Default for GridRule {
     fn default() -> Self {
-        GridRule { lane_width_m: 3.0, direction_dot: 0.5, beside_m: 2.5 }
+        GridRule { lane_width_m: 3.0, direction_dot: 0.5, beside_m: 2.5, heading: Heading::Body }
     }
 }
 
@@ -78,6 +92,15 @@ impl Cell {
 }
 
 impl GridRule {
+    /// The heading the direction test uses for a vehicle with this body heading and lane
+    /// heading (both relative to the ego's).
+    pub fn direction(&self, body: f64, lane: Option<f64>) -> f64 {
+        match (self.heading, lane) {
+            (Heading::Lane, Some(lane)) => lane,
+            _ => body,
+        }
+    }
+
     /// The cell of a vehicle at ego-frame position (x, y) with heading `heading` relative to
     /// the ego's; `None` beyond 40 m.
     pub fn classify(&self, x: f64, y: f64, heading: f64) -> Option<Cell> {

@@ -44,6 +44,10 @@ pub struct Actor {
     pub length: f64,
     pub width: f64,
     pub speed: f64,
+    /// The heading of the lane it drives in, relative to the ego's lane; absent where the
+    /// generator knows no lanes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lane_heading: Option<f64>,
     /// Pixel coordinates of its centre in the primary image (pixel centres at integer + 0.5);
     /// outside [0, size) where the image does not show it.
     pub row: f64,

@@ -167,7 +167,7 @@ pub fn grid(rule: &GridRule, frame: &Frame) -> Grid {
     let mut signs = Vec::new();
     for actor in &frame.actors {
         if actor.is_vehicle() {
-            if let Some(cell) = rule.classify(actor.x, actor.y, actor.heading) {
+            if let Some(cell) = rule.classify(actor.x, actor.y, rule.direction(actor.heading, actor.lane_heading)) {
                 grid.counts[cell.index()] += 1;
             }
         } else if actor.x.hypot(actor.y) < MAX_RANGE_M {
@@ -232,13 +232,14 @@ mod tests {
     use std::path::{Path, PathBuf};
 
     use rlmflow_scenes::{Procedural, ProceduralSettings};
+    use rlmflow_stages::grid::Heading;
     use rlmflow_stages::labels::Labels;
     use rlmflow_stages::scenes::Actor;
 
     use super::*;
 
     fn actor(class: &str, x: f64, y: f64, heading: f64, (row, col): (f64, f64)) -> Actor {
-        Actor { id: 0, class: class.into(), x, y, heading, length: 4.5, width: 1.8, speed: 10.0, row, col }
+        Actor { id: 0, class: class.into(), x, y, heading, length: 4.5, width: 1.8, speed: 10.0, lane_heading: None, row, col }
     }
 
     fn scratch(name: &str) -> PathBuf {
@@ -272,6 +273,16 @@ mod tests {
             g.to_json(),
             r#"{"0-10m":{"total_vehicles":2,"in_lane_front_side":2},"10-20m":{"total_vehicles":0},"20-30m":{"total_vehicles":1,"opposing_lane_front":1},"30-40m":{"total_vehicles":0},"traffic_signs":["stop"],"walkers":1}"#
         );
+    }
+
+    #[test]
+    fn lane_headings_keep_a_lane_changing_vehicle_in_its_lanes_direction() {
+        let mut changing = actor("car", 12.0, 0.5, 1.2, (0.0, 0.0));
+        changing.lane_heading = Some(0.0);
+        let frame = Frame { index: 0, scenario: "t".into(), actors: vec![changing] };
+        assert_eq!(grid(&GridRule::default(), &frame).get(1, 10), 1, "by body heading it crosses: other_lane_front");
+        let lane = GridRule { heading: Heading::Lane, ..GridRule::default() };
+        assert_eq!(grid(&lane, &frame).get(1, 3), 1, "by lane heading it is ahead in our lane");
     }
 
     #[test]

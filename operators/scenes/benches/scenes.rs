@@ -63,7 +63,19 @@ fn mcap_throughput(frames: u64, size: usize) {
     let image = Image { view: "range-azimuth".into(), topic: "/radar/range-azimuth".into(), size };
     let mut writer = SceneWriter::resume(&ckpt, vec![image]).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(1);
-    let actor = Actor { id: 1, class: "car".into(), x: 10.0, y: 3.5, heading: 0.0, length: 4.5, width: 1.8, speed: 20.0, row: 10.0, col: 100.0 };
+    let actor = Actor {
+        id: 1,
+        class: "car".into(),
+        x: 10.0,
+        y: 3.5,
+        heading: 0.0,
+        length: 4.5,
+        width: 1.8,
+        speed: 20.0,
+        lane_heading: Some(0.0),
+        row: 10.0,
+        col: 100.0,
+    };
     for start in (0..frames).step_by(100) {
         let batch: Vec<_> = (start..(start + 100).min(frames))
             .map(|i| {

@@ -6,7 +6,8 @@ simulation advances with road.act(); road.step(dt). The Rust side picks the ego 
 renders the radar; this module only steps traffic and returns flat arrays.
 
 World coordinates are highway-env's (x right, y down on screen). Rows of `state()`:
-id, x, y, heading, length, width, speed, is_truck.
+id, x, y, heading, length, width, speed, is_truck, lane heading (the heading of the lane the
+vehicle is on, at its position).
 """
 
 import gymnasium as gym
@@ -15,6 +16,13 @@ import numpy as np
 from highway_env.road.lane import LineType, StraightLane
 from highway_env.road.road import Road, RoadNetwork
 from highway_env.vehicle.behavior import IDMVehicle
+
+def lane_heading(v):
+    """The heading of the lane `v` is on, at its position (its own heading off the road)."""
+    if v.lane is None:
+        return v.heading
+    return v.lane.heading_at(v.lane.local_coordinates(v.position)[0])
+
 
 ENVIRONMENTS = {
     "highway": "highway-v0",
@@ -128,7 +136,7 @@ class Simulation:
 
     def state(self):
         rows = [
-            (self.ids[id(v)], v.position[0], v.position[1], v.heading, v.LENGTH, v.WIDTH, v.speed, float(getattr(v, "is_truck", False)))
+            (self.ids[id(v)], v.position[0], v.position[1], v.heading, v.LENGTH, v.WIDTH, v.speed, float(getattr(v, "is_truck", False)), lane_heading(v))
             for v in self.road.vehicles
         ]
         return np.asarray(rows, dtype=np.float64).tobytes()

@@ -31,7 +31,7 @@ use crate::writer::SceneWriter;
 const HELPER: &str = include_str!("highway.py");
 pub const SCENARIOS: [&str; 6] = ["highway", "merge", "roundabout", "intersection", "two-way", "divided"];
 /// Columns of a state row (see highway.py).
-const COLUMNS: usize = 8;
+const COLUMNS: usize = 9;
 
 pub struct HighwayEnv;
 
@@ -144,7 +144,7 @@ impl Operator for HighwayEnv {
         OperatorSpec {
             name: "highway-env",
             kind: "scenes",
-            version: 1,
+            version: 2,
             inputs: None,
             summary: "traffic simulated by highway-env (highway, merge, roundabout, intersection, two-way, divided), rendered by the radar model",
         }
@@ -318,7 +318,9 @@ fn choose_ego(
         .into_iter()
         .map(|(j, body)| {
             let r = &snap.rows[j];
-            Vehicle { id: r[0] as u32, class: if r[7] > 0.5 { "truck" } else { "car" }, body, speed: r[6] }
+            // Lane headings relative to the ego's lane (y flipped, as in `pose`).
+            let lane_heading = snap.rows[ego][8] - r[8];
+            Vehicle { id: r[0] as u32, class: if r[7] > 0.5 { "truck" } else { "car" }, body, speed: r[6], lane_heading: Some(lane_heading) }
         })
         .collect();
     Some(Scene { scenario: scenario.to_string(), vehicles, edges })
@@ -396,6 +398,11 @@ mod tests {
             assert!(f.actors.len() <= 20);
             assert!(f.actors.iter().all(|a| a.x.hypot(a.y) <= s.radar.range_max_m));
         }
+        // Every vehicle carries its lane's heading; bodies mostly point along their lanes.
+        let actors: Vec<_> = frames.iter().flat_map(|f| &f.actors).collect();
+        let off = |a: &&&rlmflow_stages::scenes::Actor| (a.lane_heading.unwrap() - a.heading).sin().abs() > 0.3;
+        assert!(actors.iter().all(|a| a.lane_heading.is_some()));
+        assert!(actors.iter().filter(off).count() * 10 < actors.len(), "bodies far off their lanes");
     }
 
     #[test]

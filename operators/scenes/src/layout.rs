@@ -66,8 +66,9 @@ impl Layout {
     }
 
     /// Tries to place a vehicle of the given size in `target` (as `rule` classifies it),
-    /// clear of the ego and of `placed`.
-    pub fn place(&self, target: Cell, size: (f64, f64), rule: &GridRule, placed: &[VehicleBox], rng: &mut impl Rng) -> Option<VehicleBox> {
+    /// clear of the ego and of `placed`; returns its box and its lane's heading (the ego's lane
+    /// heads 0), off which the body heading deviates by a few degrees.
+    pub fn place(&self, target: Cell, size: (f64, f64), rule: &GridRule, placed: &[VehicleBox], rng: &mut impl Rng) -> Option<(VehicleBox, f64)> {
         let (length, width) = size;
         let sector = target.sector;
         let front = matches!(sector, 0 | 3 | 5 | 8 | 10);
@@ -77,7 +78,7 @@ impl Layout {
         for _ in 0..24 {
             let d = rng.random_range(lo..lo + BIN_WIDTH_M);
             let jitter = rng.random_range(-0.3..0.3);
-            let (x, y, heading) = match sector {
+            let (x, y, lane_heading) = match sector {
                 0..=7 => {
                     let lanes: Vec<f64> = self
                         .same
@@ -91,11 +92,11 @@ impl Layout {
                         .collect();
                     let y = *pick(&lanes, rng)? + jitter;
                     let x = if side { rng.random_range(-rule.beside_m..rule.beside_m) } else { along(d, y, front)? };
-                    (x, y, rng.random_range(-0.08..0.08))
+                    (x, y, 0.0)
                 }
                 8 | 9 => {
                     let y = *pick(&self.opposing, rng)? + jitter;
-                    (along(d, y, front)?, y, PI + rng.random_range(-0.08..0.08))
+                    (along(d, y, front)?, y, PI)
                 }
                 _ => {
                     let &(x, heading) = pick(&self.crossing, rng)?;
@@ -104,13 +105,14 @@ impl Layout {
                         return None;
                     }
                     let y = along(d, x, rng.random_bool(0.5))?;
-                    (x, y, heading + rng.random_range(-0.08..0.08))
+                    (x, y, heading)
                 }
             };
+            let heading = lane_heading + rng.random_range(-0.08..0.08);
             let candidate = VehicleBox { x, y, heading, length, width };
             let clear = std::iter::once(&ego).chain(placed).all(|other| !overlaps(&candidate, other, 0.5));
             if clear && rule.classify(x, y, heading) == Some(target) {
-                return Some(candidate);
+                return Some((candidate, lane_heading));
             }
         }
         None

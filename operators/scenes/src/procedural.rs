@@ -132,7 +132,7 @@ impl Operator for Procedural {
         OperatorSpec {
             name: "procedural",
             kind: "scenes",
-            version: 1,
+            version: 2,
             inputs: None,
             summary: "vehicles placed on sampled road layouts to cover every grid cell, rendered by the radar model",
         }
@@ -184,10 +184,16 @@ fn frame(s: &ProceduralSettings, renderer: &Renderer, weights: &[f64], seed: u64
         let truck = rng.random_bool(s.truck_fraction);
         let size = if truck { (rng.random_range(8.0..12.0), 2.5) } else { (rng.random_range(4.0..5.0), rng.random_range(1.7..1.9)) };
         let target = Cell::from_index(weighted(weights, &mut rng));
-        if let Some(body) = layout.place(target, size, &rule, &placed, &mut rng) {
+        if let Some((body, lane_heading)) = layout.place(target, size, &rule, &placed, &mut rng) {
             placed.push(body);
             let speed = if body.heading.cos().abs() > 0.5 { rng.random_range(15.0..30.0) } else { rng.random_range(5.0..15.0) };
-            vehicles.push(Vehicle { id: placed.len() as u32, class: if truck { "truck" } else { "car" }, body, speed });
+            vehicles.push(Vehicle {
+                id: placed.len() as u32,
+                class: if truck { "truck" } else { "car" },
+                body,
+                speed,
+                lane_heading: Some(lane_heading),
+            });
         }
     }
     renderer.render(index, &Scene { scenario: kind.to_string(), vehicles, edges: layout.edges }, &mut rng)
@@ -260,6 +266,7 @@ mod tests {
         for f in &frames {
             assert!((s.min_vehicles..=s.max_vehicles).contains(&f.actors.len()) || f.actors.len() < s.min_vehicles);
             for a in &f.actors {
+                assert!((a.lane_heading.unwrap() - a.heading).abs() <= 0.08, "{a:?}");
                 assert!(a.row >= 0.0 && a.row < 32.0 * 40.0 / 44.0 + 1.0 && (0.0..32.0).contains(&a.col), "{a:?}");
             }
         }

@@ -14,6 +14,8 @@ pub struct Vehicle {
     pub class: &'static str,
     pub body: VehicleBox,
     pub speed: f64,
+    /// The heading of its lane relative to the ego's lane, where the source knows lanes.
+    pub lane_heading: Option<f64>,
 }
 
 /// One frame's content before rendering.
@@ -87,6 +89,7 @@ impl Renderer {
                     length: b.length,
                     width: b.width,
                     speed: v.speed,
+                    lane_heading: v.lane_heading,
                     row,
                     col,
                 }
