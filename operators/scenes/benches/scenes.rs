@@ -2,18 +2,15 @@
 //! scenario (simulator, ego choice, radar and MCAP included) and for the procedural operator,
 //! on every core; then MCAP write and random-read throughput for 224 x 224 frames.
 
-use std::collections::BTreeMap;
 use std::path::PathBuf;
-use std::sync::Arc;
 use std::time::Instant;
 
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rlmflow_radar::RadarConfig;
 use rlmflow_scenes::{HighwayEnv, HighwaySettings, Procedural, ProceduralSettings, ScenarioMix, SceneWriter};
-use rlmflow_stages::context::Silent;
 use rlmflow_stages::scenes::{Actor, Frame, Image, Scenes};
-use rlmflow_stages::{Context, Device, Operator};
+use rlmflow_stages::{Context, Operator};
 
 fn scratch(name: &str) -> (PathBuf, PathBuf) {
     let root = std::env::temp_dir().join(format!("rlmflow-bench-scenes-{name}-{}", std::process::id()));
@@ -26,7 +23,7 @@ fn scratch(name: &str) -> (PathBuf, PathBuf) {
 
 fn context(name: &str, threads: usize) -> Context {
     let (out, ckpt) = scratch(name);
-    Context::new("scenes".into(), BTreeMap::new(), out, ckpt, 1, threads, Device::Cpu, Arc::new(Silent))
+    Context::standalone("scenes", &[], &out, &ckpt, 1, threads)
 }
 
 fn main() {

@@ -329,11 +329,9 @@ fn choose_ego(
 #[cfg(test)]
 mod tests {
     use std::path::PathBuf;
-    use std::sync::Arc;
 
-    use rlmflow_stages::context::Silent;
+    use rlmflow_stages::DynOperator;
     use rlmflow_stages::scenes::Scenes;
-    use rlmflow_stages::{Device, DynOperator};
 
     use super::*;
 
@@ -346,7 +344,7 @@ mod tests {
         let ckpt = checkpoint.unwrap_or(root.join("ckpt"));
         std::fs::create_dir_all(&out).unwrap();
         std::fs::create_dir_all(&ckpt).unwrap();
-        let mut ctx = Context::new("scenes".into(), BTreeMap::new(), out.clone(), ckpt, 11, 2, Device::Cpu, Arc::new(Silent));
+        let mut ctx = Context::standalone("scenes", &[], &out, &ckpt, 11, 2);
         let outcome = Operator::run(&HighwayEnv, s, &mut ctx).unwrap();
         (out, outcome)
     }

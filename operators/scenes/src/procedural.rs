@@ -201,13 +201,10 @@ fn frame(s: &ProceduralSettings, renderer: &Renderer, weights: &[f64], seed: u64
 
 #[cfg(test)]
 mod tests {
-    use std::collections::BTreeMap;
     use std::path::PathBuf;
-    use std::sync::Arc;
 
-    use rlmflow_stages::context::Silent;
+    use rlmflow_stages::DynOperator;
     use rlmflow_stages::scenes::Scenes;
-    use rlmflow_stages::{Device, DynOperator};
 
     use super::*;
 
@@ -232,7 +229,7 @@ mod tests {
             let side = s.radar.image as u64;
             std::fs::OpenOptions::new().append(true).open(ckpt.join("image-0.u8.part")).unwrap().set_len(n * side * side + 100).unwrap();
         }
-        let mut ctx = Context::new("scenes".into(), BTreeMap::new(), out.clone(), ckpt, 7, threads, Device::Cpu, Arc::new(Silent));
+        let mut ctx = Context::standalone("scenes", &[], &out, &ckpt, 7, threads);
         Operator::run(&Procedural, s, &mut ctx).unwrap();
         std::fs::read(out.join("scenes.mcap")).unwrap()
     }
@@ -253,7 +250,7 @@ mod tests {
     fn the_artifact_reads_back_with_actor_pixels_and_statistics() {
         let (out, ckpt) = dirs("read");
         let s = ProceduralSettings { images: vec!["range-azimuth".into(), "bev".into(), "radar-left".into()], ..small() };
-        let mut ctx = Context::new("scenes".into(), BTreeMap::new(), out.clone(), ckpt, 3, 2, Device::Cpu, Arc::new(Silent));
+        let mut ctx = Context::standalone("scenes", &[], &out, &ckpt, 3, 2);
         let outcome = Operator::run(&Procedural, &s, &mut ctx).unwrap();
         let scenes = Scenes::open(&out).unwrap();
         let frames = scenes.frames().unwrap();
