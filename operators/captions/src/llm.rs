@@ -252,11 +252,12 @@ impl Operator for Llm {
 
         let results: Vec<FrameCaptions> = results.into_inner().unwrap().into_iter().map(|r| r.expect("every frame ran")).collect();
         let mut captions = Vec::new();
-        let mut tally = Tally::default();
+        let mut tally = Fidelity::default();
         for (label, r) in frames.iter().zip(&results) {
             captions.extend(r.captions.iter().map(|c| Caption { frame: label.frame, split: label.split, caption: c.clone() }));
-            tally.add(r);
+            tally.add(&r.fidelity);
         }
+        let empty_frames = results.iter().filter(|r| r.captions.is_empty()).count();
         let stats = client.stats.json();
         let metrics = json!({
             "captions": captions.len(),
@@ -264,7 +265,7 @@ impl Operator for Llm {
             "regenerated": tally.regenerated,
             "dropped": tally.dropped,
             "kept_mismatched": tally.kept_mismatched,
-            "frames_without_captions": tally.empty_frames,
+            "frames_without_captions": empty_frames,
             "requests": stats,
         });
         write_captions(&ctx.output_dir, frames.len() as u64, &captions, json!({"settings": s, "statistics": metrics}))?;
@@ -289,6 +290,12 @@ impl Operator for Llm {
 #[derive(Clone, Debug, Default)]
 struct FrameCaptions {
     captions: Vec<String>,
+    fidelity: Fidelity,
+}
+
+/// How captions fared against the parser: per frame, and summed over frames.
+#[derive(Clone, Debug, Default)]
+struct Fidelity {
     /// Captions in the first answer, and how many of them matched the grid.
     first_total: u64,
     first_ok: u64,
@@ -298,24 +305,13 @@ struct FrameCaptions {
     kept_mismatched: u64,
 }
 
-#[derive(Default)]
-struct Tally {
-    first_total: u64,
-    first_ok: u64,
-    regenerated: u64,
-    dropped: u64,
-    kept_mismatched: u64,
-    empty_frames: u64,
-}
-
-impl Tally {
-    fn add(&mut self, r: &FrameCaptions) {
-        self.first_total += r.first_total;
-        self.first_ok += r.first_ok;
-        self.regenerated += r.regenerated;
-        self.dropped += r.dropped;
-        self.kept_mismatched += r.kept_mismatched;
-        self.empty_frames += u64::from(r.captions.is_empty());
+impl Fidelity {
+    fn add(&mut self, other: &Fidelity) {
+        self.first_total += other.first_total;
+        self.first_ok += other.first_ok;
+        self.regenerated += other.regenerated;
+        self.dropped += other.dropped;
+        self.kept_mismatched += other.kept_mismatched;
     }
 }
 
@@ -325,6 +321,7 @@ fn caption_frame(s: &LlmSettings, label: &FrameLabel, seed: u64, client: &Client
     let no_numbers = rng.random_bool(s.no_distance_numbers);
     let prompt = user_prompt(&label.grid, no_numbers, &mut rng);
     let mut out = FrameCaptions::default();
+    let f = &mut out.fidelity;
     let mut mismatched = Vec::new();
     for attempt in 0..=s.regenerate {
         let needed = s.n - out.captions.len();
@@ -332,14 +329,14 @@ fn caption_frame(s: &LlmSettings, label: &FrameLabel, seed: u64, client: &Client
             break;
         }
         if attempt > 0 {
-            out.regenerated += needed as u64;
+            f.regenerated += needed as u64;
         }
         let answers = client.complete(&request_body(s, &prompt, needed), attempt)?;
         for caption in answers.into_iter().take(needed) {
             let ok = parse(&caption).grid == label.grid;
             if attempt == 0 {
-                out.first_total += 1;
-                out.first_ok += u64::from(ok);
+                f.first_total += 1;
+                f.first_ok += u64::from(ok);
             }
             if ok { out.captions.push(caption) } else { mismatched.push(caption) }
         }
@@ -348,11 +345,11 @@ fn caption_frame(s: &LlmSettings, label: &FrameLabel, seed: u64, client: &Client
     match s.on_mismatch {
         OnMismatch::Keep => {
             let kept = missing.min(mismatched.len());
-            out.kept_mismatched = kept as u64;
+            f.kept_mismatched = kept as u64;
             out.captions.extend(mismatched.drain(..kept));
-            out.dropped = mismatched.len() as u64;
+            f.dropped = mismatched.len() as u64;
         }
-        OnMismatch::Drop => out.dropped = mismatched.len() as u64,
+        OnMismatch::Drop => f.dropped = mismatched.len() as u64,
     }
     Ok(out)
 }
@@ -449,19 +446,18 @@ impl Client {
     fn complete(&self, body: &str, attempt: u32) -> anyhow::Result<Vec<String>> {
         let digest = blake3::hash(format!("{}\n{attempt}\n{body}", self.identity).as_bytes()).to_hex();
         let path = self.cache.join(format!("{digest}.json"));
-        if let Ok(text) = std::fs::read_to_string(&path)
-            && let Ok(captions) = self.captions(&text)
-        {
+        if let Some(answer) = std::fs::read_to_string(&path).ok().and_then(|text| Answer::parse(&text).ok()) {
             self.stats.cached.fetch_add(1, Ordering::Relaxed);
-            return Ok(captions);
+            return Ok(answer.captions);
         }
         let mut tries = 0;
         loop {
             let failure = match self.post(body) {
-                Ok(text) => match self.captions(&text) {
-                    Ok(captions) => {
+                Ok(text) => match Answer::parse(&text) {
+                    Ok(Answer { captions, prompt_tokens, completion_tokens }) => {
                         self.stats.sent.fetch_add(1, Ordering::Relaxed);
-                        self.count_tokens(&text);
+                        self.stats.prompt_tokens.fetch_add(prompt_tokens, Ordering::Relaxed);
+                        self.stats.completion_tokens.fetch_add(completion_tokens, Ordering::Relaxed);
                         let tmp = path.with_extension(format!("tmp{}", std::process::id()));
                         std::fs::write(&tmp, &text)
                             .and_then(|()| std::fs::rename(&tmp, &path))
@@ -520,11 +516,20 @@ impl Client {
             }
         }
     }
+}
 
-    fn captions(&self, text: &str) -> anyhow::Result<Vec<String>> {
+/// A chat-completions answer: its captions (whitespace collapsed) and the tokens it cost.
+struct Answer {
+    captions: Vec<String>,
+    prompt_tokens: u64,
+    completion_tokens: u64,
+}
+
+impl Answer {
+    fn parse(text: &str) -> anyhow::Result<Answer> {
         let value: Value = serde_json::from_str(text).context("not JSON")?;
         let choices = value["choices"].as_array().context("no `choices`")?;
-        choices
+        let captions = choices
             .iter()
             .map(|c| {
                 c["message"]["content"]
@@ -532,14 +537,9 @@ impl Client {
                     .map(|t| t.split_whitespace().collect::<Vec<_>>().join(" "))
                     .context("a choice without `message.content`")
             })
-            .collect()
-    }
-
-    fn count_tokens(&self, text: &str) {
-        if let Ok(value) = serde_json::from_str::<Value>(text) {
-            self.stats.prompt_tokens.fetch_add(value["usage"]["prompt_tokens"].as_u64().unwrap_or(0), Ordering::Relaxed);
-            self.stats.completion_tokens.fetch_add(value["usage"]["completion_tokens"].as_u64().unwrap_or(0), Ordering::Relaxed);
-        }
+            .collect::<anyhow::Result<_>>()?;
+        let usage = |key: &str| value["usage"][key].as_u64().unwrap_or(0);
+        Ok(Answer { captions, prompt_tokens: usage("prompt_tokens"), completion_tokens: usage("completion_tokens") })
     }
 }
 
