@@ -454,15 +454,11 @@ impl Client {
         loop {
             let failure = match self.post(body) {
                 Ok(text) => match Answer::parse(&text) {
-                    Ok(Answer { captions, prompt_tokens, completion_tokens }) => {
+                    Ok(answer) => {
                         self.stats.sent.fetch_add(1, Ordering::Relaxed);
-                        self.stats.prompt_tokens.fetch_add(prompt_tokens, Ordering::Relaxed);
-                        self.stats.completion_tokens.fetch_add(completion_tokens, Ordering::Relaxed);
-                        let tmp = path.with_extension(format!("tmp{}", std::process::id()));
-                        std::fs::write(&tmp, &text)
-                            .and_then(|()| std::fs::rename(&tmp, &path))
-                            .with_context(|| format!("storing the answer in {}", path.display()))?;
-                        return Ok(captions);
+                        self.stats.prompt_tokens.fetch_add(answer.prompt_tokens, Ordering::Relaxed);
+                        self.stats.completion_tokens.fetch_add(answer.completion_tokens, Ordering::Relaxed);
+                        return store(&path, &text, answer);
                     }
                     Err(e) => Failure::Retry(format!("malformed answer: {e}"), None),
                 },
@@ -515,6 +511,25 @@ impl Client {
                 Err(Failure::Fatal(anyhow!("{} answered {status}: {}{hint}", self.url, server_message(&text))))
             }
         }
+    }
+}
+
+/// Stores an answer under `path` unless one is there already, and returns the stored one's
+/// captions: when two frames send the same request at once, both get the answer that a rerun
+/// will read. The answer is written to a file of its own and linked into place, so a reader
+/// never sees half of it.
+fn store(path: &Path, text: &str, answer: Answer) -> anyhow::Result<Vec<String>> {
+    static WRITES: AtomicU64 = AtomicU64::new(0);
+    let tmp = path.with_extension(format!("tmp-{}-{}", std::process::id(), WRITES.fetch_add(1, Ordering::Relaxed)));
+    let stored = std::fs::write(&tmp, text).and_then(|()| std::fs::hard_link(&tmp, path));
+    let _ = std::fs::remove_file(&tmp);
+    match stored {
+        Ok(()) => Ok(answer.captions),
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("reading the stored answer {}", path.display()))?;
+            Ok(Answer::parse(&text).with_context(|| format!("the stored answer {} is damaged", path.display()))?.captions)
+        }
+        Err(e) => Err(e).with_context(|| format!("storing the answer in {}", path.display())),
     }
 }
 
@@ -814,6 +829,22 @@ mod tests {
 
     fn captions_bytes(c: &Captions) -> Vec<u8> {
         c.captions.iter().map(|c| c.to_line() + "\n").collect::<String>().into_bytes()
+    }
+
+    #[test]
+    fn the_first_stored_answer_to_a_request_wins() {
+        let root = scratch("store");
+        let path = root.join("cache").join("digest.json");
+        let text = |caption: &str| json!({"choices": [{"message": {"content": caption}}]}).to_string();
+        let first = text("From zero to ten meters,   there are no vehicles.");
+        assert_eq!(store(&path, &first, Answer::parse(&first).unwrap()).unwrap(), ["From zero to ten meters, there are no vehicles."]);
+        // A second answer to the same request (sent at the same time by another frame) yields
+        // the stored one, so both frames agree with what a rerun reads.
+        let second = text("Close by, a single car is right in front of us.");
+        assert_eq!(store(&path, &second, Answer::parse(&second).unwrap()).unwrap(), ["From zero to ten meters, there are no vehicles."]);
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), first);
+        assert_eq!(std::fs::read_dir(root.join("cache")).unwrap().count(), 1, "no scratch files left");
+        std::fs::remove_dir_all(&root).unwrap();
     }
 
     #[test]
