@@ -170,6 +170,27 @@ fn parse_reads_plain_and_json_lines_and_names_the_bad_line() {
 }
 
 #[test]
+fn parse_into_a_reader_that_stops_early_is_not_an_error() {
+    use std::io::Write;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rlmflow"))
+        .arg("parse")
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // `| head -0`: the reader is gone before anything is written, and the output (about 4 MB)
+    // is far more than a pipe holds.
+    drop(child.stdout.take());
+    let line = "From ten to twenty meters, there are two cars in the left adjacent lane ahead of us.\n";
+    // rlmflow stops reading once it cannot write, so this write may itself find a closed pipe.
+    let _ = child.stdin.take().unwrap().write_all(line.repeat(20_000).as_bytes());
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(String::from_utf8_lossy(&out.stderr), "");
+}
+
+#[test]
 fn setup_reports_the_managed_environment_the_stages_use() {
     let env = rlmflow_python::ensure(&mut |_| {}).unwrap();
     let (ok, out) = rlmflow(&root(), &["setup"]);

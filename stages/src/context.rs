@@ -185,10 +185,11 @@ mod tests {
         assert!("tpu".parse::<Device>().unwrap_err().to_string().contains("valid: cpu"));
     }
 
-    struct Count(Mutex<Vec<u64>>);
+    /// Records every (position, message) reported.
+    struct Count(Mutex<Vec<(u64, String)>>);
     impl Reporter for Count {
-        fn progress(&self, position: u64, _: u64, _: &str) {
-            self.0.lock().unwrap().push(position);
+        fn progress(&self, position: u64, _: u64, message: &str) {
+            self.0.lock().unwrap().push((position, message.to_owned()));
         }
         fn event(&self, _: &str, _: Value) {}
     }
@@ -202,9 +203,20 @@ mod tests {
             p.inc(1);
         }
         p.finish();
-        let seen = reporter.0.lock().unwrap().clone();
+        let seen: Vec<u64> = reporter.0.lock().unwrap().iter().map(|(p, _)| *p).collect();
         assert_eq!(seen.first(), Some(&1));
         assert_eq!(seen.last(), Some(&1000));
         assert!(seen.len() < 10, "reported {} times", seen.len());
+    }
+
+    #[test]
+    fn a_new_message_shows_from_the_next_report() {
+        let reporter = Arc::new(Count(Mutex::new(Vec::new())));
+        let ctx = Context::new("s".into(), BTreeMap::new(), "/o".into(), "/c".into(), 0, 1, Device::Cpu, reporter.clone());
+        let p = ctx.progress(10, "frames");
+        p.inc(1);
+        p.set_message("frames, 3 requests".into());
+        p.finish();
+        assert_eq!(*reporter.0.lock().unwrap(), [(1, "frames".to_string()), (1, "frames, 3 requests".to_string())]);
     }
 }
