@@ -269,7 +269,6 @@ impl Operator for Llm {
             "requests": stats,
         });
         write_captions(&ctx.output_dir, frames.len() as u64, &captions, json!({"settings": s, "statistics": metrics}))?;
-        ctx.event("captions", metrics.clone());
         Ok(Outcome {
             summary: format!(
                 "{} captions for {} frames; {:.1}% faithful on first answer, {} regenerated, {} dropped, {} kept unfaithful; {}",

@@ -71,7 +71,6 @@ impl Operator for Template {
         write_captions(&ctx.output_dir, labels.frames.len() as u64, &captions, serde_json::to_value(s)?)?;
         let words: usize = captions.iter().map(|c| c.caption.split_whitespace().count()).sum();
         let mean_words = words as f64 / n.max(1) as f64;
-        ctx.event("captions", serde_json::json!({"captions": n, "mean_words": mean_words}));
         Ok(Outcome {
             metrics: serde_json::json!({"captions": n, "mean_words": mean_words}),
             summary: format!("{n} captions for {} frames, {mean_words:.0} words on average", labels.frames.len()),

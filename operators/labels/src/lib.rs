@@ -153,10 +153,8 @@ impl Operator for EgoGrid {
         std::fs::write(ctx.output_dir.join(labels::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
         let covered = summary.cells.values().filter(|&&n| n > 0).count();
         let total: u64 = vehicles.iter().map(|&v| v as u64).sum();
-        let metrics = serde_json::json!({"frames": frames, "train": summary.train, "test": test, "vehicles": total, "cells_covered": covered});
-        ctx.event("labels", metrics.clone());
         Ok(Outcome {
-            metrics,
+            metrics: serde_json::json!({"frames": frames, "train": summary.train, "test": test, "vehicles": total, "cells_covered": covered}),
             summary: format!("{frames} frames ({} train, {test} test), {total} vehicles in the grid, {covered}/48 cells", summary.train),
         })
     }

@@ -199,7 +199,6 @@ impl Operator for HighwayEnv {
             "frames": summary.frames, "vehicles": vehicles, "cells_covered": covered, "episodes": cursor.episodes,
             "dropped_frames": cursor.dropped, "frames_per_scenario": summary.frames_per_scenario, "cells": summary.cells,
         });
-        ctx.event("dataset", metrics.clone());
         Ok(Outcome {
             metrics,
             summary: format!(

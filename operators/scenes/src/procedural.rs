@@ -160,7 +160,6 @@ impl Operator for Procedural {
         progress.finish();
         let summary = writer.finish(&ctx.output_dir, s.radar.range_max_m, serde_json::to_value(s)?)?;
         let (covered, vehicles) = (summary.cells_covered(), summary.vehicles());
-        ctx.event("dataset", serde_json::json!({"frames": summary.frames, "vehicles": vehicles, "cells_covered": covered}));
         Ok(Outcome {
             metrics: serde_json::json!({"frames": summary.frames, "vehicles": vehicles, "cells_covered": covered, "frames_per_scenario": summary.frames_per_scenario}),
             summary: format!("{} frames, {vehicles} vehicles, {covered}/{CELLS} cells covered", summary.frames),

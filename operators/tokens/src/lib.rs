@@ -131,7 +131,6 @@ impl Operator for Bpe {
         std::fs::write(ctx.output_dir.join(tokens::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
         let metrics =
             serde_json::json!({"vocab": vocab, "captions": rows, "truncated": truncated, "mean_length": summary.mean_length, "max_length": max_len});
-        ctx.event("tokens", metrics.clone());
         Ok(Outcome {
             metrics,
             summary: format!(
