@@ -46,6 +46,15 @@ enum Command {
         /// Device for operators that use one: cpu, cuda, cuda:N.
         #[arg(long, default_value = "cpu")]
         device: Device,
+        /// Re-hash every reused output before using it; a damaged one is quarantined and
+        /// recomputed (by default only stages that run re-hash their inputs; `verify` checks all).
+        #[arg(long)]
+        verify_inputs: bool,
+        /// Run what this stage needs, then run each of its actions twice in fresh processes
+        /// with different thread counts, into scratch, and compare the outputs byte for byte
+        /// (repeatable). Exits 1 and names the first differing file if they differ.
+        #[arg(long, value_name = "STAGE")]
+        check_determinism: Vec<String>,
         #[command(flatten)]
         store: StoreArg,
     },
@@ -117,6 +126,9 @@ enum Command {
         threads: usize,
         #[arg(long, default_value = "cpu")]
         device: Device,
+        /// Run into this directory without committing (`run --check-determinism`).
+        #[arg(long, value_name = "DIR")]
+        scratch: Option<PathBuf>,
     },
 }
 
@@ -147,7 +159,7 @@ fn store_root(pipeline: &Pipeline, arg: &StoreArg) -> PathBuf {
 
 fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
     match command {
-        Command::Run { pipeline, dry_run, only, jobs, json, device, store } => {
+        Command::Run { pipeline, dry_run, only, jobs, json, device, verify_inputs, check_determinism, store } => {
             let p = config::load(&pipeline, registry)?;
             let plan = plan(&p);
             let selected = plan.select(&only)?;
@@ -159,7 +171,12 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             }
             let jobs = jobs.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())).max(1);
             let store = Store::open(&root)?;
-            let summary = run(&plan, registry, &store, &selected, &RunOptions { jobs, json, device })?;
+            let opts = RunOptions { jobs, json, device, verify_inputs };
+            if !check_determinism.is_empty() {
+                let same = crate::determinism::check(&plan, registry, &store, &check_determinism, &opts)?;
+                return Ok(if same { ExitCode::SUCCESS } else { ExitCode::FAILURE });
+            }
+            let summary = run(&plan, registry, &store, &selected, &opts)?;
             Ok(if summary.failed > 0 { ExitCode::FAILURE } else { ExitCode::SUCCESS })
         }
         Command::Status { pipeline, json, store } => {
@@ -194,14 +211,18 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         Command::Verify { pipeline, store } => {
             let store = existing_store(registry, pipeline.as_deref(), &store)?;
             let mut n = 0;
-            let damaged = store.verify(|_| n += 1)?;
-            for c in &damaged {
+            let report = store.verify(|_| n += 1)?;
+            for c in &report.objects {
                 println!("  corrupt object {}: {} (quarantined; stages using it will recompute)", c.digest, c.files.join(", "));
             }
-            println!("verify: {n} objects, {} damaged", damaged.len());
-            Ok(if damaged.is_empty() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+            for f in &report.files {
+                println!("  damaged {}: {} (quarantined to {})", f.path.display(), f.problem, f.quarantined.display());
+            }
+            println!("verify: {n} objects, {} damaged; {} damaged store files", report.objects.len(), report.files.len());
+            Ok(if report.is_clean() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
         }
         Command::Pin { pipeline, name, store } => {
+            config::check_name(&name).map_err(|problem| anyhow::anyhow!("the pin name {problem}"))?;
             let p = config::load(&pipeline, registry)?;
             let plan = plan(&p);
             let store = Store::open_existing(&store_root(&p, &store))?.context("the pipeline has not run yet; nothing to pin")?;
@@ -237,8 +258,11 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             }
             Ok(ExitCode::SUCCESS)
         }
-        Command::Exec { key, store, threads, device } => {
-            let code = crate::exec::exec(registry, &store, key, threads, device)?;
+        Command::Exec { key, store, threads, device, scratch } => {
+            let code = match scratch {
+                Some(dir) => crate::exec::exec_scratch(registry, &store, key, threads, device, &dir)?,
+                None => crate::exec::exec(registry, &store, key, threads, device)?,
+            };
             Ok(ExitCode::from(code as u8))
         }
     }

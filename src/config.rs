@@ -101,15 +101,74 @@ const PIPELINE_KEYS: &[&str] = &["name", "seed", "cache", "executor"];
 const STAGE_KEYS: &[&str] = &["kind", "operator", "inputs", "variants"];
 const EXECUTORS: &[&str] = &["local"];
 
+/// The longest pipeline, stage, variant or pin name: names become file names in the store.
+pub const MAX_NAME: usize = 128;
+/// The deepest nesting of keys, tables and arrays a pipeline file may use (the shipped ones use
+/// five); deeper input would exhaust the TOML parser's recursion limit.
+const MAX_DEPTH: usize = 32;
+
 /// Reads and validates a pipeline file.
 pub fn load(file: &Path, registry: &Registry) -> anyhow::Result<Pipeline> {
-    let text = std::fs::read_to_string(file).map_err(|e| anyhow::anyhow!("cannot read pipeline {}: {e}", file.display()))?;
+    let bytes = std::fs::read(file).map_err(|e| anyhow::anyhow!("cannot read pipeline {}: {e}", file.display()))?;
+    let text = match String::from_utf8(bytes) {
+        Ok(text) => text,
+        Err(e) => {
+            let bytes = e.as_bytes();
+            let at = e.utf8_error().valid_up_to();
+            let line = 1 + bytes[..at].iter().filter(|&&b| b == b'\n').count();
+            let column = 1 + at - bytes[..at].iter().rposition(|&b| b == b'\n').map_or(0, |p| p + 1);
+            let message = format!("not UTF-8 text: byte 0x{:02X} at column {column}; a pipeline file must be UTF-8", bytes[at]);
+            return Err(ConfigError { file: file.to_path_buf(), diagnostics: vec![Diagnostic { line, key: String::new(), message, help: None }] }.into());
+        }
+    };
     parse(file, &text, registry).map_err(anyhow::Error::new)
+}
+
+/// Checks a pipeline, stage, variant or pin name; the error says what is wrong.
+pub fn check_name(name: &str) -> Result<(), String> {
+    if name.is_empty() {
+        return Err("must not be empty".into());
+    }
+    if name.len() > MAX_NAME {
+        return Err(format!("is {} bytes long; at most {MAX_NAME} (names become file names in the store)", name.len()));
+    }
+    Ok(())
+}
+
+/// The first line nested deeper than [`MAX_DEPTH`] (dotted keys, headers, arrays and inline
+/// tables), with its depth. Comments and strings are skipped roughly; this only needs to find
+/// input far beyond any real pipeline before the parser's recursion limit does.
+fn too_deep(text: &str) -> Option<(usize, usize)> {
+    let mut open = 0usize;
+    for (n, line) in text.lines().enumerate() {
+        let mut depth = 0usize;
+        let mut quote: Option<char> = None;
+        for c in line.chars() {
+            match (quote, c) {
+                (Some(q), c) if c == q => quote = None,
+                (Some(_), _) => {}
+                (None, '"' | '\'') => quote = Some(c),
+                (None, '#') => break,
+                (None, '.') => depth += 1,
+                (None, '[' | '{') => open += 1,
+                (None, ']' | '}') => open = open.saturating_sub(1),
+                _ => {}
+            }
+            if depth + open > MAX_DEPTH {
+                return Some((n + 1, depth + open));
+            }
+        }
+    }
+    None
 }
 
 /// Validates pipeline text; `file` is used for messages and to resolve the cache path.
 pub fn parse(file: &Path, text: &str, registry: &Registry) -> Result<Pipeline, ConfigError> {
     let mut cx = Checker { lines: HashMap::new(), line_starts: line_starts(text), errors: Vec::new() };
+    if let Some((line, depth)) = too_deep(text) {
+        cx.error(line, "", format!("nested more than {MAX_DEPTH} levels deep (at least {depth}); at most {MAX_DEPTH}"), None);
+        return Err(cx.into_error(file));
+    }
     let root = match DeTable::parse(text) {
         Ok(root) => root,
         Err(e) => {
@@ -169,8 +228,12 @@ impl Checker {
             self.lines.entry(path.join(".")).or_insert(line);
             match value.get_ref() {
                 DeValue::Table(t) => self.index(path, t),
+                DeValue::Datetime(_) => self.datetime(line, &path.join(".")),
                 DeValue::Array(items) => {
                     for (i, item) in items.iter().enumerate() {
+                        if let DeValue::Datetime(_) = item.get_ref() {
+                            self.datetime(self.line_of(item.span().start), &path.join("."));
+                        }
                         if let DeValue::Table(t) = item.get_ref() {
                             path.push(i.to_string());
                             let line = self.line_of(item.span().start);
@@ -183,6 +246,18 @@ impl Checker {
                 _ => {}
             }
             path.pop();
+        }
+    }
+
+    /// No setting takes a TOML date or time; one would otherwise pass as a string.
+    fn datetime(&mut self, line: usize, path: &str) {
+        let help = "write it as a quoted string if text is meant".to_owned();
+        self.error(line, path, "a TOML date or time is not a valid value for any setting".into(), Some(help));
+    }
+
+    fn name(&mut self, path: &str, name: &str) {
+        if let Err(problem) = check_name(name) {
+            self.error(self.line(path), path, format!("the name {problem}"), None);
         }
     }
 
@@ -210,6 +285,7 @@ impl Checker {
         }
         let stem = file.file_stem().map_or("pipeline".into(), |s| s.to_string_lossy().into_owned());
         let name = self.string(header, "pipeline", "name").unwrap_or(stem);
+        self.name("pipeline.name", &name);
         let seed = match header.get("seed") {
             None => 0,
             Some(v) => v.as_u64().unwrap_or_else(|| {
@@ -245,6 +321,7 @@ impl Checker {
         let mut explicit_inputs = Vec::new();
         for (name, table) in &stages_table {
             let path = format!("stages.{name}");
+            self.name(&path, name);
             let Value::Object(table) = table else {
                 self.error(self.line(&path), &path, "must be a table".into(), None);
                 continue;
@@ -325,6 +402,7 @@ impl Checker {
             Some(Value::Object(named)) if !named.is_empty() => {
                 for (variant, overrides) in named {
                     let vpath = format!("{path}.variants.{variant}");
+                    self.name(&vpath, variant);
                     let Value::Object(overrides) = overrides else {
                         self.error(self.line(&vpath), &vpath, "must be a table of settings".into(), None);
                         continue;

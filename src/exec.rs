@@ -12,8 +12,8 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::Context as _;
-use rlmflow_cache::{ActionRecord, Digest, Store, now_rfc3339};
-use rlmflow_stages::{Context, Device, Input, Registry, Reporter};
+use rlmflow_cache::{ActionRecord, ActionRequest, Digest, Preimage, Store, hash_tree, now_rfc3339};
+use rlmflow_stages::{Context, Device, DynOperator, Input, Outcome, Registry, Reporter};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
@@ -86,60 +86,25 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
         return Ok(0);
     }
     store.sweep_tmp(Some(&key))?;
-    let preimage = &request.preimage;
-    let op = registry.get(&preimage.operator).with_context(|| format!("this rlmflow has no operator `{}`", preimage.operator))?;
-
-    let mut inputs: BTreeMap<String, Vec<Input>> = BTreeMap::new();
-    for input in &preimage.inputs {
-        let damaged = if store.has_object(&input.digest) { store.check_object(&input.digest)? } else { None };
-        if let Some(corruption) = damaged {
-            store.quarantine(&input.digest)?;
-            send(&Message::CorruptInput { digest: input.digest, files: corruption.files });
-            return Ok(EXIT_CORRUPT_INPUT);
-        }
-        if !store.has_object(&input.digest) {
-            send(&Message::CorruptInput { digest: input.digest, files: Vec::new() });
-            return Ok(EXIT_CORRUPT_INPUT);
-        }
-        let path = store.object_dir(&input.digest);
-        inputs.entry(input.slot.clone()).or_default().push(Input { label: input.label.clone(), path });
-    }
-
+    let op = registry.get(&request.preimage.operator).with_context(|| format!("this rlmflow has no operator `{}`", request.preimage.operator))?;
+    let inputs = match inputs(&store, &request.preimage)? {
+        Ok(inputs) => inputs,
+        Err(code) => return Ok(code),
+    };
     let work = store.work_dir(&key)?;
     let output_dir = work.join("out");
-    std::fs::create_dir_all(&output_dir)?;
     let checkpoint_dir = store.checkpoint_dir(&key);
-    std::fs::create_dir_all(&checkpoint_dir)?;
-    let mut ctx = Context::new(
-        request.stage.clone(),
-        inputs,
-        output_dir.clone(),
-        checkpoint_dir.clone(),
-        preimage.seed,
-        threads.max(1),
-        device,
-        Arc::new(StdoutReporter),
-    );
-
     let started = now_rfc3339();
     let clock = Instant::now();
-    let outcome = match catch_unwind(AssertUnwindSafe(|| op.run(&request.settings, &mut ctx))) {
-        Ok(Ok(outcome)) => outcome,
-        Ok(Err(e)) => return Ok(fail(format!("{e:#}"))),
-        Err(panic) => {
-            let text = panic
-                .downcast_ref::<String>()
-                .cloned()
-                .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
-                .unwrap_or_else(|| "unknown panic".into());
-            return Ok(fail(format!("operator `{}` panicked: {text}", preimage.operator)));
-        }
+    let outcome = match run_operator(op, &request, inputs, &output_dir, &checkpoint_dir, threads, device)? {
+        Ok(outcome) => outcome,
+        Err(message) => return Ok(fail(message)),
     };
     let duration_s = clock.elapsed().as_secs_f64();
     let tree = store.commit_tree(&output_dir)?;
     store.write_record(&ActionRecord {
         key,
-        preimage: preimage.clone(),
+        preimage: request.preimage.clone(),
         output: tree.digest,
         files: tree.files,
         bytes: tree.bytes,
@@ -152,6 +117,86 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
     let _ = std::fs::remove_dir_all(&work);
     send(&Message::Done { output: tree.digest });
     Ok(0)
+}
+
+/// Runs action `key` into `scratch/out` (checkpoints in `scratch/checkpoint`) and reports the
+/// output's digest, committing nothing and taking no lock: one attempt of `run
+/// --check-determinism`.
+pub fn exec_scratch(registry: &Registry, store: &Path, key: Digest, threads: usize, device: Device, scratch: &Path) -> anyhow::Result<i32> {
+    let store = Store::open_existing(store)?.with_context(|| format!("no rlmflow store at {}", store.display()))?;
+    let _shared = store.lock_shared()?;
+    let request = store.request(&key)?.with_context(|| format!("the store has no request for action {key}"))?;
+    let op = registry.get(&request.preimage.operator).with_context(|| format!("this rlmflow has no operator `{}`", request.preimage.operator))?;
+    let inputs = match inputs(&store, &request.preimage)? {
+        Ok(inputs) => inputs,
+        Err(code) => return Ok(code),
+    };
+    let output_dir = scratch.join("out");
+    match run_operator(op, &request, inputs, &output_dir, &scratch.join("checkpoint"), threads, device)? {
+        Ok(_) => {
+            send(&Message::Done { output: hash_tree(&output_dir)?.digest });
+            Ok(0)
+        }
+        Err(message) => Ok(fail(message)),
+    }
+}
+
+/// The action's inputs by slot, each re-hashed first; `Err(exit status)` when one is damaged or
+/// missing (quarantined and reported, so the engine recomputes its producer).
+fn inputs(store: &Store, preimage: &Preimage) -> anyhow::Result<Result<BTreeMap<String, Vec<Input>>, i32>> {
+    let mut inputs: BTreeMap<String, Vec<Input>> = BTreeMap::new();
+    for input in &preimage.inputs {
+        let damaged = if store.has_object(&input.digest) { store.check_object(&input.digest)? } else { None };
+        if let Some(corruption) = damaged {
+            store.quarantine(&input.digest)?;
+            send(&Message::CorruptInput { digest: input.digest, files: corruption.files });
+            return Ok(Err(EXIT_CORRUPT_INPUT));
+        }
+        if !store.has_object(&input.digest) {
+            send(&Message::CorruptInput { digest: input.digest, files: Vec::new() });
+            return Ok(Err(EXIT_CORRUPT_INPUT));
+        }
+        let path = store.object_dir(&input.digest);
+        inputs.entry(input.slot.clone()).or_default().push(Input { label: input.label.clone(), path });
+    }
+    Ok(Ok(inputs))
+}
+
+/// Runs the operator with its output and checkpoint directories; `Ok(Err(message))` when it
+/// fails or panics.
+fn run_operator(
+    op: &dyn DynOperator,
+    request: &ActionRequest,
+    inputs: BTreeMap<String, Vec<Input>>,
+    output_dir: &Path,
+    checkpoint_dir: &Path,
+    threads: usize,
+    device: Device,
+) -> anyhow::Result<Result<Outcome, String>> {
+    std::fs::create_dir_all(output_dir)?;
+    std::fs::create_dir_all(checkpoint_dir)?;
+    let mut ctx = Context::new(
+        request.stage.clone(),
+        inputs,
+        output_dir.to_path_buf(),
+        checkpoint_dir.to_path_buf(),
+        request.preimage.seed,
+        threads.max(1),
+        device,
+        Arc::new(StdoutReporter),
+    );
+    Ok(match catch_unwind(AssertUnwindSafe(|| op.run(&request.settings, &mut ctx))) {
+        Ok(Ok(outcome)) => Ok(outcome),
+        Ok(Err(e)) => Err(format!("{e:#}")),
+        Err(panic) => {
+            let text = panic
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_else(|| "unknown panic".into());
+            Err(format!("operator `{}` panicked: {text}", request.preimage.operator))
+        }
+    })
 }
 
 fn fail(message: String) -> i32 {

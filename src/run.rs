@@ -25,6 +25,9 @@ pub struct RunOptions {
     pub jobs: usize,
     pub json: bool,
     pub device: Device,
+    /// Re-hash every reused output before using it (by default only a stage that runs re-hashes
+    /// its inputs).
+    pub verify_inputs: bool,
 }
 
 /// The outcome of a run, for the exit status and tests.
@@ -92,6 +95,8 @@ struct Executor<'a> {
     results: Vec<Option<(Outcome, f64)>>,
     recoveries: Vec<u32>,
     last: BTreeMap<String, Digest>,
+    /// Outputs re-hashed this run (`verify_inputs`).
+    verified: std::collections::BTreeSet<Digest>,
 }
 
 /// Runs the plan; returns its summary.
@@ -116,6 +121,7 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
         results: vec![None; n],
         recoveries: vec![0; n],
         last: store.last_keys(&plan.pipeline.name)?,
+        verified: Default::default(),
     };
     ex.execute()?;
     Ok(ex.summary())
@@ -246,7 +252,9 @@ impl Executor<'_> {
                 self.keys[i] = Some(key);
                 self.plan_dirty = true;
             }
-            if let Some(record) = self.store.fresh(&key)? {
+            if let Some(record) = self.store.fresh(&key)?
+                && self.intact(&inst.label, &record.output)?
+            {
                 self.states[i] = State::Done { output: record.output };
                 self.results[i] = Some((Outcome::Reused, record.duration_s));
                 self.events.write(
@@ -264,6 +272,22 @@ impl Executor<'_> {
             self.states[i] = State::Ready { key };
         }
         Ok(())
+    }
+
+    /// With `verify_inputs`, re-hashes a reused output once per run; a damaged one is
+    /// quarantined, so its action reruns.
+    fn intact(&mut self, label: &str, output: &Digest) -> anyhow::Result<bool> {
+        if !self.opts.verify_inputs || self.verified.contains(output) {
+            return Ok(true);
+        }
+        if let Some(corruption) = self.store.check_object(output)? {
+            self.store.quarantine(output)?;
+            self.ui.say(format!("  corrupt  {label}: output {} failed verification ({}); quarantined, recomputing", output.short(), corruption.files.join(", ")));
+            self.events.write("output_corrupt", json!({"stage": label, "digest": output, "files": corruption.files}))?;
+            return Ok(false);
+        }
+        self.verified.insert(*output);
+        Ok(true)
     }
 
     fn write_request(&self, i: usize, key: Digest, preimage: Preimage) -> anyhow::Result<()> {

@@ -13,7 +13,7 @@ use serde_json::Value;
 use crate::digest::Digest;
 use crate::lock::Lock;
 use crate::preimage::Preimage;
-use crate::tree::{TreeInfo, damaged_files, hash_tree};
+use crate::tree::{TreeInfo, differing_files, hash_tree};
 
 const STORE_FORMAT: &str = "rlmflow-store 1\n";
 
@@ -67,6 +67,27 @@ pub struct RunPlan {
 pub struct Corruption {
     pub digest: Digest,
     pub files: Vec<String>,
+}
+
+/// A store file that `verify` found unusable and quarantined.
+#[derive(Clone, Debug)]
+pub struct DamagedFile {
+    pub path: PathBuf,
+    pub problem: String,
+    pub quarantined: PathBuf,
+}
+
+/// What `verify` found: damaged objects, and damaged records, requests, plans and refs.
+#[derive(Clone, Debug, Default)]
+pub struct VerifyReport {
+    pub objects: Vec<Corruption>,
+    pub files: Vec<DamagedFile>,
+}
+
+impl VerifyReport {
+    pub fn is_clean(&self) -> bool {
+        self.objects.is_empty() && self.files.is_empty()
+    }
 }
 
 /// A content-addressed store rooted at one directory. See the crate docs for the layout.
@@ -156,7 +177,7 @@ impl Store {
         if actual.digest == *digest && crate::Digest::of(manifest.as_bytes()) == *digest {
             return Ok(None);
         }
-        let files = damaged_files(&actual.manifest, &manifest);
+        let files = differing_files(&actual.manifest, &manifest);
         Ok(Some(Corruption { digest: *digest, files }))
     }
 
@@ -188,17 +209,80 @@ impl Store {
         Ok(out)
     }
 
-    /// Re-hashes every object; damaged ones are quarantined and returned.
-    pub fn verify(&self, mut on_object: impl FnMut(&Digest)) -> anyhow::Result<Vec<Corruption>> {
-        let mut damaged = Vec::new();
+    /// Re-hashes every object and reads every record, request, plan and ref. Whatever is damaged
+    /// is moved to `quarantine/` and reported: a damaged object or record becomes a miss (its
+    /// action reruns), a damaged ref or plan is absent (rewritten by the next run). Takes the
+    /// store lock exclusively, so it waits for runs and never moves what one is writing.
+    pub fn verify(&self, mut on_object: impl FnMut(&Digest)) -> anyhow::Result<VerifyReport> {
+        let _lock = self.lock_exclusive()?;
+        let mut report = VerifyReport::default();
         for digest in self.objects()? {
             on_object(&digest);
             if let Some(c) = self.check_object(&digest)? {
                 self.quarantine(&digest)?;
-                damaged.push(c);
+                report.objects.push(c);
             }
         }
-        Ok(damaged)
+        for (path, problem) in self.unusable_files()? {
+            let moved = self.quarantine_path(&path)?;
+            report.files.push(DamagedFile { path, problem, quarantined: moved });
+        }
+        Ok(report)
+    }
+
+    /// Store files that cannot be used as they are: unreadable JSON, a record or request not of
+    /// its key, an object directory without its manifest (an interrupted commit) or a manifest
+    /// without its directory.
+    fn unusable_files(&self) -> anyhow::Result<Vec<(PathBuf, String)>> {
+        let mut found = Vec::new();
+        // Each file read, then checked against what its name promises.
+        let mut check = |path: PathBuf, read: Read<Result<(), String>>| match read {
+            Read::Damaged(why) => found.push((path, format!("unreadable: {why}"))),
+            Read::Intact(Err(problem)) => found.push((path, problem)),
+            Read::Intact(Ok(())) | Read::Absent => {}
+        };
+        let of_key = |key: Digest, inner: Digest| if inner == key { Ok(()) } else { Err(format!("holds key {inner}, not its own")) };
+        for key in self.record_keys()? {
+            let path = self.record_path(&key);
+            let read = read_json_checked::<ActionRecord>(&path)?;
+            check(path, map_read(read, |r| of_key(key, r.key).and_then(|()| of_key(key, r.preimage.key()))));
+        }
+        for key in self.request_keys()? {
+            let path = self.request_path(&key);
+            let read = read_json_checked::<ActionRequest>(&path)?;
+            check(path, map_read(read, |r| of_key(key, r.key).and_then(|()| of_key(key, r.preimage.key()))));
+        }
+        for path in self.ref_files()? {
+            let read = read_json_checked::<BTreeMap<String, Digest>>(&path)?;
+            check(path, map_read(read, |_| Ok(())));
+        }
+        for run in self.runs()? {
+            let path = self.run_dir(&run).join("plan.json");
+            let read = read_json_checked::<RunPlan>(&path)?;
+            check(path, map_read(read, |_| Ok(())));
+        }
+        for shard in read_dir_sorted(&self.root.join("objects"))? {
+            for entry in read_dir_sorted(&shard)? {
+                let name = entry.file_name().unwrap().to_string_lossy().into_owned();
+                match name.strip_suffix(".tree") {
+                    Some(hex) if !shard.join(hex).is_dir() => found.push((entry, "an object manifest without its directory".into())),
+                    None if entry.is_dir() && !shard.join(format!("{name}.tree")).is_file() => {
+                        found.push((entry, "an object directory without its manifest (an interrupted commit; never served)".into()))
+                    }
+                    _ => {}
+                }
+            }
+        }
+        Ok(found)
+    }
+
+    /// Moves any store file or directory to `quarantine/`, keeping its name.
+    fn quarantine_path(&self, path: &Path) -> anyhow::Result<PathBuf> {
+        let name = path.file_name().map_or("unnamed".into(), |n| n.to_string_lossy().into_owned());
+        let dest = self.root.join("quarantine").join(format!("{name}-{}", run_id()));
+        fs::create_dir_all(dest.parent().unwrap())?;
+        fs::rename(path, &dest).with_context(|| format!("quarantining {}", path.display()))?;
+        Ok(dest)
     }
 
     // ---- actions ----
@@ -211,8 +295,16 @@ impl Store {
         self.root.join("requests").join(key.shard()).join(format!("{}.json", key.hex()))
     }
 
+    /// The record of `key`; a damaged record (unreadable, or not the record of `key`) is a miss.
     pub fn record(&self, key: &Digest) -> anyhow::Result<Option<ActionRecord>> {
-        read_json(&self.record_path(key))
+        let path = self.record_path(key);
+        Ok(read_json::<ActionRecord>(&path)?.filter(|r| {
+            let intact = r.key == *key && r.preimage.key() == *key;
+            if !intact {
+                eprintln!("warning: {} is not the record of its key; treated as absent (`rlmflow verify` quarantines it)", path.display());
+            }
+            intact
+        }))
     }
 
     /// The record of `key` if its output is present: a cache hit.
@@ -287,8 +379,16 @@ impl Store {
         let mut swept = 0;
         for dir in read_dir_sorted(&self.root.join("tmp"))? {
             let name = dir.file_name().unwrap().to_string_lossy().into_owned();
+            if let Some(writer) = name.strip_prefix("write-") {
+                // atomic_write's scratch files: left only by a writer killed mid-write.
+                if abandoned_write(&dir, writer) {
+                    let _ = fs::remove_file(&dir);
+                    swept += 1;
+                }
+                continue;
+            }
             let Some(key) = name.split('.').next().and_then(|k| k.parse::<Digest>().ok()) else {
-                continue; // atomic_write's files: short-lived, owned by a live writer
+                continue;
             };
             let dead = if held == Some(&key) { true } else { self.try_lock_action(&key)?.is_some() };
             if dead {
@@ -379,14 +479,54 @@ pub(crate) fn read_dir_sorted(dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
     Ok(out)
 }
 
-fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> anyhow::Result<Option<T>> {
+/// A JSON file of the store as read: absent, intact, or damaged (truncated, empty, not the
+/// expected shape).
+enum Read<T> {
+    Absent,
+    Intact(T),
+    Damaged(String),
+}
+
+fn read_json_checked<T: serde::de::DeserializeOwned>(path: &Path) -> anyhow::Result<Read<T>> {
     match fs::read(path) {
-        Ok(bytes) => {
-            serde_json::from_slice(&bytes).map(Some).with_context(|| format!("{} is not valid; remove it or run `rlmflow verify`", path.display()))
-        }
-        Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(None),
+        Ok(bytes) => Ok(serde_json::from_slice(&bytes).map_or_else(|e| Read::Damaged(e.to_string()), Read::Intact)),
+        Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(Read::Absent),
         Err(e) => Err(e).with_context(|| format!("reading {}", path.display())),
     }
+}
+
+fn map_read<T, U>(read: Read<T>, f: impl FnOnce(T) -> U) -> Read<U> {
+    match read {
+        Read::Absent => Read::Absent,
+        Read::Intact(v) => Read::Intact(f(v)),
+        Read::Damaged(why) => Read::Damaged(why),
+    }
+}
+
+/// Reads a record, request, plan or ref. A damaged one is treated as absent, with a warning:
+/// each can be recomputed or rewritten, so a run always makes progress, and `verify`
+/// quarantines it.
+pub(crate) fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> anyhow::Result<Option<T>> {
+    Ok(match read_json_checked(path)? {
+        Read::Intact(value) => Some(value),
+        Read::Absent => None,
+        Read::Damaged(why) => {
+            eprintln!("warning: {} is damaged ({why}); treated as absent (`rlmflow verify` quarantines it)", path.display());
+            None
+        }
+    })
+}
+
+/// Whether an atomic write's scratch file (`write-<pid>-<n>`) was abandoned: its process is gone,
+/// or it is older than any write takes (a store shared between machines cannot see the
+/// writer's process, and a pid can be reused).
+fn abandoned_write(path: &Path, writer: &str) -> bool {
+    const OLDEST_WRITE: std::time::Duration = std::time::Duration::from_secs(3600);
+    let pid = writer.split('-').next().and_then(|p| p.parse::<i32>().ok());
+    // SAFETY: kill with signal 0 only checks that the process exists.
+    let gone = pid.is_some_and(|pid| pid > 0 && unsafe { libc::kill(pid, 0) } != 0 && io::Error::last_os_error().raw_os_error() == Some(libc::ESRCH));
+    let age = fs::metadata(path).and_then(|m| m.modified()).ok().and_then(|t| t.elapsed().ok());
+    gone || age.is_some_and(|a| a > OLDEST_WRITE)
 }
 
 /// Writes `bytes` to a temporary file in the store's `tmp/` and renames it over `path`.

@@ -73,7 +73,7 @@ fn collect(dir: &Path, prefix: &str, out: &mut Vec<String>) -> anyhow::Result<()
 
 /// Files of `actual` whose content differs from `expected` (both manifests), or that are
 /// missing or extra.
-pub(crate) fn damaged_files(actual: &str, expected: &str) -> Vec<String> {
+pub fn differing_files(actual: &str, expected: &str) -> Vec<String> {
     let lines = |m: &str| -> Vec<(String, String)> {
         m.lines().skip(1).filter_map(|l| l.splitn(4, ' ').nth(3).map(|p| (p.to_owned(), l.to_owned()))).collect()
     };
@@ -104,9 +104,9 @@ pub(crate) mod tests {
         assert_eq!((ta.files, ta.bytes), (2, 7));
         fs::write(b.join("y.json"), b"{ }").unwrap();
         assert_ne!(hash_tree(&b).unwrap().digest, ta.digest);
-        assert_eq!(damaged_files(&hash_tree(&b).unwrap().manifest, &ta.manifest), ["y.json"]);
+        assert_eq!(differing_files(&hash_tree(&b).unwrap().manifest, &ta.manifest), ["y.json"]);
         fs::write(b.join("extra"), b"").unwrap();
-        assert_eq!(damaged_files(&hash_tree(&b).unwrap().manifest, &ta.manifest), ["extra", "y.json"]);
+        assert_eq!(differing_files(&hash_tree(&b).unwrap().manifest, &ta.manifest), ["extra", "y.json"]);
     }
 
     #[test]

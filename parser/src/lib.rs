@@ -33,6 +33,9 @@ enum Token<'a> {
     /// Lower case, a slice of the lower-cased caption.
     Word(&'a str),
     Number(u32),
+    /// A number that is no count: negative, fractional, in exponent form or above
+    /// [`MAX_COUNT`]. The clause holding it is skipped with a warning.
+    NotACount(&'a str, &'static str),
     /// A distance-bin mention.
     Bin(usize),
     /// Clause punctuation (`,` `;` `:` brackets).
@@ -40,6 +43,9 @@ enum Token<'a> {
     /// Sentence end (`.` `!` `?`), also a clause end.
     End,
 }
+
+/// The largest count read; a caption claiming more vehicles describes no real scene.
+pub const MAX_COUNT: u32 = 10_000;
 
 const CLAUSE_WORDS: [&str; 6] = ["and", "with", "while", "but", "whereas", "plus"];
 const UNITS: [&str; 5] = ["meters", "metres", "meter", "metre", "m"];
@@ -73,6 +79,10 @@ pub fn parse(caption: &str) -> Parsed {
             last = None;
         }
         let words: Vec<&str> = clause.iter().filter_map(|t| if let Token::Word(w) = t { Some(*w) } else { None }).collect();
+        if let Some((number, reason)) = clause.iter().find_map(|t| if let Token::NotACount(n, r) = t { Some((n, r)) } else { None }) {
+            warnings.push(format!("`{number}` is {reason}; clause `{}` skipped", words.join(" ")));
+            continue;
+        }
         let has = |w: &str| words.contains(&w);
         if WALKER_WORDS.iter().any(|w| has(w)) {
             grid.walkers = count(clause, &words).unwrap_or(0);
@@ -103,7 +113,7 @@ pub fn parse(caption: &str) -> Parsed {
                     let joined: Vec<&str> = before.iter().chain(words.iter()).copied().collect();
                     if let Some(refined) = sector(&joined) {
                         grid.set(b, old, grid.get(b, old) - n);
-                        grid.set(b, refined, grid.get(b, refined) + n);
+                        grid.set(b, refined, grid.get(b, refined).saturating_add(n));
                     }
                 }
             }
@@ -112,7 +122,7 @@ pub fn parse(caption: &str) -> Parsed {
                 pending = None;
                 match bin {
                     Some(b) => {
-                        grid.set(b, s, grid.get(b, s) + n);
+                        grid.set(b, s, grid.get(b, s).saturating_add(n));
                         last = Some((b, s, n, words.clone()));
                     }
                     None => warnings.push(format!("`{}`: vehicles before any distance bin", words.join(" "))),
@@ -145,12 +155,41 @@ fn tokenize(text: &str) -> Vec<Token<'_>> {
             continue;
         }
         if c.is_ascii_digit() {
-            let mut n: u32 = 0;
+            // A minus sign right before the digits (not a range such as `0-10`) makes it negative.
+            let negative = out.last() == Some(&Token::Word("-")) && i > 0 && bytes[i - 1] == b'-' && !matches!(out.iter().rev().nth(1), Some(Token::Number(_)));
+            let start = if negative { i - 1 } else { i };
+            let mut n: u64 = 0;
             while i < bytes.len() && bytes[i].is_ascii_digit() {
-                n = n.saturating_mul(10).saturating_add(u32::from(bytes[i] - b'0'));
+                n = n.saturating_mul(10).saturating_add(u64::from(bytes[i] - b'0'));
                 i += 1;
             }
-            out.push(Token::Number(n));
+            let digit_at = |k: usize| bytes.get(k).is_some_and(u8::is_ascii_digit);
+            let fraction = bytes.get(i) == Some(&b'.') && digit_at(i + 1);
+            let exponent = matches!(bytes.get(i), Some(b'e' | b'E')) && (digit_at(i + 1) || (matches!(bytes.get(i + 1), Some(b'-' | b'+')) && digit_at(i + 2)));
+            if fraction || exponent {
+                i += 1;
+                while i < bytes.len() && (bytes[i].is_ascii_alphanumeric() || b"+-.".contains(&bytes[i])) && !(bytes[i] == b'.' && !digit_at(i + 1)) {
+                    i += 1;
+                }
+            }
+            let reason = if negative {
+                Some("a negative count")
+            } else if fraction || exponent {
+                Some("not a whole count")
+            } else if n > u64::from(MAX_COUNT) {
+                Some("a count above 10000")
+            } else {
+                None
+            };
+            match reason {
+                Some(reason) => {
+                    if negative {
+                        out.pop();
+                    }
+                    out.push(Token::NotACount(&text[start..i], reason));
+                }
+                None => out.push(Token::Number(n as u32)),
+            }
             continue;
         }
         match c {
@@ -353,6 +392,21 @@ mod tests {
             let parsed = parse(caption);
             assert_eq!(parsed.grid, grid(json), "{caption}\nwarnings: {:?}", parsed.warnings);
         }
+    }
+
+    #[test]
+    fn counts_that_are_out_of_range_negative_or_not_whole_warn_and_are_skipped() {
+        let base = "From ten to twenty meters, there are two cars in our lane ahead of us";
+        for bad in ["99999999999999999999999999", "10001", "-5", "1e308", "2.5", "3e-2"] {
+            let parsed = parse(&format!("{base}, and {bad} cars in the left adjacent lane ahead of us."));
+            assert_eq!(parsed.grid, grid(r#"{"10-20m":{"in_lane_front_side":2},"traffic_signs":[],"walkers":0}"#), "{bad}");
+            assert_eq!(parsed.warnings.len(), 1, "{bad}: {:?}", parsed.warnings);
+            assert!(parsed.warnings[0].starts_with(&format!("`{bad}` is ")), "{bad}: {:?}", parsed.warnings);
+        }
+        // The largest count still reads, and ranges with a dash stay ranges.
+        let parsed = parse("In the 0-10m range there are 10000 cars in our lane ahead of us.");
+        assert_eq!(parsed.grid.get(0, 3), 10_000, "in_lane_front_side");
+        assert!(parsed.warnings.is_empty(), "{:?}", parsed.warnings);
     }
 
     #[test]

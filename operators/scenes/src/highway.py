@@ -58,7 +58,7 @@ class Simulation:
         self.rng = np.random.default_rng(seed)
         self.truck_fraction = truck_fraction
         self.target = max(1, int(round(BASE_VEHICLES[scenario] * density)))
-        self.ids = {}
+        self.next_id = 1
         if scenario == "divided":
             self.road = Road(network=divided_highway(), np_random=self.rng, record_history=False)
             lane = self.road.network.get_lane(("a", "b", 1))
@@ -93,8 +93,12 @@ class Simulation:
                     yield (a, b, i), lane
 
     def _adopt(self, v):
-        if id(v) not in self.ids:
-            self.ids[id(v)] = len(self.ids) + 1
+        # The id lives on the vehicle, never keyed by id(v): a removed vehicle's address can be
+        # reused by a new one, which then would skip its truck draw, and addresses differ between
+        # processes, so the scene would depend on the allocator.
+        if getattr(v, "rlmflow_id", None) is None:
+            v.rlmflow_id = self.next_id
+            self.next_id += 1
             if self.rng.random() < self.truck_fraction:
                 v.LENGTH, v.WIDTH = TRUCK
                 v.is_truck = True
@@ -136,7 +140,7 @@ class Simulation:
 
     def state(self):
         rows = [
-            (self.ids[id(v)], v.position[0], v.position[1], v.heading, v.LENGTH, v.WIDTH, v.speed, float(getattr(v, "is_truck", False)), lane_heading(v))
+            (v.rlmflow_id, v.position[0], v.position[1], v.heading, v.LENGTH, v.WIDTH, v.speed, float(getattr(v, "is_truck", False)), lane_heading(v))
             for v in self.road.vehicles
         ]
         return np.asarray(rows, dtype=np.float64).tobytes()

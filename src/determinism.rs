@@ -1,0 +1,137 @@
+//! `rlmflow run PIPELINE --check-determinism STAGE`: same key, same bytes, checked.
+//!
+//! The cache trusts that an operator's output depends only on its settings, inputs and seed. A
+//! hidden source (iteration over a hash-seeded map, a global RNG, thread or completion order, a
+//! memory address, the clock) breaks that silently: a rerun gets another digest and everything
+//! downstream reruns or, worse, two machines disagree. This check runs what the stage needs
+//! through the normal executor, then runs each of the stage's actions twice, each in a fresh
+//! `rlmflow exec` process (so hash seeds, allocator addresses and global RNGs differ; Python's
+//! hash seed is randomised) with a different thread count, into scratch directories, and
+//! compares the two output trees. A difference names the files and the first differing byte.
+//! Nothing is committed; the scratch outputs of a failed check stay in the store's `tmp/` for
+//! inspection (`gc` removes them).
+
+use std::io::{BufRead, BufReader, Read};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::Instant;
+
+use anyhow::{Context as _, bail};
+use rlmflow_cache::{ActionRequest, Digest, Store, TreeInfo, differing_files, hash_tree};
+use rlmflow_stages::Registry;
+
+use crate::exec::{Message, PREFIX};
+use crate::plan::{Freshness, Plan, assess};
+use crate::run::{RunOptions, run};
+
+/// Checks every instance of `stages`; returns whether all were deterministic.
+pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String], opts: &RunOptions) -> anyhow::Result<bool> {
+    let wanted = plan.select(stages)?;
+    let targets: Vec<bool> = plan.instances.iter().map(|inst| stages.iter().any(|s| plan.pipeline.stages[inst.stage].name == *s)).collect();
+    let upstream: Vec<bool> = wanted.iter().zip(&targets).map(|(w, t)| *w && !t).collect();
+    if upstream.iter().any(|u| *u) {
+        let summary = run(plan, registry, store, &upstream, opts)?;
+        if summary.failed + summary.skipped > 0 {
+            bail!("the stages {} need did not all finish; nothing was checked", stages.join(", "));
+        }
+    }
+    let states = assess(plan, registry, Some(store))?;
+    let threads = [opts.jobs, (opts.jobs / 2).max(1)];
+    let mut all_same = true;
+    for (i, inst) in plan.instances.iter().enumerate().filter(|(i, _)| targets[*i]) {
+        let (key, preimage, stored) = match &states[i] {
+            Freshness::Cached(r) => (r.key, r.preimage.clone(), Some(r.output)),
+            Freshness::Stale { key, preimage, .. } => (*key, (**preimage).clone(), None),
+            Freshness::Pending { reason } => bail!("{}: {reason}", inst.label),
+        };
+        store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone() })?;
+        println!("check-determinism {} (key {})", inst.label, key.short());
+        let mut trees: Vec<(PathBuf, TreeInfo)> = Vec::new();
+        for (attempt, &n) in threads.iter().enumerate() {
+            let scratch = store.root().join("tmp").join(format!("check-{}-{}-{attempt}", key.hex(), std::process::id()));
+            let _ = std::fs::remove_dir_all(&scratch);
+            std::fs::create_dir_all(&scratch)?;
+            let clock = Instant::now();
+            attempt_in_fresh_process(store, &key, n, opts, &scratch).with_context(|| format!("{}: attempt {}", inst.label, attempt + 1))?;
+            let tree = hash_tree(&scratch.join("out"))?;
+            let threads = if n == 1 { "1 thread".to_owned() } else { format!("{n} threads") };
+            println!("  attempt {} (fresh process, {threads}): output {} in {:.1}s", attempt + 1, tree.digest.short(), clock.elapsed().as_secs_f64());
+            trees.push((scratch, tree));
+        }
+        let [(dir_a, a), (dir_b, b)] = <[_; 2]>::try_from(trees).expect("two attempts");
+        if a.digest == b.digest {
+            println!("  same bytes");
+            if let Some(stored) = stored.filter(|s| *s != a.digest) {
+                println!("  but the stored output {} differs: it was computed by another build or before a fix", stored.short());
+            }
+            std::fs::remove_dir_all(&dir_a)?;
+            std::fs::remove_dir_all(&dir_b)?;
+            continue;
+        }
+        all_same = false;
+        let files = differing_files(&b.manifest, &a.manifest);
+        println!("  NOT DETERMINISTIC: {} of {} files differ: {}", files.len(), a.files.max(b.files), files.join(", "));
+        if let Some(first) = files.first() {
+            println!("  first difference: {}", first_difference(&dir_a.join("out").join(first), &dir_b.join("out").join(first))?);
+        }
+        println!("  outputs kept for inspection: {} and {}", dir_a.join("out").display(), dir_b.join("out").display());
+    }
+    Ok(all_same)
+}
+
+/// Runs `rlmflow exec KEY --scratch DIR` and waits for its output digest.
+fn attempt_in_fresh_process(store: &Store, key: &Digest, threads: usize, opts: &RunOptions, scratch: &Path) -> anyhow::Result<Digest> {
+    let exe = std::env::current_exe().context("locating the rlmflow executable")?;
+    let log = scratch.join("exec.log");
+    let mut child = Command::new(exe)
+        .arg("exec")
+        .arg(key.to_string())
+        .arg("--store")
+        .arg(store.root())
+        .arg("--threads")
+        .arg(threads.to_string())
+        .arg("--device")
+        .arg(opts.device.to_string())
+        .arg("--scratch")
+        .arg(scratch)
+        // Python's string hashes differ in every attempt, whatever the caller's environment says.
+        .env("PYTHONHASHSEED", "random")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log)?)
+        .spawn()
+        .context("starting `rlmflow exec`")?;
+    let mut result = None;
+    for line in BufReader::new(child.stdout.take().unwrap()).lines().map_while(Result::ok) {
+        match line.strip_prefix(PREFIX).and_then(|m| serde_json::from_str::<Message>(m).ok()) {
+            Some(Message::Done { output }) => result = Some(Ok(output)),
+            Some(Message::Failed { message }) => result = Some(Err(message)),
+            Some(Message::CorruptInput { digest, .. }) => result = Some(Err(format!("input {} failed verification", digest.short()))),
+            _ => {}
+        }
+    }
+    let status = child.wait()?;
+    match result {
+        Some(Ok(output)) if status.success() => Ok(output),
+        Some(Err(message)) => bail!("{message} (log: {})", log.display()),
+        _ => bail!("the stage process ended with {status} (log: {})", log.display()),
+    }
+}
+
+/// Where two files first differ, for the report.
+fn first_difference(a: &Path, b: &Path) -> anyhow::Result<String> {
+    let name = a.file_name().map_or(String::new(), |n| n.to_string_lossy().into_owned());
+    let (Ok(fa), Ok(fb)) = (std::fs::File::open(a), std::fs::File::open(b)) else {
+        return Ok(format!("{name} exists in only one attempt"));
+    };
+    let (la, lb) = (fa.metadata()?.len(), fb.metadata()?.len());
+    let (mut ra, mut rb) = (BufReader::new(fa).bytes(), BufReader::new(fb).bytes());
+    let mut offset = 0u64;
+    loop {
+        match (ra.next().transpose()?, rb.next().transpose()?) {
+            (Some(x), Some(y)) if x == y => offset += 1,
+            (None, None) => return Ok(format!("{name}: same bytes")),
+            _ => return Ok(format!("{name} at byte {offset} (sizes {la} and {lb})")),
+        }
+    }
+}
