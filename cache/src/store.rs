@@ -607,8 +607,8 @@ pub(crate) mod tests {
         fs::set_permissions(&file, fs::Permissions::from_mode(0o644)).unwrap();
         fs::write(&file, b"pAyload").unwrap();
         let damaged = store.verify(|_| {}).unwrap();
-        assert_eq!(damaged.len(), 1);
-        assert_eq!(damaged[0].files, ["data.txt"]);
+        assert_eq!(damaged.objects.len(), 1);
+        assert_eq!(damaged.objects[0].files, ["data.txt"]);
         assert!(store.fresh(&record.key).unwrap().is_none(), "a damaged object is never served");
         assert!(!store.quarantine_is_empty());
     }

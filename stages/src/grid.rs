@@ -45,11 +45,12 @@ pub const CELLS: usize = DISTANCE_BINS.len() * SECTORS.len();
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GridRule {
-    /// Lateral width of a lane: |y| <= lane_width_m / 2 is the ego's lane.
+    /// Lateral width of a lane, 0.5..=20 m: |y| <= lane_width_m / 2 is the ego's lane.
     pub lane_width_m: f64,
-    /// Heading dot product above which a vehicle is same-direction (below minus it: opposing).
+    /// Heading dot product above which a vehicle is same-direction (below minus it: opposing),
+    /// in [0, 1).
     pub direction_dot: f64,
-    /// Half-width of the beside band along x.
+    /// Half-width of the beside band along x, 0..=10 m.
     pub beside_m: f64,
     /// Which headings the direction test compares.
     pub heading: Heading,

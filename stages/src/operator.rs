@@ -34,6 +34,16 @@ impl SettingError {
     pub fn new(key: impl Into<String>, message: impl Into<String>) -> Self {
         SettingError { key: key.into(), message: message.into(), valid: Vec::new() }
     }
+
+    /// A documented bound: `Ok` when `value` lies in `range`, else an error naming the key and
+    /// the bounds. Every numeric setting has one, so a setting that validates cannot exhaust
+    /// memory or run forever.
+    pub fn check_range<T: PartialOrd + fmt::Display>(key: &str, value: T, range: std::ops::RangeInclusive<T>) -> Result<(), SettingError> {
+        if range.contains(&value) {
+            return Ok(());
+        }
+        Err(SettingError::new(key, format!("must be in {}..={}, not {value}", range.start(), range.end())))
+    }
 }
 
 impl fmt::Display for SettingError {

@@ -4,3 +4,4 @@
 mod config_errors;
 mod engine;
 mod harness;
+mod store_repair;

@@ -46,11 +46,13 @@ pub struct WriteTextSettings {
     pub fail: bool,
     pub panic: bool,
     pub threads: usize,
+    /// Appends the process id to the text: the kind of bug `run --check-determinism` finds.
+    pub nondeterministic: bool,
 }
 
 impl Default for WriteTextSettings {
     fn default() -> Self {
-        WriteTextSettings { text: "hello".into(), steps: 0, step_ms: 0, fail: false, panic: false, threads: 1 }
+        WriteTextSettings { text: "hello".into(), steps: 0, step_ms: 0, fail: false, panic: false, threads: 1, nondeterministic: false }
     }
 }
 
@@ -94,7 +96,8 @@ impl Operator for WriteText {
         }
         progress.finish();
         ctx.event("wrote", serde_json::json!({"bytes": s.text.len()}));
-        fs::write(ctx.output_dir.join("text.txt"), &s.text)?;
+        let text = if s.nondeterministic { format!("{} {}", s.text, std::process::id()) } else { s.text.clone() };
+        fs::write(ctx.output_dir.join("text.txt"), text)?;
         Ok(Outcome { metrics: serde_json::json!({"chars": s.text.len()}), summary: format!("{} chars", s.text.len()) })
     }
 }

@@ -56,21 +56,22 @@ pub struct LlmSettings {
     pub api_key_env: String,
     pub temperature: f64,
     pub top_p: f64,
+    /// 1..=32,768.
     pub max_tokens: u32,
-    /// Captions per frame (the request's `n`).
+    /// Captions per frame (the request's `n`), 1..=128.
     pub n: usize,
     /// Share of frames whose prompt adds "Do not add any distance bin numbers".
     pub no_distance_numbers: f64,
-    /// Times a frame's disagreeing captions are asked for again.
+    /// Times a frame's disagreeing captions are asked for again, 0..=10.
     pub regenerate: u32,
     pub on_mismatch: OnMismatch,
-    /// Requests in flight at once.
+    /// Requests in flight at once, 1..=256.
     pub concurrency: usize,
-    /// Seconds a request may take.
+    /// Seconds a request may take, (0, 3600].
     pub timeout_s: f64,
-    /// Retries of a request after a timeout, a connection failure, 429, 5xx or a malformed answer.
+    /// Retries (0..=20) of a request after a timeout, a connection failure, 429, 5xx or a malformed answer.
     pub retries: u32,
-    /// Seconds before the first retry; doubled each time, at most a minute.
+    /// Seconds before the first retry, 0..=60; doubled each time, at most a minute.
     pub backoff_s: f64,
     /// Where answers are kept by request digest; empty: `$XDG_CACHE_HOME/rlmflow/llm`
     /// (`~/.cache/rlmflow/llm`).
@@ -116,24 +117,20 @@ impl Settings for LlmSettings {
         if !(self.top_p > 0.0 && self.top_p <= 1.0) {
             return err("top_p", format!("must be in (0, 1], not {}", self.top_p));
         }
-        if self.max_tokens == 0 {
-            return err("max_tokens", "must be at least 1".into());
-        }
+        SettingError::check_range("max_tokens", self.max_tokens, 1..=32_768)?;
+        SettingError::check_range("regenerate", self.regenerate, 0..=10)?;
+        SettingError::check_range("retries", self.retries, 0..=20)?;
         if !(1..=128).contains(&self.n) {
             return err("n", format!("must be in 1..=128, not {}", self.n));
         }
         if !(0.0..=1.0).contains(&self.no_distance_numbers) {
             return err("no_distance_numbers", format!("must be in [0, 1], not {}", self.no_distance_numbers));
         }
-        if self.concurrency == 0 {
-            return err("concurrency", "must be at least 1".into());
+        SettingError::check_range("concurrency", self.concurrency, 1..=256)?;
+        if !(self.timeout_s > 0.0 && self.timeout_s <= 3600.0) {
+            return err("timeout_s", format!("must be in (0, 3600], not {}", self.timeout_s));
         }
-        if !self.timeout_s.is_finite() || self.timeout_s <= 0.0 {
-            return err("timeout_s", format!("must be positive, not {}", self.timeout_s));
-        }
-        if self.backoff_s.is_nan() || self.backoff_s < 0.0 {
-            return err("backoff_s", format!("must be >= 0, not {}", self.backoff_s));
-        }
+        SettingError::check_range("backoff_s", self.backoff_s, 0.0..=60.0)?;
         Ok(())
     }
 }

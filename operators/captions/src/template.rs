@@ -20,7 +20,7 @@ pub struct Template;
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct TemplateSettings {
-    /// Captions per frame.
+    /// Captions per frame, 1..=100.
     pub per_frame: usize,
     /// Share of captions that name distance bins by their numbers ("from ten to twenty meters");
     /// the others use words ("close by", "at a moderate distance").
@@ -35,9 +35,7 @@ impl Default for TemplateSettings {
 
 impl Settings for TemplateSettings {
     fn check(&self) -> Result<(), SettingError> {
-        if self.per_frame == 0 {
-            return Err(SettingError::new("per_frame", "must be at least 1"));
-        }
+        SettingError::check_range("per_frame", self.per_frame, 1..=100)?;
         if !(0.0..=1.0).contains(&self.distance_numbers) {
             return Err(SettingError::new("distance_numbers", format!("must be in [0, 1], not {}", self.distance_numbers)));
         }

@@ -29,8 +29,9 @@ pub struct EgoGrid;
 #[serde(default, deny_unknown_fields)]
 pub struct EgoGridSettings {
     pub rule: GridRule,
-    /// Share of frames held out for testing.
+    /// Share of frames held out for testing, in [0, 1).
     pub test_fraction: f64,
+    /// Fixes the split (any integer); not the pipeline seed, so every variant holds out the same frames.
     pub split_seed: u64,
     pub mask: MaskSettings,
 }
@@ -42,7 +43,8 @@ pub struct MaskSettings {
     pub radius_px: f64,
     /// Blob standard deviation, at `reference_size` pixels.
     pub sigma_px: f64,
-    /// The image size the two above are given at (the paper's 224).
+    /// The image size the two above are given at (the paper's 224), 1..=4,096; the radius is at
+    /// most this.
     pub reference_size: usize,
 }
 
@@ -62,21 +64,19 @@ impl Settings for EgoGridSettings {
     fn check(&self) -> Result<(), SettingError> {
         let positive =
             |key: &str, v: f64| if v > 0.0 && v.is_finite() { Ok(()) } else { Err(SettingError::new(key, format!("must be positive, not {v}"))) };
-        positive("rule.lane_width_m", self.rule.lane_width_m)?;
+        SettingError::check_range("rule.lane_width_m", self.rule.lane_width_m, 0.5..=20.0)?;
         if !(0.0..1.0).contains(&self.rule.direction_dot) {
             return Err(SettingError::new("rule.direction_dot", format!("must be in [0, 1), not {}", self.rule.direction_dot)));
         }
-        if self.rule.beside_m.is_nan() || self.rule.beside_m < 0.0 {
-            return Err(SettingError::new("rule.beside_m", format!("must be >= 0, not {}", self.rule.beside_m)));
-        }
+        SettingError::check_range("rule.beside_m", self.rule.beside_m, 0.0..=10.0)?;
         if !(0.0..1.0).contains(&self.test_fraction) {
             return Err(SettingError::new("test_fraction", format!("must be in [0, 1), not {}", self.test_fraction)));
         }
         positive("mask.radius_px", self.mask.radius_px)?;
         positive("mask.sigma_px", self.mask.sigma_px)?;
-        if self.mask.reference_size == 0 {
-            return Err(SettingError::new("mask.reference_size", "must be at least 1"));
-        }
+        SettingError::check_range("mask.sigma_px", self.mask.sigma_px, 0.0..=self.mask.reference_size as f64)?;
+        SettingError::check_range("mask.reference_size", self.mask.reference_size, 1..=4_096)?;
+        SettingError::check_range("mask.radius_px", self.mask.radius_px, 0.0..=self.mask.reference_size as f64)?;
         Ok(())
     }
 }

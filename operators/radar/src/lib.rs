@@ -29,6 +29,9 @@ pub use scatter::{MOUNTS, Mount, Scatterer, Segment, VehicleBox};
 /// Speed of light, m/s.
 pub const C: f64 = 299_792_458.0;
 
+/// The most memory [`RadarConfig::render_bytes`] may ask of one render thread.
+pub const MAX_RENDER_MIB: u64 = 1024;
+
 /// The radar's parameters; the defaults model the paper's 77 GHz TI cascade.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -37,20 +40,22 @@ pub struct RadarConfig {
     pub image: usize,
     /// The image covers ranges 0..range_max_m around the ego.
     pub range_max_m: f64,
-    /// Complex ADC samples per chirp (range FFT size).
+    /// Complex ADC samples per chirp (range FFT size), 16..=8192.
     pub range_samples: usize,
-    /// Chirp bandwidth; sets the range resolution c / 2B.
+    /// Chirp bandwidth, 1e6..=1e10 Hz; sets the range resolution c / 2B.
     pub bandwidth_hz: f64,
+    /// 1e9..=3e11 Hz.
     pub carrier_hz: f64,
-    /// Virtual antennas of the uniform linear array, half a wavelength apart.
+    /// Virtual antennas of the uniform linear array, half a wavelength apart, 2..=1024.
     pub antennas: usize,
-    /// Angle FFT size (the array is zero-padded to it).
+    /// Angle FFT size (the array is zero-padded to it), antennas..=8192; with range_samples at
+    /// most [`MAX_RENDER_MIB`] per render thread.
     pub angle_bins: usize,
     /// Half the field of view of each radar, degrees.
     pub fov_deg: f64,
-    /// The image shows this many dB below the frame's peak.
+    /// The image shows this many dB below the frame's peak, (0, 200].
     pub dynamic_range_db: f64,
-    /// Receiver noise power per ADC sample, dB relative to a 1 m^2 target at 1 m.
+    /// Receiver noise power per ADC sample, dB relative to a 1 m^2 target at 1 m, -200..=100.
     pub noise_db: f64,
     /// Fast path: range bins kept on each side of a scatterer (angle bins scale with the
     /// zero-padding). 6 keeps the truncation error far below the noise.
@@ -76,6 +81,12 @@ impl Default for RadarConfig {
 }
 
 impl RadarConfig {
+    /// Memory one render thread holds: the four radars' range-angle power maps (f64) and one
+    /// complex grid being summed.
+    pub fn render_bytes(&self) -> u64 {
+        (4 * 8 + 16) * self.range_samples as u64 * self.angle_bins as u64
+    }
+
     pub fn range_resolution(&self) -> f64 {
         C / (2.0 * self.bandwidth_hz)
     }
@@ -86,24 +97,41 @@ impl RadarConfig {
 
     /// Checks the settings; the error names the key and what would be valid.
     pub fn check(&self) -> Result<(), (&'static str, String)> {
-        let unambiguous = self.range_samples as f64 * self.range_resolution();
         if !(8..=1024).contains(&self.image) {
             return Err(("image", format!("must be 8..=1024 pixels, not {}", self.image)));
         }
+        if !(1e6..=1e10).contains(&self.bandwidth_hz) {
+            return Err(("bandwidth_hz", format!("must be in 1e6..=1e10 Hz, not {}", self.bandwidth_hz)));
+        }
+        if !(1e9..=3e11).contains(&self.carrier_hz) {
+            return Err(("carrier_hz", format!("must be in 1e9..=3e11 Hz, not {}", self.carrier_hz)));
+        }
+        let unambiguous = self.range_samples as f64 * self.range_resolution();
         if self.range_max_m <= 1.0 || self.range_max_m >= unambiguous {
             return Err(("range_max_m", format!("must be in (1, {unambiguous:.1}) m, the unambiguous range of range_samples and bandwidth_hz")));
         }
-        if self.antennas < 2 {
-            return Err(("antennas", "must be at least 2".into()));
+        if !(16..=8192).contains(&self.range_samples) {
+            return Err(("range_samples", format!("must be in 16..=8192, not {}", self.range_samples)));
         }
-        if self.angle_bins < self.antennas {
-            return Err(("angle_bins", format!("must be at least antennas ({})", self.antennas)));
+        if !(2..=1024).contains(&self.antennas) {
+            return Err(("antennas", format!("must be in 2..=1024, not {}", self.antennas)));
+        }
+        if !(self.antennas..=8192).contains(&self.angle_bins) {
+            return Err(("angle_bins", format!("must be in antennas ({})..=8192, not {}", self.antennas, self.angle_bins)));
+        }
+        let mib = self.render_bytes() >> 20;
+        if mib > MAX_RENDER_MIB {
+            let message = format!("range_samples x angle_bins needs {mib} MiB per render thread; at most {MAX_RENDER_MIB} MiB");
+            return Err(("angle_bins", message));
         }
         if !(self.fov_deg > 0.0 && self.fov_deg < 90.0) {
             return Err(("fov_deg", "must be in (0, 90) degrees".into()));
         }
-        if self.dynamic_range_db <= 0.0 {
-            return Err(("dynamic_range_db", "must be positive".into()));
+        if !(self.dynamic_range_db > 0.0 && self.dynamic_range_db <= 200.0) {
+            return Err(("dynamic_range_db", format!("must be in (0, 200] dB, not {}", self.dynamic_range_db)));
+        }
+        if !(-200.0..=100.0).contains(&self.noise_db) {
+            return Err(("noise_db", format!("must be in -200..=100 dB, not {}", self.noise_db)));
         }
         if self.truncation_bins == 0 || self.truncation_bins * 2 >= self.range_samples {
             return Err(("truncation_bins", "must be at least 1 and well below range_samples / 2".into()));

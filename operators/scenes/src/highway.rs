@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 
 use pyo3::prelude::*;
 
-use crate::render::{Renderer, Scene, Vehicle, check_views, parallel_map, weighted};
+use crate::render::{MAX_FRAMES, Renderer, Scene, Vehicle, check_views, parallel_map, weighted};
 use crate::writer::SceneWriter;
 
 const HELPER: &str = include_str!("highway.py");
@@ -53,14 +53,17 @@ impl Default for ScenarioMix {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct HighwaySettings {
+    /// Frames written, 1..=10,000,000 (the paper generated 800,000).
     pub frames: u64,
     /// Scenarios to simulate, by name: highway, merge, roundabout, intersection, two-way
     /// (highway-env's two-way road, traffic added both ways), divided (a divided two-way
     /// highway built from the road network).
     pub scenarios: BTreeMap<String, ScenarioMix>,
-    /// Simulation steps (15 Hz) between frames.
+    /// Simulation steps (15 Hz) between frames, 1..=1,000.
     pub steps_per_frame: u32,
+    /// Frames per simulated episode, 1..=10,000 (an episode is held in memory).
     pub episode_frames: u32,
+    /// Steps simulated before an episode's first frame, 0..=100,000.
     pub warmup_steps: u32,
     pub truck_fraction: f64,
     /// Frames with more vehicles in range are dropped (20, as the paper).
@@ -93,9 +96,7 @@ impl Default for HighwaySettings {
 impl Settings for HighwaySettings {
     fn check(&self) -> Result<(), SettingError> {
         let err = |k: &str, m: &str| Err(SettingError::new(k, m));
-        if self.frames == 0 {
-            return err("frames", "must be at least 1");
-        }
+        SettingError::check_range("frames", self.frames, 1..=MAX_FRAMES)?;
         if self.scenarios.is_empty() {
             return err("scenarios", &format!("must name at least one of {}", SCENARIOS.join(", ")));
         }
@@ -105,9 +106,7 @@ impl Settings for HighwaySettings {
                 e.valid = SCENARIOS.iter().map(|s| s.to_string()).collect();
                 return Err(e);
             }
-            if !(mix.share >= 0.0 && mix.share.is_finite()) {
-                return err(&format!("scenarios.{name}.share"), "must be a non-negative number");
-            }
+            SettingError::check_range(&format!("scenarios.{name}.share"), mix.share, 0.0..=1e6)?;
             if !(mix.density > 0.0 && mix.density <= 4.0) {
                 return err(&format!("scenarios.{name}.density"), "must be in (0, 4]");
             }
@@ -115,12 +114,9 @@ impl Settings for HighwaySettings {
         if self.scenarios.values().map(|m| m.share).sum::<f64>() <= 0.0 {
             return err("scenarios", "the shares must have a positive sum");
         }
-        if self.steps_per_frame == 0 {
-            return err("steps_per_frame", "must be at least 1");
-        }
-        if self.episode_frames == 0 {
-            return err("episode_frames", "must be at least 1");
-        }
+        SettingError::check_range("steps_per_frame", self.steps_per_frame, 1..=1_000)?;
+        SettingError::check_range("episode_frames", self.episode_frames, 1..=10_000)?;
+        SettingError::check_range("warmup_steps", self.warmup_steps, 0..=100_000)?;
         if !(0.0..=1.0).contains(&self.truck_fraction) {
             return err("truck_fraction", "must be in [0, 1]");
         }

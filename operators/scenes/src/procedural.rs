@@ -12,7 +12,7 @@ use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settin
 use serde::{Deserialize, Serialize};
 
 use crate::layout::{LAYOUTS, Layout};
-use crate::render::{Rendered, Renderer, Scene, Vehicle, check_views, parallel_map, weighted};
+use crate::render::{MAX_FRAMES, Rendered, Renderer, Scene, Vehicle, check_views, parallel_map, weighted};
 use crate::writer::SceneWriter;
 
 pub struct Procedural;
@@ -20,6 +20,7 @@ pub struct Procedural;
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ProceduralSettings {
+    /// Frames written, 1..=10,000,000.
     pub frames: u64,
     /// Road layouts to draw from, uniformly: straight, two-way, junction.
     pub layouts: Vec<String>,
@@ -37,7 +38,7 @@ pub struct ProceduralSettings {
     pub images: Vec<String>,
     /// Render through the exact ADC-cube path instead of the fast one (much slower).
     pub exact: bool,
-    /// Frames per checkpointed batch (does not change the result).
+    /// Frames per checkpointed batch, 1..=4,096, held in memory (does not change the result).
     pub batch: u64,
 }
 
@@ -64,9 +65,7 @@ impl Settings for ProceduralSettings {
 
     fn check(&self) -> Result<(), SettingError> {
         let err = |k: &str, m: String| Err(SettingError::new(k, m));
-        if self.frames == 0 {
-            return err("frames", "must be at least 1".into());
-        }
+        SettingError::check_range("frames", self.frames, 1..=MAX_FRAMES)?;
         if self.layouts.is_empty() {
             return err("layouts", format!("must name at least one of {}", LAYOUTS.join(", ")));
         }
@@ -89,8 +88,8 @@ impl Settings for ProceduralSettings {
         if !(0.0..=1.0).contains(&self.truck_fraction) {
             return err("truck_fraction", "must be in [0, 1]".into());
         }
-        if self.bin_weights.iter().any(|w| *w < 0.0) || self.bin_weights.iter().sum::<f64>() <= 0.0 {
-            return err("bin_weights", "must be non-negative with a positive sum".into());
+        if self.bin_weights.iter().any(|w| !(0.0..=1e6).contains(w)) || self.bin_weights.iter().sum::<f64>() <= 0.0 {
+            return err("bin_weights", "must be in 0..=1e6 each, with a positive sum".into());
         }
         for (k, w) in &self.sector_weights {
             if !SECTORS.contains(&k.as_str()) {
@@ -98,13 +97,9 @@ impl Settings for ProceduralSettings {
                 e.valid = SECTORS.iter().map(|s| s.to_string()).collect();
                 return Err(e);
             }
-            if *w < 0.0 {
-                return err(&format!("sector_weights.{k}"), "must be non-negative".into());
-            }
+            SettingError::check_range(&format!("sector_weights.{k}"), *w, 0.0..=1e6)?;
         }
-        if self.batch == 0 {
-            return err("batch", "must be at least 1".into());
-        }
+        SettingError::check_range("batch", self.batch, 1..=4_096)?;
         check_views(&self.images)?;
         self.radar.check().map_err(|(k, m)| SettingError::new(format!("radar.{k}"), m))
     }

@@ -36,6 +36,9 @@ pub struct Renderer {
 }
 
 /// Checks an `images` setting: known view names, at least one, no repeats.
+/// The most frames a scenes stage writes in one action (the paper generated 800,000).
+pub const MAX_FRAMES: u64 = 10_000_000;
+
 pub fn check_views(images: &[String]) -> Result<Vec<View>, SettingError> {
     if images.is_empty() {
         return Err(SettingError::new("images", format!("must name at least one view of {}", View::NAMES.join(", "))));

@@ -35,9 +35,9 @@ pub struct Bpe;
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct BpeSettings {
-    /// Vocabulary size, special tokens and the 256 byte symbols included.
+    /// Vocabulary size, special tokens and the 256 byte symbols included, 259..=262,144.
     pub vocab: usize,
-    /// Tokens per caption, `<start>` and `<end>` included; shorter captions are padded.
+    /// Tokens per caption, `<start>` and `<end>` included, 3..=8,192; shorter captions are padded.
     pub context: usize,
     /// Merges of pairs seen fewer times than this are not learnt.
     pub min_frequency: u64,
@@ -51,15 +51,9 @@ impl Default for BpeSettings {
 
 impl Settings for BpeSettings {
     fn check(&self) -> Result<(), SettingError> {
-        if self.vocab < MIN_VOCAB {
-            return Err(SettingError::new(
-                "vocab",
-                format!("must be at least {MIN_VOCAB} (256 byte symbols and 3 special tokens), not {}", self.vocab),
-            ));
-        }
-        if self.context < 3 {
-            return Err(SettingError::new("context", format!("must be at least 3 (<start>, one token, <end>), not {}", self.context)));
-        }
+        // The least: 256 byte symbols and 3 special tokens; <start>, one token, <end>.
+        SettingError::check_range("vocab", self.vocab, MIN_VOCAB..=262_144)?;
+        SettingError::check_range("context", self.context, 3..=8_192)?;
         Ok(())
     }
 }
