@@ -6,6 +6,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::time::{Duration, Instant};
 
 fn rlmflow(dir: &Path, args: &[&str]) -> (bool, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_rlmflow")).current_dir(dir).args(args).output().unwrap();
@@ -26,6 +27,35 @@ fn every_shipped_pipeline_validates() {
         // --dry-run validates everything and writes nothing.
         let (ok, out) = rlmflow(&root(), &["run", file.to_str().unwrap(), "--dry-run"]);
         assert!(ok, "{}: {out}", file.display());
+    }
+}
+
+/// Settings that once validated and then exhausted memory, overflowed or ran forever inside the
+/// stage are config errors that name the key and its bounds.
+#[test]
+fn settings_that_would_exhaust_memory_or_never_finish_are_config_errors() {
+    const BASE: &str = "[pipeline]\nname = \"bounds\"\n[stages.scenes]\noperator = \"highway-env\"\n[stages.procedural]\nkind = \"scenes\"\noperator = \"procedural\"\n\
+                        [stages.labels]\noperator = \"ego-grid\"\ninputs = { scenes = \"scenes\" }\n[stages.captions]\noperator = \"template\"\n[stages.tokens]\noperator = \"bpe\"\n";
+    let dir = std::env::temp_dir().join(format!("rlmflow-bounds-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let cases = [
+        ("bpe", "context = 9223372036854775807", "stages.tokens.context: must be in 3..=8192, not 9223372036854775807"),
+        ("bpe", "vocab = 9223372036854775807", "stages.tokens.vocab: must be in 259..=262144"),
+        ("procedural", "radar = { range_samples = 1048576, angle_bins = 65536 }", "stages.procedural.radar.range_samples: must be in 16..=8192"),
+        ("procedural", "radar = { range_samples = 8192, angle_bins = 8192 }", "radar.angle_bins: range_samples x angle_bins needs 3072 MiB per render thread"),
+        ("template", "per_frame = 10000000000000", "stages.captions.per_frame: must be in 1..=100"),
+        ("highway-env", "episode_frames = 1000000000\nframes = 24", "stages.scenes.episode_frames: must be in 1..=10000"),
+        ("highway-env", "frames = 10000000000000", "stages.scenes.frames: must be in 1..=10000000"),
+        ("procedural", "frames = 10000000000000", "stages.procedural.frames: must be in 1..=10000000"),
+        ("procedural", "frames = 1e13", "stages.procedural.frames: invalid type: floating point"),
+    ];
+    for (operator, setting, expected) in cases {
+        let text = BASE.replace(&format!("operator = \"{operator}\"\n"), &format!("operator = \"{operator}\"\n{setting}\n"));
+        std::fs::write(dir.join("p.toml"), text).unwrap();
+        let out = Command::new(env!("CARGO_BIN_EXE_rlmflow")).current_dir(&dir).args(["run", "p.toml", "--dry-run"]).output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{setting}: {stderr}");
+        assert!(stderr.contains(expected), "{setting}: expected `{expected}` in {stderr}");
     }
 }
 
@@ -197,4 +227,87 @@ fn setup_reports_the_managed_environment_the_stages_use() {
     assert!(ok, "{out}");
     assert!(out.contains(&format!("environment: {}", env.root.display())), "{out}");
     assert!(env.site_packages.join("highway_env").is_dir(), "{}", env.site_packages.display());
+}
+
+const SCENARIOS: [&str; 6] = ["highway", "merge", "roundabout", "intersection", "two-way", "divided"];
+
+/// A pipeline with one highway-env scenes stage per scenario, named after it.
+fn highway_stages(name: &str, scenarios: &[&str], settings: &str) -> String {
+    let mut text = format!("[pipeline]\nname = \"{name}\"\nseed = 5\n");
+    for s in scenarios {
+        text += &format!("\n[stages.{s}]\nkind = \"scenes\"\noperator = \"highway-env\"\nradar = {{ image = 32 }}\nscenarios = {{ {s} = {{}} }}\n{settings}\n");
+    }
+    text
+}
+
+fn scratch(name: &str, pipeline: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("rlmflow-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("p.toml"), pipeline).unwrap();
+    dir
+}
+
+/// The output digest of stage `label` of `pipeline` in the store beside `dir`'s pipeline.
+fn output_digest(dir: &Path, pipeline: &str, label: &str) -> rlmflow_cache::Digest {
+    let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
+    store.record(&store.last_keys(pipeline).unwrap()[label]).unwrap().unwrap().output
+}
+
+/// Every scenario, each attempt a fresh process (fresh hash seeds, allocator addresses and
+/// Python interpreter) with a different thread count: the same bytes.
+#[test]
+fn highway_env_scenes_are_the_same_bytes_in_fresh_processes_for_every_scenario() {
+    let dir = scratch("highway-determinism", &highway_stages("determinism", &SCENARIOS, "frames = 12\nepisode_frames = 4"));
+    let mut args = vec!["run", "p.toml", "--jobs", "2"];
+    for s in SCENARIOS {
+        args.extend(["--check-determinism", s]);
+    }
+    let (ok, out) = rlmflow(&dir, &args);
+    assert!(ok, "{out}");
+    assert_eq!(out.matches("same bytes").count(), SCENARIOS.len(), "{out}");
+}
+
+/// Killed with SIGKILL right after an episode was checkpointed, and again in the middle of an
+/// episode, a highway-env stage resumes to the bytes of an uninterrupted run.
+#[test]
+fn highway_env_scenes_resume_after_sigkill_to_the_same_bytes() {
+    use std::os::unix::process::CommandExt;
+    let pipeline = highway_stages("resume", &["intersection"], "frames = 16\nepisode_frames = 4\nwarmup_steps = 60");
+    let reference = scratch("highway-reference", &pipeline);
+    let (ok, out) = rlmflow(&reference, &["run", "p.toml"]);
+    assert!(ok, "{out}");
+    let expected = output_digest(&reference, "resume", "intersection");
+
+    // Frames checkpointed so far by the one running action.
+    let checkpointed = |dir: &Path| -> Option<u64> {
+        let checkpoints = std::fs::read_dir(dir.join(".rlmflow/checkpoints")).ok()?;
+        let progress = checkpoints.flatten().map(|c| c.path().join("progress.json")).find(|p| p.exists())?;
+        let value: serde_json::Value = serde_json::from_slice(&std::fs::read(progress).ok()?).ok()?;
+        value["frames"].as_u64()
+    };
+    for (name, after_boundary) in [("boundary", Duration::ZERO), ("mid-episode", Duration::from_millis(150))] {
+        let dir = scratch(&format!("highway-kill-{name}"), &pipeline);
+        let mut run = Command::new(env!("CARGO_BIN_EXE_rlmflow"))
+            .current_dir(&dir)
+            .args(["run", "p.toml"])
+            .stdout(std::process::Stdio::null())
+            .process_group(0)
+            .spawn()
+            .unwrap();
+        let t0 = Instant::now();
+        while checkpointed(&dir).unwrap_or(0) == 0 {
+            assert!(t0.elapsed() < Duration::from_secs(120), "{name}: no episode was checkpointed");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        std::thread::sleep(after_boundary);
+        // The whole group: the engine and its `rlmflow exec` child.
+        unsafe { libc::kill(-(run.id() as i32), libc::SIGKILL) };
+        run.wait().unwrap();
+        let done = checkpointed(&dir).unwrap();
+        assert!((4..16).contains(&done), "{name}: killed with {done} of 16 frames checkpointed");
+        let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
+        assert!(ok, "{name}: {out}");
+        assert_eq!(output_digest(&dir, "resume", "intersection"), expected, "{name}: resumed from {done} frames");
+    }
 }

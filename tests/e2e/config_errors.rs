@@ -4,8 +4,12 @@
 use crate::harness::*;
 
 fn error_for(pipeline: &str) -> String {
-    let s = Scratch::new(&format!("cfg-{:x}", pipeline.len() * 31 + pipeline.bytes().map(|b| b as usize).sum::<usize>()));
-    s.pipeline(pipeline);
+    error_for_bytes(pipeline.as_bytes())
+}
+
+fn error_for_bytes(pipeline: &[u8]) -> String {
+    let s = Scratch::new(&format!("cfg-{:x}", pipeline.len() * 31 + pipeline.iter().map(|&b| b as usize).sum::<usize>()));
+    std::fs::write(s.dir.join("p.toml"), pipeline).unwrap();
     let out = s.cli(&["run", "p.toml"]);
     assert_eq!(out.status.code(), Some(2), "stdout: {}", text(&out.stdout));
     assert!(!s.store().exists(), "a config error writes nothing");
@@ -123,6 +127,38 @@ fn cycles_are_caught_before_anything_runs() {
 fn invalid_toml_names_the_line() {
     let err = error_for("[stages.source]\noperator = \"write-text\"\ntext = \n");
     assert_has(&err, &["p.toml:3: invalid TOML"]);
+}
+
+#[test]
+fn a_file_that_is_not_utf8_is_reported_at_its_line() {
+    let err = error_for_bytes(b"[pipeline]\nname = \"x\"\n# caf\xe9\n[stages.source]\noperator = \"write-text\"\n");
+    assert_has(&err, &["p.toml:3: not UTF-8 text: byte 0xE9 at column 6"]);
+}
+
+#[test]
+fn a_table_nested_thousands_deep_is_reported_at_its_line() {
+    let deep = format!("[stages.source]\noperator = \"write-text\"\n\n[{}]\n", vec!["a"; 5000].join("."));
+    let err = error_for(&deep);
+    assert_has(&err, &["p.toml:4: nested more than 32 levels deep"]);
+    let arrays = format!("[stages.source]\noperator = \"write-text\"\ntext = {}\n", "[".repeat(5000));
+    assert_has(&error_for(&arrays), &["p.toml:3: nested more than 32 levels deep"]);
+}
+
+#[test]
+fn a_toml_datetime_is_no_setting_value() {
+    let err = error_for("[pipeline]\nname = 1979-05-27\n[stages.source]\noperator = \"write-text\"\ntext = 07:32:00\n");
+    assert_has(&err, &["p.toml:2: pipeline.name: a TOML date or time is not a valid value", "p.toml:5: stages.source.text: a TOML date or time"]);
+}
+
+#[test]
+fn names_too_long_for_a_file_name_are_config_errors() {
+    let long = "x".repeat(5000);
+    let err = error_for(&format!("[pipeline]\nname = \"{long}\"\n[stages.source]\noperator = \"write-text\"\n"));
+    assert_has(&err, &["p.toml:2: pipeline.name: the name is 5000 bytes long; at most 128"]);
+    let err = error_for(&format!("[stages.{long}]\nkind = \"source\"\noperator = \"write-text\"\n"));
+    assert_has(&err, &[&format!("p.toml:1: stages.{long}: the name is 5000 bytes long")]);
+    let err = error_for(&format!("[stages.source]\noperator = \"write-text\"\n[stages.source.variants]\n{long} = {{ text = \"a\" }}\n"));
+    assert_has(&err, &["the name is 5000 bytes long"]);
 }
 
 #[test]
