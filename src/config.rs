@@ -118,7 +118,9 @@ pub fn load(file: &Path, registry: &Registry) -> anyhow::Result<Pipeline> {
             let line = 1 + bytes[..at].iter().filter(|&&b| b == b'\n').count();
             let column = 1 + at - bytes[..at].iter().rposition(|&b| b == b'\n').map_or(0, |p| p + 1);
             let message = format!("not UTF-8 text: byte 0x{:02X} at column {column}; a pipeline file must be UTF-8", bytes[at]);
-            return Err(ConfigError { file: file.to_path_buf(), diagnostics: vec![Diagnostic { line, key: String::new(), message, help: None }] }.into());
+            return Err(
+                ConfigError { file: file.to_path_buf(), diagnostics: vec![Diagnostic { line, key: String::new(), message, help: None }] }.into()
+            );
         }
     };
     parse(file, &text, registry).map_err(anyhow::Error::new)

@@ -282,7 +282,11 @@ impl Executor<'_> {
         }
         if let Some(corruption) = self.store.check_object(output)? {
             self.store.quarantine(output)?;
-            self.ui.say(format!("  corrupt  {label}: output {} failed verification ({}); quarantined, recomputing", output.short(), corruption.files.join(", ")));
+            self.ui.say(format!(
+                "  corrupt  {label}: output {} failed verification ({}); quarantined, recomputing",
+                output.short(),
+                corruption.files.join(", ")
+            ));
             self.events.write("output_corrupt", json!({"stage": label, "digest": output, "files": corruption.files}))?;
             return Ok(false);
         }

@@ -42,7 +42,11 @@ fn settings_that_would_exhaust_memory_or_never_finish_are_config_errors() {
         ("bpe", "context = 9223372036854775807", "stages.tokens.context: must be in 3..=8192, not 9223372036854775807"),
         ("bpe", "vocab = 9223372036854775807", "stages.tokens.vocab: must be in 259..=262144"),
         ("procedural", "radar = { range_samples = 1048576, angle_bins = 65536 }", "stages.procedural.radar.range_samples: must be in 16..=8192"),
-        ("procedural", "radar = { range_samples = 8192, angle_bins = 8192 }", "radar.angle_bins: range_samples x angle_bins needs 3072 MiB per render thread"),
+        (
+            "procedural",
+            "radar = { range_samples = 8192, angle_bins = 8192 }",
+            "radar.angle_bins: range_samples x angle_bins needs 3072 MiB per render thread",
+        ),
         ("template", "per_frame = 10000000000000", "stages.captions.per_frame: must be in 1..=100"),
         ("highway-env", "episode_frames = 1000000000\nframes = 24", "stages.scenes.episode_frames: must be in 1..=10000"),
         ("highway-env", "frames = 10000000000000", "stages.scenes.frames: must be in 1..=10000000"),
@@ -235,7 +239,9 @@ const SCENARIOS: [&str; 6] = ["highway", "merge", "roundabout", "intersection", 
 fn highway_stages(name: &str, scenarios: &[&str], settings: &str) -> String {
     let mut text = format!("[pipeline]\nname = \"{name}\"\nseed = 5\n");
     for s in scenarios {
-        text += &format!("\n[stages.{s}]\nkind = \"scenes\"\noperator = \"highway-env\"\nradar = {{ image = 32 }}\nscenarios = {{ {s} = {{}} }}\n{settings}\n");
+        text += &format!(
+            "\n[stages.{s}]\nkind = \"scenes\"\noperator = \"highway-env\"\nradar = {{ image = 32 }}\nscenarios = {{ {s} = {{}} }}\n{settings}\n"
+        );
     }
     text
 }

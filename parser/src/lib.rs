@@ -156,7 +156,8 @@ fn tokenize(text: &str) -> Vec<Token<'_>> {
         }
         if c.is_ascii_digit() {
             // A minus sign right before the digits (not a range such as `0-10`) makes it negative.
-            let negative = out.last() == Some(&Token::Word("-")) && i > 0 && bytes[i - 1] == b'-' && !matches!(out.iter().rev().nth(1), Some(Token::Number(_)));
+            let negative =
+                out.last() == Some(&Token::Word("-")) && i > 0 && bytes[i - 1] == b'-' && !matches!(out.iter().rev().nth(1), Some(Token::Number(_)));
             let start = if negative { i - 1 } else { i };
             let mut n: u64 = 0;
             while i < bytes.len() && bytes[i].is_ascii_digit() {
@@ -165,10 +166,12 @@ fn tokenize(text: &str) -> Vec<Token<'_>> {
             }
             let digit_at = |k: usize| bytes.get(k).is_some_and(u8::is_ascii_digit);
             let fraction = bytes.get(i) == Some(&b'.') && digit_at(i + 1);
-            let exponent = matches!(bytes.get(i), Some(b'e' | b'E')) && (digit_at(i + 1) || (matches!(bytes.get(i + 1), Some(b'-' | b'+')) && digit_at(i + 2)));
+            let exponent =
+                matches!(bytes.get(i), Some(b'e' | b'E')) && (digit_at(i + 1) || (matches!(bytes.get(i + 1), Some(b'-' | b'+')) && digit_at(i + 2)));
             if fraction || exponent {
                 i += 1;
-                while i < bytes.len() && (bytes[i].is_ascii_alphanumeric() || b"+-.".contains(&bytes[i])) && !(bytes[i] == b'.' && !digit_at(i + 1)) {
+                // The rest of the number: digits, letters and signs, and points between digits.
+                while i < bytes.len() && (bytes[i].is_ascii_alphanumeric() || b"+-".contains(&bytes[i]) || (bytes[i] == b'.' && digit_at(i + 1))) {
                     i += 1;
                 }
             }

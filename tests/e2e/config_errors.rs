@@ -166,3 +166,13 @@ fn a_pipeline_without_stages_is_an_error() {
     let err = error_for("[pipeline]\nname = \"empty\"\n");
     assert_has(&err, &["the pipeline has no stages"]);
 }
+
+#[test]
+fn a_pin_name_too_long_for_a_file_name_is_refused() {
+    let s = Scratch::new("pin-long");
+    s.pipeline(CHAIN);
+    s.run();
+    let out = s.cli(&["pin", "p.toml", &"x".repeat(5000)]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(text(&out.stderr).contains("the pin name is 5000 bytes long"), "{}", text(&out.stderr));
+}
