@@ -52,7 +52,8 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
             let _ = std::fs::remove_dir_all(&scratch);
             std::fs::create_dir_all(&scratch)?;
             let clock = Instant::now();
-            attempt_in_fresh_process(store, &key, n, opts, &scratch).with_context(|| format!("{}: attempt {}", inst.label, attempt + 1))?;
+            let op = registry.get(&plan.pipeline.stages[inst.stage].operator).expect("validated operator");
+            attempt_in_fresh_process(&crate::exec::executable(op)?, store, &key, n, opts, &scratch).with_context(|| format!("{}: attempt {}", inst.label, attempt + 1))?;
             let tree = hash_tree(&scratch.join("out"))?;
             let threads = if n == 1 { "1 thread".to_owned() } else { format!("{n} threads") };
             println!("  attempt {} (fresh process, {threads}): output {} in {:.1}s", attempt + 1, tree.digest.short(), clock.elapsed().as_secs_f64());
@@ -80,8 +81,7 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
 }
 
 /// Runs `rlmflow exec KEY --scratch DIR` and waits for its output digest.
-fn attempt_in_fresh_process(store: &Store, key: &Digest, threads: usize, opts: &RunOptions, scratch: &Path) -> anyhow::Result<Digest> {
-    let exe = std::env::current_exe().context("locating the rlmflow executable")?;
+fn attempt_in_fresh_process(exe: &Path, store: &Store, key: &Digest, threads: usize, opts: &RunOptions, scratch: &Path) -> anyhow::Result<Digest> {
     let log = scratch.join("exec.log");
     let mut child = Command::new(exe)
         .arg("exec")

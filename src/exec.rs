@@ -69,6 +69,21 @@ impl Reporter for StdoutReporter {
     }
 }
 
+/// The binary that runs `op`'s actions: this one, or the worker it names, beside this one.
+pub fn executable(op: &dyn DynOperator) -> anyhow::Result<std::path::PathBuf> {
+    let exe = std::env::current_exe().context("locating the rlmflow executable")?;
+    let Some(worker) = op.worker() else { return Ok(exe) };
+    let path = exe.with_file_name(worker);
+    if !path.is_file() {
+        anyhow::bail!(
+            "operator `{}` runs in `{worker}`, which is not beside {} (`cargo xtask build --release` builds both)",
+            op.spec().name,
+            exe.display()
+        );
+    }
+    Ok(path)
+}
+
 /// Runs action `key` from `store`; returns the process exit status.
 pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, device: Device) -> anyhow::Result<i32> {
     let store = Store::open_existing(store)?.with_context(|| format!("no rlmflow store at {}", store.display()))?;

@@ -10,6 +10,8 @@ fn registry() -> Registry {
     registry.add(rlmflow_captions::Template);
     registry.add(rlmflow_captions::Llm);
     registry.add(rlmflow_tokens::Bpe);
+    // Planned here, run by the rlmflow-torch worker.
+    registry.add(rlmflow_pretrain::operator());
     #[cfg(feature = "python")]
     registry.add(rlmflow_scenes::HighwayEnv);
     registry

@@ -163,6 +163,13 @@ impl Executor<'_> {
                 if !fits && !started.is_empty() {
                     continue;
                 }
+                let exe = match crate::exec::executable(op) {
+                    Ok(exe) => exe,
+                    Err(e) => {
+                        self.fail_unstarted(i, key, format!("{e:#}"))?;
+                        continue;
+                    }
+                };
                 threads_in_use += threads;
                 gpu_in_use |= wants.gpu;
                 started.insert(i, (Instant::now(), threads, wants.gpu));
@@ -170,7 +177,7 @@ impl Executor<'_> {
                 let label = self.plan.instances[i].label.clone();
                 self.events.write("stage_started", json!({"stage": label, "key": key, "threads": threads}))?;
                 bars.insert(i, self.ui.bar(&label));
-                self.spawn(i, key, threads, tx.clone())?;
+                self.spawn(i, &exe, key, threads, tx.clone())?;
             }
             if started.is_empty() {
                 break;
@@ -324,11 +331,10 @@ impl Executor<'_> {
         self.store.run_dir(&self.run).join("logs").join(format!("{}.log", file_safe(label)))
     }
 
-    fn spawn(&self, i: usize, key: Digest, threads: usize, tx: mpsc::Sender<(usize, Report)>) -> anyhow::Result<()> {
+    fn spawn(&self, i: usize, exe: &Path, key: Digest, threads: usize, tx: mpsc::Sender<(usize, Report)>) -> anyhow::Result<()> {
         let label = &self.plan.instances[i].label;
         let log_path = self.log_path(label);
         let log = Arc::new(Mutex::new(File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?));
-        let exe = std::env::current_exe().context("locating the rlmflow executable")?;
         let mut cmd = Command::new(exe);
         cmd.arg("exec")
             .arg(key.to_string())
@@ -364,6 +370,17 @@ impl Executor<'_> {
             }
             let _ = tx.send((i, Report::Exited(child.wait())));
         });
+        Ok(())
+    }
+
+    /// An instance that could not be started (its worker binary is missing) fails like one
+    /// whose process failed: its dependants are skipped, independent branches go on.
+    fn fail_unstarted(&mut self, i: usize, key: Digest, message: String) -> anyhow::Result<()> {
+        let label = self.plan.instances[i].label.clone();
+        self.states[i] = State::Failed;
+        self.results[i] = Some((Outcome::Failed, 0.0));
+        self.events.write("stage_finished", json!({"stage": label, "status": "failed", "key": key, "error": message, "duration_s": 0.0}))?;
+        self.ui.say(format!("  FAILED   {label}  {message}"));
         Ok(())
     }
 

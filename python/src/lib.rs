@@ -14,6 +14,7 @@
 
 #[cfg(feature = "embed")]
 pub mod embed;
+pub mod libtorch;
 
 use std::fs::{self, File};
 use std::path::{Path, PathBuf};
@@ -55,7 +56,7 @@ fn base_interpreter() -> PathBuf {
     return PathBuf::from("python3");
 }
 
-fn data_dir() -> anyhow::Result<PathBuf> {
+pub(crate) fn data_dir() -> anyhow::Result<PathBuf> {
     if let Some(p) = std::env::var_os("RLMFLOW_HOME") {
         return Ok(p.into());
     }
@@ -69,7 +70,7 @@ fn data_dir() -> anyhow::Result<PathBuf> {
 }
 
 /// The interpreter's `major.minor.micro`, or a message saying what to install.
-fn interpreter_version(python: &Path) -> anyhow::Result<String> {
+pub(crate) fn interpreter_version(python: &Path) -> anyhow::Result<String> {
     let install = format!(
         "install Python {}.{} or newer with venv and pip (e.g. `apt install python3 python3-venv`), or point RLMFLOW_PYTHON at one",
         MIN_VERSION.0, MIN_VERSION.1
@@ -164,7 +165,7 @@ fn create(python: &Path, scratch: &Path, root: &Path, version: &str, note: &mut 
     Ok(env)
 }
 
-fn run(cmd: &mut Command, what: &str) -> anyhow::Result<()> {
+pub(crate) fn run(cmd: &mut Command, what: &str) -> anyhow::Result<()> {
     let out = cmd.stdin(Stdio::null()).output().with_context(|| format!("{what}: cannot start {:?}", cmd.get_program()))?;
     if !out.status.success() {
         let err = String::from_utf8_lossy(&out.stderr);

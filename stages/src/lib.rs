@@ -8,13 +8,14 @@
 //!   checkpoint directory that survives a crash, the seed, a thread budget and a progress handle.
 //!
 //! * [`grid`]: the paper's ego grid and its JSON.
-//! * [`scenes`], [`labels`], [`captions`], [`tokens`]: each artifact's directory layout, its
+//! * [`scenes`], [`labels`], [`captions`], [`tokens`], [`encoder`]: each artifact's directory layout, its
 //!   writer-side line formats and its reader; [`npy`] for their dense arrays.
 //!
 //! Nothing here knows about scheduling, caching or processes; nothing here knows machine learning.
 
 pub mod captions;
 pub mod context;
+pub mod encoder;
 pub mod grid;
 pub mod kind;
 pub mod labels;
@@ -25,7 +26,7 @@ pub mod tokens;
 
 pub use context::{Context, Device, Input, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};
-pub use operator::{DynOperator, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings};
+pub use operator::{DynOperator, InWorker, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings};
 
 /// Reads an artifact's summary (`dir/file`, JSON with a `format` field) and checks that this
 /// build reads its format; `artifact` names the type (`Scenes`) and `stage` what to rerun.

@@ -103,7 +103,42 @@ pub trait Operator: Send + Sync + 'static {
         Resources::default()
     }
 
+    /// The binary that runs this operator when it is not the one planning it: operators that
+    /// link libtorch run in the `rlmflow-torch` worker, so `rlmflow` itself never loads it.
+    fn worker(&self) -> Option<&'static str> {
+        None
+    }
+
     fn run(&self, settings: &Self::Settings, ctx: &mut Context) -> anyhow::Result<Outcome>;
+}
+
+/// An operator that runs in a worker binary: the planning binary knows its spec, settings and
+/// resources (so every setting is validated up front without the worker's libraries), and the
+/// worker registers the implementation under the same name.
+pub struct InWorker<S: Settings> {
+    pub spec: OperatorSpec,
+    pub worker: &'static str,
+    pub resources: fn(&S) -> Resources,
+}
+
+impl<S: Settings> Operator for InWorker<S> {
+    type Settings = S;
+
+    fn spec(&self) -> OperatorSpec {
+        self.spec
+    }
+
+    fn resources(&self, settings: &S) -> Resources {
+        (self.resources)(settings)
+    }
+
+    fn worker(&self) -> Option<&'static str> {
+        Some(self.worker)
+    }
+
+    fn run(&self, _: &S, _: &mut Context) -> anyhow::Result<Outcome> {
+        anyhow::bail!("operator `{}` runs in the `{}` binary, not in this one", self.spec.name, self.worker)
+    }
 }
 
 /// An [`Operator`] with its settings type erased, as the engine's registry stores it. Settings
@@ -114,6 +149,7 @@ pub trait DynOperator: Send + Sync {
     fn settings(&self, raw: Value) -> Result<Value, SettingError>;
     fn non_result_keys(&self) -> &'static [&'static str];
     fn resources(&self, settings: &Value) -> Resources;
+    fn worker(&self) -> Option<&'static str>;
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome>;
 }
 
@@ -136,6 +172,10 @@ impl<O: Operator> DynOperator for O {
             Ok(typed) => Operator::resources(self, &typed),
             Err(_) => Resources::default(),
         }
+    }
+
+    fn worker(&self) -> Option<&'static str> {
+        Operator::worker(self)
     }
 
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome> {

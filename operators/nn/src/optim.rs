@@ -1,0 +1,113 @@
+//! AdamW (PyTorch's update rule, decoupled weight decay) whose moments are plain tensors, so a
+//! checkpoint can hold them and a resumed run ends with the same weights as an uninterrupted
+//! one (tch's optimizer keeps its state inside libtorch, out of reach), with global-norm
+//! clipping and the warmup-then-cosine learning-rate schedule.
+
+use std::collections::HashMap;
+
+use anyhow::Context as _;
+use tch::{Kind, Tensor, nn};
+
+pub struct AdamW {
+    /// Trainable variables by name, sorted: the order never depends on a hash.
+    params: Vec<(String, Tensor)>,
+    m: Vec<Tensor>,
+    v: Vec<Tensor>,
+    steps: i64,
+    pub betas: (f64, f64),
+    pub eps: f64,
+    pub weight_decay: f64,
+}
+
+impl AdamW {
+    /// Optimises every trainable variable of `vs`; weight decay applies to matrices and
+    /// convolution kernels only (not to biases, norms, embeddings' scales or vectors).
+    pub fn new(vs: &nn::VarStore, betas: (f64, f64), eps: f64, weight_decay: f64) -> AdamW {
+        let mut params: Vec<(String, Tensor)> = vs.variables().into_iter().filter(|(_, t)| t.requires_grad()).collect();
+        params.sort_by(|a, b| a.0.cmp(&b.0));
+        let zeros = |params: &[(String, Tensor)]| params.iter().map(|(_, p)| p.zeros_like()).collect();
+        AdamW { m: zeros(&params), v: zeros(&params), params, steps: 0, betas, eps, weight_decay }
+    }
+
+    pub fn zero_grad(&mut self) {
+        for (_, p) in &mut self.params {
+            p.zero_grad();
+        }
+    }
+
+    /// Scales the gradients so their global L2 norm is at most `max`; returns the norm before.
+    pub fn clip_grad_norm(&self, max: f64) -> f64 {
+        tch::no_grad(|| {
+            let grads: Vec<Tensor> = self.params.iter().map(|(_, p)| p.grad()).filter(|g| g.defined()).collect();
+            let norms: Vec<Tensor> = grads.iter().map(|g| g.norm().square()).collect();
+            let total = Tensor::stack(&norms, 0).sum(Kind::Float).sqrt().double_value(&[]);
+            if total > max {
+                for g in &grads {
+                    let _ = g.shallow_clone().f_mul_scalar_(max / (total + 1e-6)).expect("scale a gradient");
+                }
+            }
+            total
+        })
+    }
+
+    pub fn step(&mut self, lr: f64) {
+        self.steps += 1;
+        let (b1, b2) = self.betas;
+        let correction1 = 1.0 - b1.powi(self.steps as i32);
+        let correction2 = 1.0 - b2.powi(self.steps as i32);
+        tch::no_grad(|| {
+            for (i, (_, p)) in self.params.iter_mut().enumerate() {
+                let g = p.grad();
+                if !g.defined() {
+                    continue;
+                }
+                if self.weight_decay > 0.0 && p.dim() >= 2 {
+                    let _ = p.f_mul_scalar_(1.0 - lr * self.weight_decay).expect("decay");
+                }
+                let _ = self.m[i].f_mul_scalar_(b1).unwrap().f_add_(&(&g * (1.0 - b1))).unwrap();
+                let _ = self.v[i].f_mul_scalar_(b2).unwrap().f_add_(&(g.square() * (1.0 - b2))).unwrap();
+                let denom = self.v[i].sqrt() / correction2.sqrt() + self.eps;
+                let _ = p.f_sub_(&(&self.m[i] / denom * (lr / correction1))).expect("update");
+            }
+        });
+    }
+
+    pub fn steps(&self) -> i64 {
+        self.steps
+    }
+
+    /// The state as named tensors (`adamw.m.<name>`, `adamw.v.<name>`, `adamw.steps`).
+    pub fn state(&self) -> Vec<(String, Tensor)> {
+        let mut out = Vec::with_capacity(2 * self.params.len() + 1);
+        for (i, (name, _)) in self.params.iter().enumerate() {
+            out.push((format!("adamw.m.{name}"), self.m[i].shallow_clone()));
+            out.push((format!("adamw.v.{name}"), self.v[i].shallow_clone()));
+        }
+        out.push(("adamw.steps".into(), Tensor::from(self.steps)));
+        out
+    }
+
+    pub fn load_state(&mut self, state: &HashMap<String, Tensor>) -> anyhow::Result<()> {
+        let get = |key: String| state.get(&key).with_context(|| format!("the checkpoint has no `{key}`"));
+        for (i, (name, _)) in self.params.iter().enumerate() {
+            tch::no_grad(|| -> anyhow::Result<()> {
+                self.m[i].copy_(get(format!("adamw.m.{name}"))?);
+                self.v[i].copy_(get(format!("adamw.v.{name}"))?);
+                Ok(())
+            })?;
+        }
+        self.steps = get("adamw.steps".into())?.int64_value(&[]);
+        Ok(())
+    }
+}
+
+/// The learning rate at `step` of `total`: linear from `start` to `peak` over `warmup` steps,
+/// then a half cosine from `peak` down to `min` at the last step.
+pub fn warmup_cosine(step: u64, total: u64, warmup: u64, start: f64, peak: f64, min: f64) -> f64 {
+    if step < warmup {
+        return start + (peak - start) * step as f64 / warmup as f64;
+    }
+    let span = total.saturating_sub(warmup).max(1) as f64;
+    let progress = ((step - warmup) as f64 / span).min(1.0);
+    min + 0.5 * (peak - min) * (1.0 + (std::f64::consts::PI * progress).cos())
+}

@@ -1,0 +1,237 @@
+//! The `pretrain` stage kind's `clip` operator, as the planning binary sees it: its settings,
+//! the named model sizes, its spec and resources. The training itself runs in the
+//! `rlmflow-torch` worker (`operators/pretrain/torch`), which links libtorch; this crate does
+//! not, so `rlmflow run --dry-run` validates every setting without it.
+//!
+//! Objectives: `clip` (symmetric cross-entropy against the identity), `sg-clip` (the paper's
+//! soft targets from the frames' 48-cell count vectors, `alpha`, `distance`), and `counts` (the
+//! radar tower regressed on the counts directly, no text: an upper reference for the probes).
+//! `epochs = 0` writes the model untrained: the random-init sanity row.
+//!
+//! Choices the paper leaves open, all settings: the laptop towers (`conv-tiny`: a stem of three
+//! 3x3 stride-2 convolutions before two transformer blocks; `tiny` text: eight 64-wide token
+//! embeddings per position), `distance = "pair-total"` (scaled SG-CLIP distance), a fixed or
+//! learnt temperature, and `device = "auto"` (CUDA when present; the result then depends on the
+//! machine's device, so a pipeline that must reproduce bit for bit everywhere names `cpu`).
+
+use rlmflow_stages::encoder::{Head, ModelConfig, Stem, TextConfig, VisionConfig};
+use rlmflow_stages::grid::CELLS;
+use rlmflow_stages::{InWorker, OperatorSpec, Resources, SettingError, Settings};
+use serde::{Deserialize, Serialize};
+
+/// The binary the torch operators run in.
+pub const WORKER: &str = "rlmflow-torch";
+
+pub const ENCODERS: [&str; 3] = ["conv-tiny", "conv-small", "vit-b16"];
+pub const TEXTS: [&str; 2] = ["tiny", "paper"];
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Objective {
+    Clip,
+    SgClip,
+    Counts,
+}
+
+/// How SG-CLIP measures the distance between two frames' counts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Distance {
+    /// The L1 count difference (the paper).
+    Raw,
+    /// The difference divided by the pair's total count (at least 1).
+    PairTotal,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ClipSettings {
+    /// Radar tower: `conv-tiny` (laptop), `conv-small`, `vit-b16` (the paper's ViT-B/16).
+    pub encoder: String,
+    /// Text tower: `tiny` (laptop) or `paper` (width 512, 12 layers, 8 heads).
+    pub text: String,
+    /// Radar projection into the shared space: `linear` or `mlp`.
+    pub head: Head,
+    pub objective: Objective,
+    /// SG-CLIP sharpness, 0..=1000.
+    pub alpha: f64,
+    pub distance: Distance,
+    /// Temperature (initial, when learnt), 0.001..=1.
+    pub tau: f64,
+    /// Learn the temperature (open_clip's logit scale, clamped at 100).
+    pub learn_tau: bool,
+    /// A CLIP ViT-B/16 safetensors file (open_clip or Hugging Face names) to start the radar
+    /// tower from; empty: random. Only for `encoder = "vit-b16"`.
+    pub init: String,
+    /// 0..=10,000; 0 writes the untrained model.
+    pub epochs: u64,
+    /// Frames per step, 2..=65,536.
+    pub batch: u64,
+    /// Peak learning rate, (0, 1].
+    pub lr: f64,
+    /// Linear warmup from `warmup_lr` to `lr`, in epochs (fractions allowed), 0..=epochs.
+    pub warmup_epochs: f64,
+    pub warmup_lr: f64,
+    /// The cosine schedule ends here, [0, lr].
+    pub min_lr: f64,
+    pub betas: [f64; 2],
+    pub eps: f64,
+    /// AdamW decay on matrices and kernels only, 0..=1.
+    pub weight_decay: f64,
+    /// Global gradient-norm clip, (0, 1e6].
+    pub clip_norm: f64,
+    /// `auto` (CUDA when present), `cpu`, `cuda` or `cuda:N`.
+    pub device: String,
+}
+
+impl Default for ClipSettings {
+    fn default() -> Self {
+        ClipSettings {
+            encoder: "conv-tiny".into(),
+            text: "tiny".into(),
+            head: Head::Linear,
+            objective: Objective::Clip,
+            alpha: 1.0,
+            distance: Distance::Raw,
+            tau: 0.07,
+            learn_tau: false,
+            init: String::new(),
+            epochs: 10,
+            batch: 128,
+            lr: 1e-3,
+            warmup_epochs: 1.0,
+            warmup_lr: 1e-6,
+            min_lr: 1e-5,
+            betas: [0.9, 0.98],
+            eps: 1e-8,
+            weight_decay: 0.05,
+            clip_norm: 1.0,
+            device: "auto".into(),
+        }
+    }
+}
+
+impl Settings for ClipSettings {
+    fn check(&self) -> Result<(), SettingError> {
+        let one_of = |key: &str, value: &str, valid: &[&str]| {
+            if valid.contains(&value) {
+                return Ok(());
+            }
+            let mut e = SettingError::new(key, format!("unknown {key} `{value}`; valid: {}", valid.join(", ")));
+            e.valid = Vec::new();
+            Err(e)
+        };
+        one_of("encoder", &self.encoder, &ENCODERS)?;
+        one_of("text", &self.text, &TEXTS)?;
+        SettingError::check_range("alpha", self.alpha, 0.0..=1000.0)?;
+        SettingError::check_range("tau", self.tau, 0.001..=1.0)?;
+        SettingError::check_range("epochs", self.epochs, 0..=10_000)?;
+        SettingError::check_range("batch", self.batch, 2..=65_536)?;
+        if !(self.lr > 0.0 && self.lr <= 1.0) {
+            return Err(SettingError::new("lr", format!("must be in (0, 1], not {}", self.lr)));
+        }
+        SettingError::check_range("warmup_epochs", self.warmup_epochs, 0.0..=self.epochs as f64)?;
+        SettingError::check_range("warmup_lr", self.warmup_lr, 0.0..=self.lr)?;
+        SettingError::check_range("min_lr", self.min_lr, 0.0..=self.lr)?;
+        for (i, b) in self.betas.iter().enumerate() {
+            if !(0.0..1.0).contains(b) {
+                return Err(SettingError::new(format!("betas.{i}"), format!("must be in [0, 1), not {b}")));
+            }
+        }
+        if !(self.eps > 0.0 && self.eps <= 1.0) {
+            return Err(SettingError::new("eps", format!("must be in (0, 1], not {}", self.eps)));
+        }
+        SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
+        if !(self.clip_norm > 0.0 && self.clip_norm <= 1e6) {
+            return Err(SettingError::new("clip_norm", format!("must be in (0, 1e6], not {}", self.clip_norm)));
+        }
+        let cuda_n = self.device.strip_prefix("cuda:").is_some_and(|n| n.parse::<u32>().is_ok());
+        if !(["auto", "cpu", "cuda"].contains(&self.device.as_str()) || cuda_n) {
+            return Err(SettingError::new("device", format!("unknown device `{}`; valid: auto, cpu, cuda, cuda:N", self.device)));
+        }
+        if !self.init.is_empty() && self.encoder != "vit-b16" {
+            return Err(SettingError::new("init", "CLIP weights fit only encoder = \"vit-b16\""));
+        }
+        Ok(())
+    }
+}
+
+pub fn spec() -> OperatorSpec {
+    OperatorSpec {
+        name: "clip",
+        kind: "pretrain",
+        version: 1,
+        inputs: None,
+        summary: "radar and text towers trained with CLIP, SG-CLIP (alpha) or on the counts (libtorch, in rlmflow-torch)",
+    }
+}
+
+pub fn resources(s: &ClipSettings) -> Resources {
+    Resources { threads: usize::MAX, gpu: s.device != "cpu" }
+}
+
+/// The operator as `rlmflow` registers it: validated and planned here, run by the worker.
+pub fn operator() -> InWorker<ClipSettings> {
+    InWorker { spec: spec(), worker: WORKER, resources }
+}
+
+/// The model the settings name, for images of `image` pixels and the tokens stage's `context`,
+/// `vocab` and end token. Errors name the setting that does not fit.
+pub fn model_config(s: &ClipSettings, image: i64, context: i64, vocab: i64, end_token: i64) -> Result<ModelConfig, SettingError> {
+    let (stem, width, layers, heads, mlp, embed) = match s.encoder.as_str() {
+        "conv-tiny" => (Stem::Conv { channels: vec![32, 64, 128] }, 128, 2, 4, 512, 128),
+        "conv-small" => (Stem::Conv { channels: vec![32, 96, 192] }, 192, 4, 6, 768, 256),
+        _ => (Stem::Patch { size: 16 }, 768, 12, 12, 3072, 512),
+    };
+    if let Stem::Patch { size } = stem
+        && image % size != 0
+    {
+        return Err(SettingError::new("encoder", format!("`{}` needs an image side divisible by {size}; the scenes have {image}", s.encoder)));
+    }
+    let vision = VisionConfig { image, stem, width, layers, heads, mlp, head: s.head };
+    let text = match (s.objective, s.text.as_str()) {
+        (Objective::Counts, _) => None,
+        (_, "tiny") => Some(TextConfig { context, vocab, group: 8, token_width: 64, width: 128, layers: 2, heads: 4, mlp: 512, end_token }),
+        _ => Some(TextConfig { context, vocab, group: 1, token_width: 512, width: 512, layers: 12, heads: 8, mlp: 2048, end_token }),
+    };
+    if let Some(t) = &text
+        && context % t.group != 0
+    {
+        return Err(SettingError::new("text", format!("`{}` groups {} tokens; the tokens stage's context {context} is not a multiple", s.text, t.group)));
+    }
+    let counts_head = if s.objective == Objective::Counts { CELLS as i64 } else { 0 };
+    Ok(ModelConfig { embed, vision, text, counts_head })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rlmflow_stages::DynOperator;
+
+    #[test]
+    fn sizes_fit_their_inputs_or_name_the_setting() {
+        let s = ClipSettings::default();
+        let c = model_config(&s, 64, 256, 2048, 1).unwrap();
+        assert_eq!(c.vision.grid(), 8);
+        assert_eq!(c.text.as_ref().unwrap().context / c.text.as_ref().unwrap().group, 32);
+        let b16 = ClipSettings { encoder: "vit-b16".into(), text: "paper".into(), ..s.clone() };
+        let c = model_config(&b16, 224, 400, 2048, 1).unwrap();
+        assert_eq!((c.vision.grid(), c.vision.width, c.embed), (14, 768, 512));
+        assert_eq!(model_config(&b16, 64 + 8, 400, 2048, 1).unwrap_err().key, "encoder");
+        assert_eq!(model_config(&s, 64, 250, 2048, 1).unwrap_err().key, "text");
+        let counts = ClipSettings { objective: Objective::Counts, ..s };
+        assert!(model_config(&counts, 64, 250, 2048, 1).unwrap().text.is_none());
+    }
+
+    #[test]
+    fn impossible_settings_name_their_key() {
+        let op = operator();
+        let key = |v: serde_json::Value| op.settings(v).unwrap_err().key;
+        assert_eq!(key(serde_json::json!({"encoder": "vit-h14"})), "encoder");
+        assert_eq!(key(serde_json::json!({"objective": "sgclip"})), "objective");
+        assert_eq!(key(serde_json::json!({"epochs": 5, "warmup_epochs": 6.0})), "warmup_epochs");
+        assert_eq!(key(serde_json::json!({"device": "tpu"})), "device");
+        assert_eq!(key(serde_json::json!({"init": "/clip.safetensors"})), "init");
+        assert_eq!(key(serde_json::json!({"batch": 1})), "batch");
+    }
+}
