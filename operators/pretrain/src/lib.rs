@@ -82,6 +82,10 @@ pub struct ClipSettings {
     pub clip_norm: f64,
     /// `auto` (CUDA when present), `cpu`, `cuda` or `cuda:N`.
     pub device: String,
+    /// CPU threads libtorch uses, 1..=256. Part of the result: libtorch's parallel reductions
+    /// add in an order that depends on the thread count, so the same key must mean the same
+    /// count, whatever the scheduler grants.
+    pub threads: usize,
 }
 
 impl Default for ClipSettings {
@@ -107,6 +111,7 @@ impl Default for ClipSettings {
             weight_decay: 0.05,
             clip_norm: 1.0,
             device: "auto".into(),
+            threads: 2,
         }
     }
 }
@@ -142,6 +147,7 @@ impl Settings for ClipSettings {
             return Err(SettingError::new("eps", format!("must be in (0, 1], not {}", self.eps)));
         }
         SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
+        SettingError::check_range("threads", self.threads, 1..=256)?;
         if !(self.clip_norm > 0.0 && self.clip_norm <= 1e6) {
             return Err(SettingError::new("clip_norm", format!("must be in (0, 1e6], not {}", self.clip_norm)));
         }
@@ -167,7 +173,7 @@ pub fn spec() -> OperatorSpec {
 }
 
 pub fn resources(s: &ClipSettings) -> Resources {
-    Resources { threads: usize::MAX, gpu: s.device != "cpu" }
+    Resources { threads: s.threads, gpu: s.device != "cpu" }
 }
 
 /// The operator as `rlmflow` registers it: validated and planned here, run by the worker.

@@ -196,8 +196,8 @@ impl ImageMap {
         self.merge(&radar_grids(&self.cfg, vehicles, edges, path, rng))
     }
 
-    /// Resamples per-radar power grids into the image: dB below the image's peak, normalised
-    /// to [0, 1] over the configured dynamic range.
+    /// Resamples per-radar power grids into the image, in dB above the noise floor or below the
+    /// image's peak ([`crate::Normalise`]), mapped to [0, 1] over the configured dynamic range.
     pub fn merge(&self, grids: &[Vec<f64>]) -> Vec<f32> {
         let size = self.cfg.image;
         let mut power = vec![0f32; size * size];
@@ -213,12 +213,17 @@ impl ImageMap {
             }
             *out = (0..4).filter(|&r| counts[r] > 0).map(|r| per_radar[r] / counts[r] as f32).fold(0.0, f32::max);
         }
-        let peak = power.iter().cloned().fold(0.0, f32::max);
-        if peak <= 0.0 {
-            return power;
-        }
         let range = self.cfg.dynamic_range_db as f32;
-        let floor = 10.0 * peak.log10() - range;
+        let floor = match self.cfg.normalise {
+            crate::Normalise::Calibrated => self.cfg.noise_floor_db() as f32,
+            crate::Normalise::PerFrame => {
+                let peak = power.iter().cloned().fold(0.0, f32::max);
+                if peak <= 0.0 {
+                    return power;
+                }
+                10.0 * peak.log10() - range
+            }
+        };
         power.iter().map(|&p| if p > 0.0 { ((10.0 * p.log10() - floor) / range).clamp(0.0, 1.0) } else { 0.0 }).collect()
     }
 }
@@ -280,6 +285,31 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn calibrated_brightness_of_a_vehicle_does_not_depend_on_the_rest_of_the_frame() {
+        let far = VehicleBox { x: 30.0, y: 1.0, heading: 0.0, length: 4.5, width: 1.8 };
+        let near = VehicleBox { x: 4.0, y: -9.0, heading: 0.2, length: 4.5, width: 1.8 };
+        // The same returns of the far vehicle, alone and with a close vehicle's added.
+        let grids = |v: VehicleBox, seed| radar_grids(&RadarConfig::default(), &[v], &[], Path::Fast, &mut ChaCha8Rng::seed_from_u64(seed));
+        let (alone, other) = (grids(far, 1), grids(near, 2));
+        let both: Vec<Vec<f64>> = alone.iter().zip(&other).map(|(a, b)| a.iter().zip(b).map(|(x, y)| x + y).collect()).collect();
+        let brightest = |cfg: &RadarConfig, grids: &[Vec<f64>]| {
+            let map = ImageMap::new(cfg, View::RangeAzimuth);
+            let img = map.merge(grids);
+            let (row, col) = map.projection.pixel(far.x - far.length / 2.0, far.y);
+            let at = |r: f64, c: f64| img[r as usize * cfg.image + c as usize];
+            (-1..=1).flat_map(|dr| (-1..=1).map(move |dc| (dr as f64, dc as f64))).map(|(dr, dc)| at(row + dr, col + dc)).fold(0.0, f32::max)
+        };
+        let calibrated = RadarConfig::default();
+        let (a, b) = (brightest(&calibrated, &alone), brightest(&calibrated, &both));
+        assert!(a > 0.3, "the far vehicle stands out: {a}");
+        assert!((a - b).abs() < 1.0 / 255.0, "calibrated: {a} alone, {b} with a close vehicle");
+        // Per frame, the close vehicle's peak darkens it.
+        let per_frame = RadarConfig { normalise: crate::Normalise::PerFrame, ..calibrated };
+        let (a, b) = (brightest(&per_frame, &alone), brightest(&per_frame, &both));
+        assert!(a - b > 0.1, "per frame: {a} alone, {b} with a close vehicle");
     }
 
     #[test]

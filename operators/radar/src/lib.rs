@@ -29,6 +29,18 @@ pub use scatter::{MOUNTS, Mount, Scatterer, Segment, VehicleBox};
 /// Speed of light, m/s.
 pub const C: f64 = 299_792_458.0;
 
+/// How an image maps received power to pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Normalise {
+    /// A fixed span of `dynamic_range_db` above the receiver noise floor, the same for every
+    /// frame: a vehicle at a given range has the same brightness whatever else the frame holds.
+    Calibrated,
+    /// `dynamic_range_db` below the frame's own peak: one close vehicle darkens every other
+    /// return in its frame (the earlier default, kept as an option).
+    PerFrame,
+}
+
 /// The most memory [`RadarConfig::render_bytes`] may ask of one render thread.
 pub const MAX_RENDER_MIB: u64 = 1024;
 
@@ -53,7 +65,10 @@ pub struct RadarConfig {
     pub angle_bins: usize,
     /// Half the field of view of each radar, degrees.
     pub fov_deg: f64,
-    /// The image shows this many dB below the frame's peak, (0, 200].
+    /// How power becomes pixel brightness (see [`Normalise`]).
+    pub normalise: Normalise,
+    /// The span of dB the image shows (above the noise floor, or below the frame's peak),
+    /// (0, 200].
     pub dynamic_range_db: f64,
     /// Receiver noise power per ADC sample, dB relative to a 1 m^2 target at 1 m, -200..=100.
     pub noise_db: f64,
@@ -73,6 +88,7 @@ impl Default for RadarConfig {
             antennas: 86,
             angle_bins: 128,
             fov_deg: 75.0,
+            normalise: Normalise::Calibrated,
             dynamic_range_db: 60.0,
             noise_db: -34.0,
             truncation_bins: 6,
@@ -85,6 +101,12 @@ impl RadarConfig {
     /// complex grid being summed.
     pub fn render_bytes(&self) -> u64 {
         (4 * 8 + 16) * self.range_samples as u64 * self.angle_bins as u64
+    }
+
+    /// The mean noise power of one range-angle bin, in dB: the noise per ADC sample through the
+    /// Hann windows of both FFTs (sum of squared weights 3n/8 each).
+    pub fn noise_floor_db(&self) -> f64 {
+        self.noise_db + 10.0 * ((3.0 * self.range_samples as f64 / 8.0) * (3.0 * self.antennas as f64 / 8.0)).log10()
     }
 
     pub fn range_resolution(&self) -> f64 {

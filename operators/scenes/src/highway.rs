@@ -140,7 +140,7 @@ impl Operator for HighwayEnv {
         OperatorSpec {
             name: "highway-env",
             kind: "scenes",
-            version: 3,
+            version: 4,
             inputs: None,
             summary: "traffic simulated by highway-env (highway, merge, roundabout, intersection, two-way, divided), rendered by the radar model",
         }

@@ -127,7 +127,7 @@ impl Operator for Procedural {
         OperatorSpec {
             name: "procedural",
             kind: "scenes",
-            version: 2,
+            version: 3,
             inputs: None,
             summary: "vehicles placed on sampled road layouts to cover every grid cell, rendered by the radar model",
         }
