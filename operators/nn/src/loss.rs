@@ -29,31 +29,33 @@ pub fn clip_loss(logits: &Tensor) -> Tensor {
 
 /// Row-normalised similarity targets from (batch, 48) counts.
 pub fn soft_targets(counts: &Tensor, alpha: f64, distance: Distance) -> Tensor {
-    let counts = counts.to_kind(Kind::Float);
-    let d = counts.unsqueeze(1).f_sub(&counts.unsqueeze(0)).unwrap().abs().sum_dim_intlist([-1].as_slice(), false, Kind::Float);
+    let kind = if counts.is_floating_point() { counts.kind() } else { Kind::Float };
+    let counts = counts.to_kind(kind);
+    let d = (counts.unsqueeze(1) - counts.unsqueeze(0)).abs().sum_dim_intlist([-1].as_slice(), false, kind);
     let d = match distance {
         Distance::Raw => d,
         Distance::PairTotal => {
-            let totals = counts.sum_dim_intlist([-1].as_slice(), false, Kind::Float);
+            let totals = counts.sum_dim_intlist([-1].as_slice(), false, kind);
             d / (totals.unsqueeze(1) + totals.unsqueeze(0)).clamp_min(1.0)
         }
     };
     let s = (-(d.square()) * alpha).exp();
-    &s / s.sum_dim_intlist([1].as_slice(), true, Kind::Float)
+    &s / s.sum_dim_intlist([1].as_slice(), true, kind)
 }
 
 /// The mean of the two soft cross-entropies (radar->text against `targets`, text->radar
 /// against its transpose, rows normalised).
 pub fn soft_clip_loss(logits: &Tensor, targets: &Tensor) -> Tensor {
-    let ce = |l: &Tensor, t: &Tensor| -(t * l.log_softmax(1, Kind::Float)).sum_dim_intlist([1].as_slice(), false, Kind::Float).mean(Kind::Float);
+    let kind = logits.kind();
+    let ce = |l: &Tensor, t: &Tensor| -(t * l.log_softmax(1, kind)).sum_dim_intlist([1].as_slice(), false, kind).mean(kind);
     let transposed = targets.tr();
-    let transposed = &transposed / transposed.sum_dim_intlist([1].as_slice(), true, Kind::Float);
+    let transposed = &transposed / transposed.sum_dim_intlist([1].as_slice(), true, kind);
     (ce(logits, targets) + ce(&logits.tr(), &transposed)) / 2.0
 }
 
 /// The share of target mass off the diagonal, averaged over rows: 0 for CLIP.
 pub fn off_diagonal_mass(targets: &Tensor) -> f64 {
-    1.0 - targets.diagonal(0, 0, 1).mean(Kind::Float).double_value(&[])
+    1.0 - targets.diagonal(0, 0, 1).mean(targets.kind()).double_value(&[])
 }
 
 #[cfg(test)]

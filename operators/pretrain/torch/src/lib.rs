@@ -329,3 +329,80 @@ fn clip_source(source: &HashMap<String, Tensor>, rest: &str) -> Option<Tensor> {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use rlmflow_stages::encoder::{Head, Stem, VisionConfig};
+
+    use super::*;
+
+    fn tiny() -> (nn::VarStore, Model) {
+        let vision = VisionConfig { image: 32, stem: Stem::Patch { size: 16 }, width: 16, layers: 1, heads: 2, mlp: 32, head: Head::Linear };
+        let config = ModelConfig { embed: 8, vision, text: None, counts_head: 0 };
+        let vs = nn::VarStore::new(tch::Device::Cpu);
+        let model = Model::new(&vs.root(), &config, 0.07, false);
+        (vs, model)
+    }
+
+    fn ramp(shape: &[i64], offset: f64) -> Tensor {
+        let n: i64 = shape.iter().product();
+        (Tensor::arange(n, (Kind::Float, tch::Device::Cpu)) / n as f64 + offset).view(shape)
+    }
+
+    fn var(vs: &nn::VarStore, name: &str) -> Tensor {
+        vs.variables()[name].shallow_clone()
+    }
+
+    #[test]
+    fn clip_weights_load_from_hugging_face_and_open_clip_names() {
+        let dir = std::env::temp_dir().join(format!("rlmflow-clip-init-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        // A Hugging Face CLIPVisionModel layout, RGB.
+        let layer = |k: &str| format!("vision_model.encoder.layers.0.{k}");
+        let mut hf: Vec<(String, Tensor)> = vec![
+            ("vision_model.embeddings.patch_embedding.weight".into(), ramp(&[16, 3, 16, 16], 0.0)),
+            ("vision_model.embeddings.class_embedding".into(), ramp(&[16], 1.0)),
+            ("vision_model.embeddings.position_embedding.weight".into(), ramp(&[5, 16], 2.0)),
+            ("vision_model.pre_layrnorm.weight".into(), ramp(&[16], 3.0)),
+            ("vision_model.pre_layrnorm.bias".into(), ramp(&[16], 4.0)),
+            ("vision_model.post_layernorm.weight".into(), ramp(&[16], 5.0)),
+            ("vision_model.post_layernorm.bias".into(), ramp(&[16], 6.0)),
+            ("visual_projection.weight".into(), ramp(&[8, 16], 7.0)),
+        ];
+        for (i, p) in ["q_proj", "k_proj", "v_proj", "out_proj"].iter().enumerate() {
+            hf.push((layer(&format!("self_attn.{p}.weight")), ramp(&[16, 16], 10.0 + i as f64)));
+            hf.push((layer(&format!("self_attn.{p}.bias")), ramp(&[16], 20.0 + i as f64)));
+        }
+        for (k, shape) in [("layer_norm1", [16, 0]), ("layer_norm2", [16, 0]), ("mlp.fc1", [32, 16]), ("mlp.fc2", [16, 32])] {
+            let weight: Vec<i64> = shape.iter().copied().filter(|&d| d > 0).collect();
+            hf.push((layer(&format!("{k}.weight")), ramp(&weight, 30.0)));
+            hf.push((layer(&format!("{k}.bias")), ramp(&[shape[0]], 40.0)));
+        }
+        let file = dir.join("hf.safetensors");
+        Tensor::write_safetensors(&hf, &file).unwrap();
+        let (vs, _model) = tiny();
+        let visual = vs.variables().keys().filter(|k| k.starts_with("visual.")).count();
+        assert_eq!(load_clip_vision(&vs, &file).unwrap(), visual, "every radar-tower tensor has a source");
+        let source: HashMap<String, Tensor> = hf.into_iter().collect();
+        let same = |a: &Tensor, b: &Tensor| (a - b).abs().max().double_value(&[]) < 1e-6;
+        assert!(same(&var(&vs, "visual.conv1.weight"), &source["vision_model.embeddings.patch_embedding.weight"].sum_dim_intlist([1].as_slice(), true, Kind::Float)));
+        let qkv = Tensor::cat(&["q_proj", "k_proj", "v_proj"].map(|p| source[&layer(&format!("self_attn.{p}.weight"))].shallow_clone()), 0);
+        assert!(same(&var(&vs, "visual.transformer.resblocks.0.attn.in_proj_weight"), &qkv));
+        assert!(same(&var(&vs, "visual.proj"), &source["visual_projection.weight"].tr()));
+        assert!(same(&var(&vs, "visual.transformer.resblocks.0.mlp.c_proj.weight"), &source[&layer("mlp.fc2.weight")]));
+
+        // open_clip names, and a shape that does not fit.
+        let open_clip = vec![("visual.conv1.weight".to_owned(), ramp(&[16, 3, 16, 16], 0.5)), ("visual.ln_post.bias".to_owned(), ramp(&[16], 9.0))];
+        let file = dir.join("open_clip.safetensors");
+        Tensor::write_safetensors(&open_clip, &file).unwrap();
+        let (vs, _model) = tiny();
+        assert_eq!(load_clip_vision(&vs, &file).unwrap(), 2);
+        assert!(same(&var(&vs, "visual.ln_post.bias"), &open_clip[1].1));
+        let wrong = vec![("visual.class_embedding".to_owned(), ramp(&[768], 0.0))];
+        Tensor::write_safetensors(&wrong, &file).unwrap();
+        let err = load_clip_vision(&tiny().0, &file).unwrap_err().to_string();
+        assert!(err.contains("`visual.class_embedding` has shape [768], the model needs [16]"), "{err}");
+        Tensor::write_safetensors(&[("unrelated".to_owned(), ramp(&[2], 0.0))], &file).unwrap();
+        assert!(load_clip_vision(&tiny().0, &file).unwrap_err().to_string().contains("no tensor with open_clip"));
+    }
+}

@@ -1,0 +1,141 @@
+//! Pretraining end to end through the real binaries: `rlmflow` plans and the `rlmflow-torch`
+//! worker beside it trains. On small data the test makes through the pipeline, the CI-size model
+//! learns (retrieval well above chance and above the same model untrained), a run killed
+//! between epochs resumes to the same weights, and two fresh processes give the same bytes.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+/// `rlmflow`, built beside this package's worker.
+fn rlmflow_exe() -> PathBuf {
+    let exe = Path::new(env!("CARGO_BIN_EXE_rlmflow-torch")).with_file_name("rlmflow");
+    assert!(exe.is_file(), "{} is missing: build the workspace (`cargo xtask test` does)", exe.display());
+    exe
+}
+
+fn rlmflow(dir: &Path, args: &[&str]) -> (bool, String) {
+    let out = Command::new(rlmflow_exe()).current_dir(dir).args(args).output().unwrap();
+    (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
+}
+
+/// Procedural scenes, labels, template captions and tokens, then `pretrain` as given.
+fn pipeline(pretrain: &str) -> String {
+    format!(
+        r#"[pipeline]
+name = "pretrain"
+seed = 3
+
+[stages.scenes]
+operator = "procedural"
+frames = 1200
+radar = {{ image = 32 }}
+
+[stages.labels]
+operator = "ego-grid"
+
+[stages.captions]
+operator = "template"
+per_frame = 3
+
+[stages.tokens]
+operator = "bpe"
+vocab = 400
+context = 128
+
+[stages.pretrain]
+operator = "clip"
+device = "cpu"
+batch = 64
+{pretrain}
+"#
+    )
+}
+
+fn scratch(name: &str, text: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("rlmflow-pretrain-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("p.toml"), text).unwrap();
+    dir
+}
+
+/// The Encoder artifact of `label`.
+fn encoder(dir: &Path, label: &str) -> PathBuf {
+    let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
+    let record = store.record(&store.last_keys("pretrain").unwrap()[label]).unwrap().unwrap();
+    store.object_dir(&record.output)
+}
+
+fn summary(dir: &Path, label: &str) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(encoder(dir, label).join("encoder.json")).unwrap()).unwrap()
+}
+
+#[test]
+fn the_ci_size_model_learns_retrieval_above_chance_and_above_random_init() {
+    let dir = scratch(
+        "learns",
+        &pipeline("epochs = 8\nwarmup_epochs = 1.0\n[stages.pretrain.variants]\nclip = {}\nsgclip = { objective = \"sg-clip\", alpha = 4.0 }\nrandom = { epochs = 0, warmup_epochs = 0.0 }"),
+    );
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
+    assert!(ok, "{out}");
+    let random = summary(&dir, "pretrain[random]");
+    for label in ["pretrain[clip]", "pretrain[sgclip]"] {
+        let s = summary(&dir, label);
+        let top5 = s["last"]["top5"].as_f64().unwrap();
+        let chance = s["chance_top5"].as_f64().unwrap();
+        assert!(top5 >= 3.0 * chance, "{label}: top-5 {top5} vs chance {chance}");
+        assert!(top5 > random["last"]["top5"].as_f64().unwrap(), "{label}: top-5 {top5} vs random init {}", random["last"]);
+        let log = std::fs::read_to_string(encoder(&dir, label).join("train.jsonl")).unwrap();
+        let losses: Vec<f64> = log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["loss"].as_f64().unwrap()).collect();
+        assert_eq!(losses.len(), 8);
+        assert!(losses[7] < losses[0], "{label}: loss {losses:?}");
+    }
+    let sg = std::fs::read_to_string(encoder(&dir, "pretrain[sgclip]").join("train.jsonl")).unwrap();
+    assert!(sg.contains("\"off_diagonal\":0.") && !sg.contains("\"off_diagonal\":0.0,"), "SG-CLIP logs its off-diagonal mass: {sg}");
+}
+
+#[test]
+fn a_run_killed_between_epochs_resumes_to_the_weights_of_an_uninterrupted_one() {
+    use std::os::unix::process::CommandExt;
+    let text = pipeline("epochs = 4\nwarmup_epochs = 1.0");
+    let reference = scratch("reference", &text);
+    let (ok, out) = rlmflow(&reference, &["run", "p.toml"]);
+    assert!(ok, "{out}");
+    let expected = std::fs::read(encoder(&reference, "pretrain").join("model.safetensors")).unwrap();
+
+    let dir = scratch("killed", &text);
+    let mut run = Command::new(rlmflow_exe()).current_dir(&dir).args(["run", "p.toml"]).stdout(std::process::Stdio::null()).process_group(0).spawn().unwrap();
+    let epochs_done = |dir: &Path| -> usize {
+        let Ok(checkpoints) = std::fs::read_dir(dir.join(".rlmflow/checkpoints")) else { return 0 };
+        checkpoints
+            .flatten()
+            .filter_map(|c| std::fs::read(c.path().join("state.json")).ok())
+            .filter_map(|b| serde_json::from_slice::<Vec<serde_json::Value>>(&b).ok())
+            .map(|log| log.len())
+            .max()
+            .unwrap_or(0)
+    };
+    let t0 = Instant::now();
+    while epochs_done(&dir) == 0 {
+        assert!(t0.elapsed() < Duration::from_secs(300), "no epoch was checkpointed");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    unsafe { libc::kill(-(run.id() as i32), libc::SIGKILL) };
+    run.wait().unwrap();
+    let done = epochs_done(&dir);
+    assert!((1..4).contains(&done), "killed after {done} of 4 epochs");
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--json"]);
+    assert!(ok, "{out}");
+    assert!(out.contains("\"name\":\"resumed\""), "the rerun resumed from the checkpoint: {out}");
+    let resumed = std::fs::read(encoder(&dir, "pretrain").join("model.safetensors")).unwrap();
+    assert!(resumed == expected, "resumed after {done} epochs, the weights differ");
+}
+
+#[test]
+fn pretraining_gives_the_same_bytes_in_fresh_processes() {
+    let dir = scratch("determinism", &pipeline("epochs = 1\nwarmup_epochs = 0.5\nobjective = \"sg-clip\""));
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--check-determinism", "pretrain"]);
+    assert!(ok, "{out}");
+    assert!(out.contains("same bytes"), "{out}");
+}
