@@ -75,7 +75,7 @@ fn summary(dir: &Path, label: &str) -> serde_json::Value {
 fn the_ci_size_model_learns_retrieval_above_chance_and_above_random_init() {
     let dir = scratch(
         "learns",
-        &pipeline("epochs = 8\nwarmup_epochs = 1.0\n[stages.pretrain.variants]\nclip = {}\nsgclip = { objective = \"sg-clip\", alpha = 4.0 }\nrandom = { epochs = 0, warmup_epochs = 0.0 }"),
+        &pipeline("epochs = 12\nwarmup_epochs = 1.0\n[stages.pretrain.variants]\nclip = {}\nsgclip = { objective = \"sg-clip\", alpha = 4.0 }\nrandom = { epochs = 0, warmup_epochs = 0.0 }"),
     );
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
@@ -88,8 +88,8 @@ fn the_ci_size_model_learns_retrieval_above_chance_and_above_random_init() {
         assert!(top5 > random["last"]["top5"].as_f64().unwrap(), "{label}: top-5 {top5} vs random init {}", random["last"]);
         let log = std::fs::read_to_string(encoder(&dir, label).join("train.jsonl")).unwrap();
         let losses: Vec<f64> = log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["loss"].as_f64().unwrap()).collect();
-        assert_eq!(losses.len(), 8);
-        assert!(losses[7] < losses[0], "{label}: loss {losses:?}");
+        assert_eq!(losses.len(), 12);
+        assert!(losses[11] < losses[0], "{label}: loss {losses:?}");
     }
     let sg = std::fs::read_to_string(encoder(&dir, "pretrain[sgclip]").join("train.jsonl")).unwrap();
     assert!(sg.contains("\"off_diagonal\":0.") && !sg.contains("\"off_diagonal\":0.0,"), "SG-CLIP logs its off-diagonal mass: {sg}");

@@ -143,10 +143,7 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
                     }
                 }
             };
-            let value = loss.double_value(&[]);
-            if !value.is_finite() {
-                bail!("the loss is {value} at step {} (epoch {}); lower `lr` or raise `batch`", global + 1, epoch + 1);
-            }
+            let value = finite(loss.double_value(&[]), global + 1, epoch + 1)?;
             opt.zero_grad();
             loss.backward();
             opt.clip_grad_norm(s.clip_norm);
@@ -177,6 +174,14 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         log.push(line);
     }
     write_artifact(s, ctx, &vs, &config, &data, &log, total)
+}
+
+/// The loss of `step` (1-based), or an error naming the step when it is not finite.
+fn finite(loss: f64, step: u64, epoch: u64) -> anyhow::Result<f64> {
+    if !loss.is_finite() {
+        bail!("the loss is {loss} at step {step} (epoch {epoch}); lower `lr` or raise `batch`");
+    }
+    Ok(loss)
 }
 
 /// Test-split metrics: radar->text retrieval top-1 / top-5 with a text tower, else the counts
@@ -351,6 +356,14 @@ mod tests {
 
     fn var(vs: &nn::VarStore, name: &str) -> Tensor {
         vs.variables()[name].shallow_clone()
+    }
+
+    #[test]
+    fn a_non_finite_loss_stops_training_naming_the_step() {
+        assert_eq!(finite(2.5, 3, 1).unwrap(), 2.5);
+        let err = finite(f64::NAN, 17, 2).unwrap_err().to_string();
+        assert_eq!(err, "the loss is NaN at step 17 (epoch 2); lower `lr` or raise `batch`");
+        assert!(finite(f64::INFINITY, 1, 1).unwrap_err().to_string().contains("the loss is inf at step 1"));
     }
 
     #[test]
