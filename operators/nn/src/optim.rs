@@ -61,13 +61,18 @@ impl AdamW {
                 if !g.defined() {
                     continue;
                 }
+                // In place, as torch.optim.AdamW: one temporary per parameter.
                 if self.weight_decay > 0.0 && p.dim() >= 2 {
-                    let _ = p.f_mul_scalar_(1.0 - lr * self.weight_decay).expect("decay");
+                    let _ = p.g_mul_scalar_(1.0 - lr * self.weight_decay);
                 }
-                let _ = self.m[i].f_mul_scalar_(b1).unwrap().f_add_(&(&g * (1.0 - b1))).unwrap();
-                let _ = self.v[i].f_mul_scalar_(b2).unwrap().f_add_(&(g.square() * (1.0 - b2))).unwrap();
-                let denom = self.v[i].sqrt() / correction2.sqrt() + self.eps;
-                let _ = p.f_sub_(&(&self.m[i] / denom * (lr / correction1))).expect("update");
+                let _ = self.m[i].lerp_(&g, 1.0 - b1);
+                let _ = self.v[i].lerp_(&g.square(), 1.0 - b2);
+                // p += m / denom with denom = -(sqrt(v / correction2) + eps) * correction1 / lr.
+                let mut denom = self.v[i].sqrt();
+                let _ = denom.divide_scalar_(correction2.sqrt());
+                let _ = denom.g_add_scalar_(self.eps);
+                let _ = denom.g_mul_scalar_(-correction1 / lr);
+                let _ = p.addcdiv_(&self.m[i], &denom);
             }
         });
     }

@@ -1,0 +1,76 @@
+//! Training-step time on CPU of the laptop model (`conv-tiny` radar tower and `tiny` text tower,
+//! 64 px, batch 128) and of the paper's (`vit-b16` and `paper` text, 224 px, context 400, a small
+//! batch: a CPU is no A100), SG-CLIP loss, clipping and AdamW, with 2 threads; and the same model
+//! and step in PyTorch (`step_reference.py`) in the same command, with the ratio (target <= 1.05).
+//!
+//! The reference needs an interpreter with torch 2.11 (`import torch`, the full install): point
+//! `RLMFLOW_TORCH_PYTHON` at it. Without it only rlmflow's times are printed. CI never runs this.
+//!
+//! ```sh
+//! RLMFLOW_TORCH_PYTHON=/path/to/venv/bin/python cargo xtask bench -p rlmflow-torch --bench step
+//! ```
+
+use std::time::Instant;
+
+use rlmflow_nn::clip::{Clip, images_from_u8, logits};
+use rlmflow_nn::loss::{Distance, soft_clip_loss, soft_targets};
+use rlmflow_nn::optim::AdamW;
+use rlmflow_nn::tch::{self, Kind, Tensor, nn};
+use rlmflow_pretrain::{ClipSettings, model_config};
+
+const THREADS: i32 = 2;
+
+fn main() {
+    tch::set_num_threads(THREADS);
+    let cases = [("laptop: conv-tiny + tiny text, 64 px", "conv-tiny", "tiny", 64, 256, 128, 10), ("paper: vit-b16 + paper text, 224 px", "vit-b16", "paper", 224, 400, 4, 3)];
+    for (name, encoder, text, image, context, batch, steps) in cases {
+        let settings = ClipSettings { encoder: encoder.into(), text: text.into(), ..ClipSettings::default() };
+        let config = model_config(&settings, image, context, 2048, 1).expect("a valid config");
+        let ours = step_ms(&config, batch, steps);
+        let samples = batch as f64 / ours * 1000.0;
+        print!("{name}, batch {batch}: rlmflow {ours:.1} ms/step ({samples:.0} samples/s)");
+        match std::env::var_os("RLMFLOW_TORCH_PYTHON") {
+            Some(python) => {
+                let script = concat!(env!("CARGO_MANIFEST_DIR"), "/benches/step_reference.py");
+                let out = std::process::Command::new(python)
+                    .args([script, &serde_json::to_string(&config).unwrap(), &batch.to_string(), &steps.to_string(), &THREADS.to_string()])
+                    .output()
+                    .expect("running the PyTorch reference");
+                assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+                let theirs: f64 = String::from_utf8_lossy(&out.stdout).trim().parse().expect("milliseconds");
+                println!("; PyTorch {theirs:.1} ms/step; ratio {:.3} (target <= 1.05)", ours / theirs);
+            }
+            None => println!("; set RLMFLOW_TORCH_PYTHON to an interpreter with torch 2.11 for the PyTorch reference"),
+        }
+    }
+}
+
+/// The median time of `steps` training steps (after two warm-up steps) on synthetic data.
+fn step_ms(config: &rlmflow_stages::encoder::ModelConfig, batch: i64, steps: usize) -> f64 {
+    tch::manual_seed(0);
+    let vs = nn::VarStore::new(tch::Device::Cpu);
+    let model = Clip::new(&vs.root(), config, 0.07, false);
+    let mut opt = AdamW::new(&vs, (0.9, 0.98), 1e-8, 0.05);
+    let side = config.vision.image;
+    let text = config.text.as_ref().expect("a text tower");
+    let pixels: Vec<u8> = (0..batch * side * side).map(|i| (i * 2_654_435_761 % 251) as u8).collect();
+    let images = images_from_u8(&pixels, batch, side, tch::Device::Cpu);
+    let tokens = Tensor::randint_low(3, text.vocab, [batch, text.context], (Kind::Int64, tch::Device::Cpu));
+    let _ = tokens.narrow(1, text.context / 2, 1).fill_(text.end_token);
+    let counts = Tensor::randint(3, [batch, 48], (Kind::Float, tch::Device::Cpu));
+    let mut times = Vec::new();
+    for _ in 0..steps + 2 {
+        let t0 = Instant::now();
+        let image = model.encode_image(&images, true).embedding;
+        let l = logits(&image, &model.encode_text(&tokens), &model.scale());
+        let loss = soft_clip_loss(&l, &soft_targets(&counts, 4.0, Distance::Raw));
+        opt.zero_grad();
+        loss.backward();
+        opt.clip_grad_norm(1.0);
+        opt.step(1e-4);
+        times.push(t0.elapsed().as_secs_f64() * 1000.0);
+    }
+    let mut timed = times.split_off(2);
+    timed.sort_by(f64::total_cmp);
+    timed[timed.len() / 2]
+}
