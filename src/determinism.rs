@@ -46,14 +46,14 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
         };
         store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone() })?;
         println!("check-determinism {} (key {})", inst.label, key.short());
+        let exe = crate::exec::executable(registry.get(&plan.pipeline.stages[inst.stage].operator).expect("validated operator"))?;
         let mut trees: Vec<(PathBuf, TreeInfo)> = Vec::new();
         for (attempt, &n) in threads.iter().enumerate() {
             let scratch = store.root().join("tmp").join(format!("check-{}-{}-{attempt}", key.hex(), std::process::id()));
             let _ = std::fs::remove_dir_all(&scratch);
             std::fs::create_dir_all(&scratch)?;
             let clock = Instant::now();
-            let op = registry.get(&plan.pipeline.stages[inst.stage].operator).expect("validated operator");
-            attempt_in_fresh_process(&crate::exec::executable(op)?, store, &key, n, opts, &scratch).with_context(|| format!("{}: attempt {}", inst.label, attempt + 1))?;
+            attempt_in_fresh_process(&exe, store, &key, n, opts, &scratch).with_context(|| format!("{}: attempt {}", inst.label, attempt + 1))?;
             let tree = hash_tree(&scratch.join("out"))?;
             let threads = if n == 1 { "1 thread".to_owned() } else { format!("{n} threads") };
             println!("  attempt {} (fresh process, {threads}): output {} in {:.1}s", attempt + 1, tree.digest.short(), clock.elapsed().as_secs_f64());
