@@ -12,6 +12,7 @@ fn registry() -> Registry {
     registry.add(rlmflow_tokens::Bpe);
     // Planned here, run by the rlmflow-torch worker.
     registry.add(rlmflow_pretrain::operator());
+    registry.add(rlmflow_probe::linear());
     #[cfg(feature = "python")]
     registry.add(rlmflow_scenes::HighwayEnv);
     registry

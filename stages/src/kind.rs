@@ -88,7 +88,8 @@ const PAPER_KINDS: &[StageKind] = &[
     StageKind {
         name: "probe",
         produces: "ProbeReport",
-        inputs: &[Slot::one("encoder", ENCODER), Slot::one("scenes", SCENES), Slot::one("labels", LABELS), Slot::one("tokens", TOKENS)],
+        // Optional: a pixel baseline reads no encoder (`inputs = { encoder = [] }`).
+        inputs: &[Slot::optional("encoder", ENCODER), Slot::one("scenes", SCENES), Slot::one("labels", LABELS), Slot::one("tokens", TOKENS)],
     },
     StageKind {
         name: "segment",

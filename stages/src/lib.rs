@@ -8,7 +8,7 @@
 //!   checkpoint directory that survives a crash, the seed, a thread budget and a progress handle.
 //!
 //! * [`grid`]: the paper's ego grid and its JSON.
-//! * [`scenes`], [`labels`], [`captions`], [`tokens`], [`encoder`]: each artifact's directory layout, its
+//! * [`scenes`], [`labels`], [`captions`], [`tokens`], [`encoder`], [`probe`]: each artifact's directory layout, its
 //!   writer-side line formats and its reader; [`npy`] for their dense arrays.
 //!
 //! Nothing here knows about scheduling, caching or processes; nothing here knows machine learning.
@@ -21,6 +21,7 @@ pub mod kind;
 pub mod labels;
 pub mod npy;
 pub mod operator;
+pub mod probe;
 pub mod scenes;
 pub mod tokens;
 

@@ -12,6 +12,7 @@ use rlmflow_stages::{Catalog, Registry};
 fn registry() -> Registry {
     let mut registry = Registry::new(Catalog::paper());
     registry.add(rlmflow_pretrain_torch::Clip);
+    registry.add(rlmflow_probe_torch::Linear);
     registry
 }
 

@@ -62,3 +62,15 @@ pub fn logits(image: &Tensor, text: &Tensor, scale: &Tensor) -> Tensor {
 pub fn images_from_u8(pixels: &[u8], batch: i64, side: i64, device: tch::Device) -> Tensor {
     Tensor::from_slice(pixels).view([batch, 1, side, side]).to_device(device).to_kind(Kind::Float) / 127.5 - 1.0
 }
+
+/// A trained model read back from an Encoder artifact, frozen (no gradients), with its weights.
+pub fn load(dir: &std::path::Path, device: tch::Device) -> anyhow::Result<(nn::VarStore, Clip)> {
+    use anyhow::Context as _;
+    let encoder = rlmflow_stages::encoder::Encoder::open(dir)?;
+    let mut vs = nn::VarStore::new(device);
+    let model = Clip::new(&vs.root(), &encoder.config, 0.07, false);
+    let weights = dir.join(rlmflow_stages::encoder::WEIGHTS);
+    vs.freeze();
+    vs.read_safetensors(&weights).with_context(|| format!("loading {}", weights.display()))?;
+    Ok((vs, model))
+}

@@ -1,0 +1,143 @@
+//! The probes on a frozen encoder, on libtorch (they run in the `rlmflow-torch` worker). See
+//! `rlmflow_probe` for what each does; the scoring rule is `rlmflow_stages::probe::score`.
+
+mod ridge;
+
+use std::path::Path;
+
+use anyhow::{Context as _, bail};
+use rand::SeedableRng;
+use rand::seq::SliceRandom;
+use rand_chacha::ChaCha8Rng;
+use rlmflow_nn::clip::{self, images_from_u8};
+use rlmflow_nn::tch::{self, Kind, Tensor};
+use rlmflow_probe::{LinearSettings, Source};
+use rlmflow_stages::grid::CELLS;
+use rlmflow_stages::labels::{Labels, Split};
+use rlmflow_stages::probe::{self, Row, Summary, score};
+use rlmflow_stages::scenes::Scenes;
+use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources};
+use serde_json::json;
+
+pub use ridge::Ridge;
+
+pub struct Linear;
+
+impl Operator for Linear {
+    type Settings = LinearSettings;
+
+    fn spec(&self) -> OperatorSpec {
+        rlmflow_probe::linear_spec()
+    }
+
+    fn resources(&self, s: &LinearSettings) -> Resources {
+        rlmflow_probe::linear_resources(s)
+    }
+
+    fn run(&self, s: &LinearSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        faer::set_global_parallelism(faer::Par::Seq);
+        tch::set_num_threads(s.threads as i32);
+        let scenes = Scenes::open(ctx.input("scenes")?)?;
+        let labels = Labels::open(ctx.input("labels")?)?;
+        if labels.frames.len() as u64 != scenes.len() {
+            bail!("the labels have {} frames but the scenes {}: label the scenes the probe reads", labels.frames.len(), scenes.len());
+        }
+        let encoder = ctx.optional_input("encoder").map(Path::to_path_buf);
+        let features: Vec<(&str, Vec<f64>, usize)> = match (s.source, &encoder) {
+            (Source::Pixels, _) => {
+                let side = scenes.summary.images[0].size;
+                let pixels = (0..scenes.len()).map(|i| scenes.heatmap(i)).collect::<anyhow::Result<Vec<_>>>()?;
+                vec![("pixels", pixels.concat().into_iter().map(f64::from).collect(), side * side)]
+            }
+            (Source::Encoder, Some(dir)) => encoder_features(dir, &scenes, ctx)?,
+            (Source::Encoder, None) => bail!("source = \"encoder\" needs an encoder input; use source = \"pixels\" for the pixel baseline"),
+        };
+        let counts: Vec<f64> = labels.frames.iter().flat_map(|f| f.grid.counts.iter().map(|&c| f64::from(c))).collect();
+        let mut train: Vec<usize> = labels.split(Split::Train).map(|f| f.frame as usize).collect();
+        let test: Vec<usize> = labels.split(Split::Test).map(|f| f.frame as usize).collect();
+        let held = ((train.len() as f64 * s.holdout).round() as usize).max(1);
+        if train.len() <= held || test.is_empty() {
+            bail!("{} training and {} test frames are too few for a held-out strength choice", train.len(), test.len());
+        }
+        train.shuffle(&mut ChaCha8Rng::seed_from_u64(ctx.seed));
+        let (fit, validate) = train.split_at(train.len() - held);
+        let truth = |frames: &[usize]| -> Vec<[u32; CELLS]> { frames.iter().map(|&f| labels.frames[f].grid.counts).collect() };
+
+        let progress = ctx.progress((features.len() * (s.lambdas.len() + 1)) as u64, "ridge fits");
+        let mut rows = Vec::new();
+        let mut predictions = String::new();
+        for (name, x, width) in &features {
+            let rows_of = |data: &[f64], w: usize, frames: &[usize]| -> Vec<f64> { frames.iter().flat_map(|&f| data[f * w..(f + 1) * w].iter().copied()).collect() };
+            // The strength with the best held-out F1 (the first of equals).
+            let mut best: Option<(f64, f64)> = None;
+            for &lambda in &s.lambdas {
+                let ridge = Ridge::fit(&rows_of(x, *width, fit), *width, &rows_of(&counts, CELLS, fit), CELLS, lambda)?;
+                let f1 = score(&round(&ridge.predict(&rows_of(x, *width, validate))), &truth(validate)).overall.f1;
+                if best.is_none_or(|(_, b)| f1 > b) {
+                    best = Some((lambda, f1));
+                }
+                progress.inc(1);
+            }
+            let (lambda, held_f1) = best.expect("at least one strength");
+            let ridge = Ridge::fit(&rows_of(x, *width, &train), *width, &rows_of(&counts, CELLS, &train), CELLS, lambda)?;
+            let predicted = round(&ridge.predict(&rows_of(x, *width, &test)));
+            progress.inc(1);
+            for (&frame, grid) in test.iter().zip(&predicted) {
+                let grid = rlmflow_stages::grid::Grid { counts: *grid, walkers: 0, signs: Vec::new() };
+                predictions.push_str(&format!("{{\"frame\":{frame},\"features\":\"{name}\",\"grid\":{}}}\n", grid.to_json()));
+            }
+            let scores = score(&predicted, &truth(&test));
+            ctx.event("row", json!({"features": name, "lambda": lambda, "f1": scores.overall.f1}));
+            rows.push(Row { features: name.to_string(), details: json!({"lambda": lambda, "held_out_f1": held_f1, "features": width}), scores });
+        }
+        progress.finish();
+        let summary = Summary {
+            format: probe::FORMAT,
+            probe: "linear".into(),
+            train_frames: train.len() as u64,
+            test_frames: test.len() as u64,
+            rows: rows.clone(),
+            generator: serde_json::to_value(s)?,
+        };
+        std::fs::write(ctx.output_dir.join(probe::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
+        std::fs::write(ctx.output_dir.join(probe::PREDICTIONS), predictions)?;
+        let text: Vec<String> = rows.iter().map(|r| format!("{} F1 {:.3}", r.features, r.scores.overall.f1)).collect();
+        let metrics = json!(rows.iter().map(|r| (r.features.clone(), json!({"f1": r.scores.overall.f1, "precision": r.scores.overall.precision, "recall": r.scores.overall.recall}))).collect::<serde_json::Map<_, _>>());
+        Ok(Outcome { metrics, summary: format!("{} test frames: {}", test.len(), text.join(", ")) })
+    }
+}
+
+/// Predicted counts: rounded, at least zero.
+fn round(predictions: &[f64]) -> Vec<[u32; CELLS]> {
+    predictions.chunks_exact(CELLS).map(|row| std::array::from_fn(|c| row[c].round().max(0.0) as u32)).collect()
+}
+
+/// Every frame's projected CLS embedding and mean patch token from the frozen encoder.
+fn encoder_features(dir: &Path, scenes: &Scenes, ctx: &Context) -> anyhow::Result<Vec<(&'static str, Vec<f64>, usize)>> {
+    let device = rlmflow_nn::device(ctx.device);
+    let (_vs, model) = clip::load(dir, device).with_context(|| format!("reading the encoder at {}", dir.display()))?;
+    let side = scenes.summary.images[0].size as i64;
+    if side != model.config.vision.image {
+        bail!("the encoder was trained on {} px images, the scenes have {side} px", model.config.vision.image);
+    }
+    let (mut cls, mut patches) = (Vec::new(), Vec::new());
+    tch::no_grad(|| -> anyhow::Result<()> {
+        for start in (0..scenes.len()).step_by(256) {
+            let frames: Vec<u64> = (start..(start + 256).min(scenes.len())).collect();
+            let pixels = frames.iter().map(|&i| scenes.heatmap(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
+            let out = model.encode_image(&images_from_u8(&pixels, frames.len() as i64, side, device), false);
+            let mean = out.tokens.narrow(1, 1, out.tokens.size()[1] - 1).mean_dim([1].as_slice(), false, Kind::Float);
+            cls.push(out.embedding.to_kind(Kind::Double).to_device(tch::Device::Cpu));
+            patches.push(mean.to_kind(Kind::Double).to_device(tch::Device::Cpu));
+        }
+        Ok(())
+    })?;
+    let flat = |parts: Vec<Tensor>| -> anyhow::Result<(Vec<f64>, usize)> {
+        let t = Tensor::cat(&parts, 0);
+        let width = t.size()[1] as usize;
+        Ok((Vec::<f64>::try_from(t.flatten(0, -1))?, width))
+    };
+    let (c, cw) = flat(cls)?;
+    let (p, pw) = flat(patches)?;
+    Ok(vec![("cls", c, cw), ("mean-patch", p, pw)])
+}

@@ -1,0 +1,169 @@
+//! The ProbeReport artifact, and the one scoring rule every probe uses.
+//!
+//! ```text
+//! probe.json         summary: the probe, its settings, one scored row per feature set
+//!                    (e.g. `cls` and `mean-patch`, or `pixels`), chance and test sizes
+//! predictions.jsonl  per test frame and row: {"frame", "features", "grid"} (the predicted
+//!                    grid in the paper's JSON; a caption probe adds "caption")
+//! ```
+//!
+//! Scoring (the paper's): per test frame and cell (distance bin, sector), TP = min(pred, true),
+//! FP = max(0, pred - true), FN = max(0, true - pred); summed over the test frames
+//! (micro-averaged), then precision, recall and F1 per cell, per distance bin (its 12 cells)
+//! and overall (all 48).
+
+use serde::{Deserialize, Serialize};
+
+use crate::grid::{CELLS, DISTANCE_BINS, SECTORS};
+
+pub const SUMMARY: &str = "probe.json";
+pub const PREDICTIONS: &str = "predictions.jsonl";
+pub const FORMAT: u32 = 1;
+
+/// Summed true positives, false positives and false negatives.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Counts {
+    pub tp: u64,
+    pub fp: u64,
+    #[serde(rename = "fn")]
+    pub fn_: u64,
+}
+
+impl Counts {
+    fn add(&mut self, pred: u32, truth: u32) {
+        self.tp += u64::from(pred.min(truth));
+        self.fp += u64::from(pred.saturating_sub(truth));
+        self.fn_ += u64::from(truth.saturating_sub(pred));
+    }
+
+    fn merge(&mut self, other: &Counts) {
+        self.tp += other.tp;
+        self.fp += other.fp;
+        self.fn_ += other.fn_;
+    }
+
+    /// TP / (TP + FP); 0 when nothing was predicted.
+    pub fn precision(&self) -> f64 {
+        ratio(self.tp, self.tp + self.fp)
+    }
+
+    /// TP / (TP + FN); 0 when nothing was there.
+    pub fn recall(&self) -> f64 {
+        ratio(self.tp, self.tp + self.fn_)
+    }
+
+    pub fn f1(&self) -> f64 {
+        ratio(2 * self.tp, 2 * self.tp + self.fp + self.fn_)
+    }
+}
+
+fn ratio(a: u64, b: u64) -> f64 {
+    if b == 0 { 0.0 } else { a as f64 / b as f64 }
+}
+
+/// Precision, recall and F1 of one group of cells.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Score {
+    pub precision: f64,
+    pub recall: f64,
+    pub f1: f64,
+    pub counts: Counts,
+}
+
+impl From<Counts> for Score {
+    fn from(counts: Counts) -> Score {
+        Score { precision: counts.precision(), recall: counts.recall(), f1: counts.f1(), counts }
+    }
+}
+
+/// A probe's scores on the test split.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Scores {
+    pub overall: Score,
+    /// By distance bin, keyed as the paper (`0-10m`, ...).
+    pub bins: std::collections::BTreeMap<String, Score>,
+    /// By cell, keyed `bin/sector`.
+    pub cells: std::collections::BTreeMap<String, Score>,
+}
+
+/// Scores predicted count grids against the true ones (same frames, same order).
+pub fn score(predicted: &[[u32; CELLS]], truth: &[[u32; CELLS]]) -> Scores {
+    assert_eq!(predicted.len(), truth.len(), "one prediction per frame");
+    let mut cells = [Counts::default(); CELLS];
+    for (p, t) in predicted.iter().zip(truth) {
+        for c in 0..CELLS {
+            cells[c].add(p[c], t[c]);
+        }
+    }
+    let mut overall = Counts::default();
+    let mut bins = std::collections::BTreeMap::new();
+    for (b, bin) in DISTANCE_BINS.iter().enumerate() {
+        let mut sum = Counts::default();
+        for c in &cells[b * SECTORS.len()..(b + 1) * SECTORS.len()] {
+            sum.merge(c);
+        }
+        overall.merge(&sum);
+        bins.insert(bin.to_string(), Score::from(sum));
+    }
+    let cells = (0..CELLS).map(|c| (format!("{}/{}", DISTANCE_BINS[c / SECTORS.len()], SECTORS[c % SECTORS.len()]), Score::from(cells[c]))).collect();
+    Scores { overall: Score::from(overall), bins, cells }
+}
+
+/// One scored row of a probe: which features it read and how it did.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Row {
+    /// `cls`, `mean-patch`, `pixels`, or `caption` for a caption probe.
+    pub features: String,
+    /// Probe-specific facts (a ridge's chosen strength, a decoder's beam).
+    pub details: serde_json::Value,
+    pub scores: Scores,
+}
+
+/// `probe.json`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Summary {
+    pub format: u32,
+    pub probe: String,
+    pub train_frames: u64,
+    pub test_frames: u64,
+    pub rows: Vec<Row>,
+    /// The probe's settings.
+    pub generator: serde_json::Value,
+}
+
+pub fn read_summary(dir: &std::path::Path) -> anyhow::Result<Summary> {
+    crate::read_summary(dir, SUMMARY, "ProbeReport", "probe", FORMAT)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scores_follow_the_papers_rule_on_a_hand_computed_case() {
+        let mut truth = [[0u32; CELLS]; 2];
+        let mut pred = [[0u32; CELLS]; 2];
+        // Frame 0: cell 0 true 3, predicted 1 (tp 1, fn 2); cell 13 (bin 1) true 0, predicted 2 (fp 2).
+        truth[0][0] = 3;
+        pred[0][0] = 1;
+        pred[0][13] = 2;
+        // Frame 1: cell 0 true 1, predicted 1 (tp 1); cell 47 (bin 3) true 4, predicted 4 (tp 4).
+        truth[1][0] = 1;
+        pred[1][0] = 1;
+        truth[1][47] = 4;
+        pred[1][47] = 4;
+        let s = score(&pred, &truth);
+        assert_eq!(s.cells["0-10m/left_lane_front_side"].counts, Counts { tp: 2, fp: 0, fn_: 2 });
+        assert_eq!(s.bins["0-10m"].precision, 1.0);
+        assert_eq!(s.bins["0-10m"].recall, 0.5);
+        assert!((s.bins["0-10m"].f1 - 2.0 / 3.0).abs() < 1e-12);
+        assert_eq!(s.bins["10-20m"].counts, Counts { tp: 0, fp: 2, fn_: 0 });
+        assert_eq!((s.bins["10-20m"].precision, s.bins["10-20m"].recall, s.bins["10-20m"].f1), (0.0, 0.0, 0.0));
+        assert_eq!(s.bins["30-40m"].f1, 1.0);
+        // Overall: tp 6, fp 2, fn 2.
+        assert_eq!(s.overall.counts, Counts { tp: 6, fp: 2, fn_: 2 });
+        assert!((s.overall.f1 - 0.75).abs() < 1e-12);
+        // Perfect predictions score 1.
+        assert_eq!(score(&truth, &truth).overall.f1, 1.0);
+    }
+}

@@ -1,0 +1,95 @@
+//! The linear probe end to end through the real binaries: on small data the test makes through
+//! the pipeline, ridge from the frozen encoder's features and from raw pixels both read the
+//! counts back better than a trivial predictor (each frame given the training split's mean
+//! counts, rounded), and the pixel baseline does not fan out over the encoder's variants.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use rlmflow_stages::grid::CELLS;
+use rlmflow_stages::labels::{Labels, Split};
+use rlmflow_stages::probe::score;
+
+fn rlmflow(dir: &Path, args: &[&str]) -> (bool, String) {
+    let exe = Path::new(env!("CARGO_BIN_EXE_rlmflow-torch")).with_file_name("rlmflow");
+    let out = Command::new(exe).current_dir(dir).args(args).output().unwrap();
+    (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
+}
+
+const PIPELINE: &str = r#"[pipeline]
+name = "probe"
+seed = 5
+
+[stages.scenes]
+operator = "procedural"
+frames = 1000
+radar = { image = 32 }
+
+[stages.labels]
+operator = "ego-grid"
+
+[stages.captions]
+operator = "template"
+per_frame = 2
+
+[stages.tokens]
+operator = "bpe"
+vocab = 400
+context = 128
+
+[stages.pretrain]
+operator = "clip"
+device = "cpu"
+batch = 64
+epochs = 4
+[stages.pretrain.variants]
+clip = {}
+random = { epochs = 0, warmup_epochs = 0.0 }
+
+[stages.linear]
+kind = "probe"
+operator = "linear"
+
+[stages.pixels]
+kind = "probe"
+operator = "linear"
+source = "pixels"
+inputs = { encoder = [] }
+"#;
+
+fn object(dir: &Path, label: &str) -> PathBuf {
+    let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
+    let record = store.record(&store.last_keys("probe").unwrap()[label]).unwrap().unwrap();
+    store.object_dir(&record.output)
+}
+
+#[test]
+fn ridge_on_encoder_features_and_on_pixels_beats_a_trivial_predictor() {
+    let dir = std::env::temp_dir().join(format!("rlmflow-probe-linear-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("p.toml"), PIPELINE).unwrap();
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--json"]);
+    assert!(ok, "{out}");
+    let pixel_runs = out.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains("\"stage\":\"pixels")).count();
+    assert_eq!(pixel_runs, 1, "the pixel baseline runs once, not per encoder variant");
+
+    // The trivial predictor: the training split's mean counts, rounded, for every test frame.
+    let labels = Labels::open(&object(&dir, "labels")).unwrap();
+    let train: Vec<&[u32; CELLS]> = labels.split(Split::Train).map(|f| &f.grid.counts).collect();
+    let mean: [u32; CELLS] = std::array::from_fn(|c| (train.iter().map(|t| f64::from(t[c])).sum::<f64>() / train.len() as f64).round() as u32);
+    let truth: Vec<[u32; CELLS]> = labels.split(Split::Test).map(|f| f.grid.counts).collect();
+    let trivial = score(&vec![mean; truth.len()], &truth).overall.f1;
+
+    for (label, rows) in [("pixels", vec!["pixels"]), ("linear[clip]", vec!["cls", "mean-patch"]), ("linear[random]", vec!["cls", "mean-patch"])] {
+        let summary = rlmflow_stages::probe::read_summary(&object(&dir, label)).unwrap();
+        let names: Vec<&str> = summary.rows.iter().map(|r| r.features.as_str()).collect();
+        assert_eq!(names, rows, "{label}");
+        assert_eq!(summary.test_frames as usize, truth.len());
+        let predictions = std::fs::read_to_string(object(&dir, label).join("predictions.jsonl")).unwrap();
+        assert_eq!(predictions.lines().count(), truth.len() * rows.len());
+        for row in &summary.rows {
+            assert!(row.scores.overall.f1 > trivial, "{label} {}: F1 {} vs trivial {trivial}", row.features, row.scores.overall.f1);
+        }
+    }
+}
