@@ -89,7 +89,12 @@ pub fn check_libtorch(dir: &Path) -> anyhow::Result<()> {
     let version = recorded.as_deref().map(|v| v.trim().split('+').next().unwrap_or_default().to_owned());
     match version {
         Some(v) if v == TORCH_VERSION => Ok(()),
-        Some(v) => bail!("{} holds torch {v}; tch needs {TORCH_VERSION} (Python {}.{}+ installs it: unset LIBTORCH)", dir.display(), MIN_VERSION.0, MIN_VERSION.1),
+        Some(v) => bail!(
+            "{} holds torch {v}; tch needs {TORCH_VERSION} (Python {}.{}+ installs it: unset LIBTORCH)",
+            dir.display(),
+            MIN_VERSION.0,
+            MIN_VERSION.1
+        ),
         None => bail!("{} records no torch version (version.py or build-version)", dir.display()),
     }
 }

@@ -22,7 +22,10 @@ const THREADS: i32 = 2;
 
 fn main() {
     tch::set_num_threads(THREADS);
-    let cases = [("laptop: conv-tiny + tiny text, 64 px", "conv-tiny", "tiny", 64, 256, 128, 10), ("paper: vit-b16 + paper text, 224 px", "vit-b16", "paper", 224, 400, 4, 3)];
+    let cases = [
+        ("laptop: conv-tiny + tiny text, 64 px", "conv-tiny", "tiny", 64, 256, 128, 10),
+        ("paper: vit-b16 + paper text, 224 px", "vit-b16", "paper", 224, 400, 4, 3),
+    ];
     for (name, encoder, text, image, context, batch, steps) in cases {
         let settings = ClipSettings { encoder: encoder.into(), text: text.into(), ..ClipSettings::default() };
         let config = model_config(&settings, image, context, 2048, 1).expect("a valid config");

@@ -75,7 +75,9 @@ fn summary(dir: &Path, label: &str) -> serde_json::Value {
 fn the_ci_size_model_learns_retrieval_above_chance_and_above_random_init() {
     let dir = scratch(
         "learns",
-        &pipeline("epochs = 12\nwarmup_epochs = 1.0\n[stages.pretrain.variants]\nclip = {}\nsgclip = { objective = \"sg-clip\", alpha = 4.0 }\nrandom = { epochs = 0, warmup_epochs = 0.0 }"),
+        &pipeline(
+            "epochs = 12\nwarmup_epochs = 1.0\n[stages.pretrain.variants]\nclip = {}\nsgclip = { objective = \"sg-clip\", alpha = 4.0 }\nrandom = { epochs = 0, warmup_epochs = 0.0 }",
+        ),
     );
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
@@ -105,7 +107,8 @@ fn a_run_killed_between_epochs_resumes_to_the_weights_of_an_uninterrupted_one() 
     let expected = std::fs::read(encoder(&reference, "pretrain").join("model.safetensors")).unwrap();
 
     let dir = scratch("killed", &text);
-    let mut run = Command::new(rlmflow_exe()).current_dir(&dir).args(["run", "p.toml"]).stdout(std::process::Stdio::null()).process_group(0).spawn().unwrap();
+    let mut run =
+        Command::new(rlmflow_exe()).current_dir(&dir).args(["run", "p.toml"]).stdout(std::process::Stdio::null()).process_group(0).spawn().unwrap();
     let epochs_done = |dir: &Path| -> usize {
         let Ok(checkpoints) = std::fs::read_dir(dir.join(".rlmflow/checkpoints")) else { return 0 };
         checkpoints

@@ -1,8 +1,8 @@
 //! The residual attention blocks both towers share, named as open_clip's `transformer.py`
 //! (`resblocks.N.ln_1`, `attn.in_proj_weight`, `attn.out_proj`, `ln_2`, `mlp.c_fc`, `mlp.c_proj`).
 
-use tch::nn::{self, Module};
 use tch::Tensor;
+use tch::nn::{self, Module};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Activation {

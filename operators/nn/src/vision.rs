@@ -3,8 +3,8 @@
 //! `transformer`, `ln_post`, `proj`), with either a patch embedding or a convolutional stem.
 
 use rlmflow_stages::encoder::{Head, Stem, VisionConfig};
-use tch::nn::{self, Module, ModuleT};
 use tch::Tensor;
+use tch::nn::{self, Module, ModuleT};
 
 use crate::transformer::{Activation, Transformer};
 
@@ -89,7 +89,9 @@ impl VisionTower {
     pub fn forward(&self, images: &Tensor, train: bool) -> VisionOutput {
         let grid = match &self.embedding {
             Embedding::Patch(conv) => conv.forward(images),
-            Embedding::Conv(layers) => layers.iter().fold(images.shallow_clone(), |x, (conv, bn)| bn.forward_t(&conv.forward(&x), train).gelu("none")),
+            Embedding::Conv(layers) => {
+                layers.iter().fold(images.shallow_clone(), |x, (conv, bn)| bn.forward_t(&conv.forward(&x), train).gelu("none"))
+            }
         };
         let (b, w) = (grid.size()[0], grid.size()[1]);
         let patches = grid.flatten(2, 3).transpose(1, 2);

@@ -37,7 +37,12 @@ fn losses_and_gradients_match_pytorch() {
             }
         };
         let what = format!("{} alpha {:?}", case["objective"], case["alpha"]);
-        assert!((loss.double_value(&[]) - case["loss"].as_f64().unwrap()).abs() < 1e-9, "{what}: loss {} vs {}", loss.double_value(&[]), case["loss"]);
+        assert!(
+            (loss.double_value(&[]) - case["loss"].as_f64().unwrap()).abs() < 1e-9,
+            "{what}: loss {} vs {}",
+            loss.double_value(&[]),
+            case["loss"]
+        );
         assert!((off - case["off_diagonal"].as_f64().unwrap()).abs() < 1e-6, "{what}: off-diagonal {off} vs {}", case["off_diagonal"]);
         loss.backward();
         assert_close(&image.grad(), &matrix(&case["grad_image"]), &format!("{what}: image gradient"));

@@ -203,7 +203,10 @@ pub fn model_config(s: &ClipSettings, image: i64, context: i64, vocab: i64, end_
     if let Some(t) = &text
         && context % t.group != 0
     {
-        return Err(SettingError::new("text", format!("`{}` groups {} tokens; the tokens stage's context {context} is not a multiple", s.text, t.group)));
+        return Err(SettingError::new(
+            "text",
+            format!("`{}` groups {} tokens; the tokens stage's context {context} is not a multiple", s.text, t.group),
+        ));
     }
     let counts_head = if s.objective == Objective::Counts { CELLS as i64 } else { 0 };
     Ok(ModelConfig { embed, vision, text, counts_head })

@@ -43,7 +43,9 @@ impl Dataset {
         let ids = tokens.ids.all_u32().context("reading the token ids")?;
         let mut captions = vec![Vec::new(); labels.frames.len()];
         for (row, &frame) in tokens.frames.iter().enumerate() {
-            let list = captions.get_mut(frame as usize).with_context(|| format!("caption {row} names frame {frame}, past the scenes' {}", labels.frames.len()))?;
+            let list = captions
+                .get_mut(frame as usize)
+                .with_context(|| format!("caption {row} names frame {frame}, past the scenes' {}", labels.frames.len()))?;
             list.push(row);
         }
         let split = |s: Split| labels.split(s).map(|f| f.frame as usize).filter(|&f| !need_captions || !captions[f].is_empty()).collect::<Vec<_>>();

@@ -75,7 +75,8 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     let device = device(s, ctx)?;
     let text = s.objective != Objective::Counts;
     let data = Dataset::load(ctx.input("scenes")?, ctx.input("labels")?, ctx.input("tokens")?, text)?;
-    let config = rlmflow_pretrain::model_config(s, data.side, data.context, data.vocab, data.end_token).map_err(|e| anyhow::anyhow!("setting `{e}`"))?;
+    let config =
+        rlmflow_pretrain::model_config(s, data.side, data.context, data.vocab, data.end_token).map_err(|e| anyhow::anyhow!("setting `{e}`"))?;
 
     tch::manual_seed(ctx.seed as i64);
     let vs = nn::VarStore::new(device);
@@ -232,7 +233,15 @@ fn save_checkpoint(vs: &nn::VarStore, opt: &AdamW, log: &[Value], dir: &Path) ->
     Ok(())
 }
 
-fn write_artifact(s: &ClipSettings, ctx: &Context, vs: &nn::VarStore, config: &ModelConfig, data: &Dataset, log: &[Value], steps: u64) -> anyhow::Result<Outcome> {
+fn write_artifact(
+    s: &ClipSettings,
+    ctx: &Context,
+    vs: &nn::VarStore,
+    config: &ModelConfig,
+    data: &Dataset,
+    log: &[Value],
+    steps: u64,
+) -> anyhow::Result<Outcome> {
     let out = &ctx.output_dir;
     let cpu: Vec<(String, Tensor)> = named_variables(vs).into_iter().map(|(n, t)| (n, t.to_device(tch::Device::Cpu))).collect();
     Tensor::write_safetensors(&cpu, out.join(encoder::WEIGHTS))?;
@@ -255,10 +264,15 @@ fn write_artifact(s: &ClipSettings, ctx: &Context, vs: &nn::VarStore, config: &M
     };
     std::fs::write(out.join(encoder::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
     let text = match (last.get("top1"), last.get("top5")) {
-        (Some(t1), Some(t5)) => format!("test retrieval top-1 {:.3} top-5 {:.3} (chance {:.4})", t1.as_f64().unwrap_or(0.0), t5.as_f64().unwrap_or(0.0), 1.0 / n),
+        (Some(t1), Some(t5)) => {
+            format!("test retrieval top-1 {:.3} top-5 {:.3} (chance {:.4})", t1.as_f64().unwrap_or(0.0), t5.as_f64().unwrap_or(0.0), 1.0 / n)
+        }
         _ => format!("test counts MSE {:.3}", last.get("test_mse").and_then(Value::as_f64).unwrap_or(f64::NAN)),
     };
-    Ok(Outcome { metrics: json!({"last": last, "steps": steps, "chance_top1": 1.0 / n}), summary: format!("{} epochs, {steps} steps; {text}", s.epochs) })
+    Ok(Outcome {
+        metrics: json!({"last": last, "steps": steps, "chance_top1": 1.0 / n}),
+        summary: format!("{} epochs, {steps} steps; {text}", s.epochs),
+    })
 }
 
 /// Starts the radar tower from a CLIP ViT-B/16 safetensors file with open_clip names
@@ -275,7 +289,11 @@ pub fn load_clip_vision(vs: &nn::VarStore, path: &Path) -> anyhow::Result<usize>
         for (name, mut var) in ours {
             let Some(rest) = name.strip_prefix("visual.") else { continue };
             let Some(found) = clip_source(&source, rest) else { continue };
-            let found = if rest == "conv1.weight" && found.size().get(1) == Some(&3) { found.sum_dim_intlist([1].as_slice(), true, found.kind()) } else { found };
+            let found = if rest == "conv1.weight" && found.size().get(1) == Some(&3) {
+                found.sum_dim_intlist([1].as_slice(), true, found.kind())
+            } else {
+                found
+            };
             if found.size() != var.size() {
                 if rest == "proj" {
                     continue;
@@ -313,7 +331,8 @@ fn clip_source(source: &HashMap<String, Tensor>, rest: &str) -> Option<Tensor> {
             let rest = rest.strip_prefix("transformer.resblocks.")?;
             let (i, key) = rest.split_once('.')?;
             let qkv = |suffix: &str| -> Option<Tensor> {
-                let parts: Option<Vec<Tensor>> = ["q_proj", "k_proj", "v_proj"].iter().map(|p| hf(&layer(i, &format!("self_attn.{p}.{suffix}")))).collect();
+                let parts: Option<Vec<Tensor>> =
+                    ["q_proj", "k_proj", "v_proj"].iter().map(|p| hf(&layer(i, &format!("self_attn.{p}.{suffix}")))).collect();
                 parts.map(|p| Tensor::cat(&p, 0))
             };
             match key {
@@ -398,7 +417,10 @@ mod tests {
         assert_eq!(load_clip_vision(&vs, &file).unwrap(), visual, "every radar-tower tensor has a source");
         let source: HashMap<String, Tensor> = hf.into_iter().collect();
         let same = |a: &Tensor, b: &Tensor| (a - b).abs().max().double_value(&[]) < 1e-6;
-        assert!(same(&var(&vs, "visual.conv1.weight"), &source["vision_model.embeddings.patch_embedding.weight"].sum_dim_intlist([1].as_slice(), true, Kind::Float)));
+        assert!(same(
+            &var(&vs, "visual.conv1.weight"),
+            &source["vision_model.embeddings.patch_embedding.weight"].sum_dim_intlist([1].as_slice(), true, Kind::Float)
+        ));
         let qkv = Tensor::cat(&["q_proj", "k_proj", "v_proj"].map(|p| source[&layer(&format!("self_attn.{p}.weight"))].shallow_clone()), 0);
         assert!(same(&var(&vs, "visual.transformer.resblocks.0.attn.in_proj_weight"), &qkv));
         assert!(same(&var(&vs, "visual.proj"), &source["visual_projection.weight"].tr()));

@@ -67,7 +67,9 @@ impl Operator for Linear {
         let mut rows = Vec::new();
         let mut predictions = String::new();
         for (name, x, width) in &features {
-            let rows_of = |data: &[f64], w: usize, frames: &[usize]| -> Vec<f64> { frames.iter().flat_map(|&f| data[f * w..(f + 1) * w].iter().copied()).collect() };
+            let rows_of = |data: &[f64], w: usize, frames: &[usize]| -> Vec<f64> {
+                frames.iter().flat_map(|&f| data[f * w..(f + 1) * w].iter().copied()).collect()
+            };
             // The strength with the best held-out F1 (the first of equals).
             let mut best: Option<(f64, f64)> = None;
             for &lambda in &s.lambdas {
@@ -102,7 +104,14 @@ impl Operator for Linear {
         std::fs::write(ctx.output_dir.join(probe::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
         std::fs::write(ctx.output_dir.join(probe::PREDICTIONS), predictions)?;
         let text: Vec<String> = rows.iter().map(|r| format!("{} F1 {:.3}", r.features, r.scores.overall.f1)).collect();
-        let metrics = json!(rows.iter().map(|r| (r.features.clone(), json!({"f1": r.scores.overall.f1, "precision": r.scores.overall.precision, "recall": r.scores.overall.recall}))).collect::<serde_json::Map<_, _>>());
+        let metrics = json!(
+            rows.iter()
+                .map(|r| (
+                    r.features.clone(),
+                    json!({"f1": r.scores.overall.f1, "precision": r.scores.overall.precision, "recall": r.scores.overall.recall})
+                ))
+                .collect::<serde_json::Map<_, _>>()
+        );
         Ok(Outcome { metrics, summary: format!("{} test frames: {}", test.len(), text.join(", ")) })
     }
 }

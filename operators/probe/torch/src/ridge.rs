@@ -21,7 +21,8 @@ impl Ridge {
     pub fn fit(x: &[f64], features: usize, y: &[f64], targets: usize, lambda: f64) -> anyhow::Result<Ridge> {
         let n = x.len() / features;
         assert_eq!(y.len(), n * targets, "one target row per feature row");
-        let column_mean = |data: &[f64], width: usize| -> Vec<f64> { (0..width).map(|j| (0..n).map(|i| data[i * width + j]).sum::<f64>() / n as f64).collect() };
+        let column_mean =
+            |data: &[f64], width: usize| -> Vec<f64> { (0..width).map(|j| (0..n).map(|i| data[i * width + j]).sum::<f64>() / n as f64).collect() };
         let mean = column_mean(x, features);
         let scale: Vec<f64> = (0..features)
             .map(|j| {
