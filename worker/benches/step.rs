@@ -19,6 +19,7 @@ use rlmflow_nn::tch::{self, Kind, Tensor, nn};
 use rlmflow_pretrain::{ClipSettings, model_config};
 
 const THREADS: i32 = 2;
+const ROUNDS: usize = 3;
 
 fn main() {
     tch::set_num_threads(THREADS);
@@ -26,26 +27,39 @@ fn main() {
         ("laptop: conv-tiny + tiny text, 64 px", "conv-tiny", "tiny", 64, 256, 128, 10),
         ("paper: vit-b16 + paper text, 224 px", "vit-b16", "paper", 224, 400, 4, 3),
     ];
+    let python = std::env::var_os("RLMFLOW_TORCH_PYTHON");
     for (name, encoder, text, image, context, batch, steps) in cases {
         let settings = ClipSettings { encoder: encoder.into(), text: text.into(), ..ClipSettings::default() };
         let config = model_config(&settings, image, context, 2048, 1).expect("a valid config");
-        let ours = step_ms(&config, batch, steps);
-        let samples = batch as f64 / ours * 1000.0;
-        print!("{name}, batch {batch}: rlmflow {ours:.1} ms/step ({samples:.0} samples/s)");
-        match std::env::var_os("RLMFLOW_TORCH_PYTHON") {
-            Some(python) => {
+        // Rounds alternate between the two, so a drift in the machine's speed hits both alike.
+        let (mut ours, mut theirs) = (Vec::new(), Vec::new());
+        for _ in 0..ROUNDS {
+            ours.push(step_ms(&config, batch, steps));
+            if let Some(python) = &python {
                 let script = concat!(env!("CARGO_MANIFEST_DIR"), "/benches/step_reference.py");
                 let out = std::process::Command::new(python)
                     .args([script, &serde_json::to_string(&config).unwrap(), &batch.to_string(), &steps.to_string(), &THREADS.to_string()])
                     .output()
                     .expect("running the PyTorch reference");
                 assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-                let theirs: f64 = String::from_utf8_lossy(&out.stdout).trim().parse().expect("milliseconds");
-                println!("; PyTorch {theirs:.1} ms/step; ratio {:.3} (target <= 1.05)", ours / theirs);
+                theirs.push(String::from_utf8_lossy(&out.stdout).trim().parse::<f64>().expect("milliseconds"));
             }
-            None => println!("; set RLMFLOW_TORCH_PYTHON to an interpreter with torch 2.11 for the PyTorch reference"),
+        }
+        let ours = median(ours);
+        print!("{name}, batch {batch}: rlmflow {ours:.1} ms/step ({:.0} samples/s)", batch as f64 / ours * 1000.0);
+        match theirs.is_empty() {
+            false => {
+                let theirs = median(theirs);
+                println!("; PyTorch {theirs:.1} ms/step; ratio {:.3} (target <= 1.05; medians of {ROUNDS} alternating rounds)", ours / theirs);
+            }
+            true => println!("; set RLMFLOW_TORCH_PYTHON to an interpreter with torch 2.11 for the PyTorch reference"),
         }
     }
+}
+
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
 }
 
 /// The median time of `steps` training steps (after two warm-up steps) on synthetic data.
@@ -73,7 +87,5 @@ fn step_ms(config: &rlmflow_stages::encoder::ModelConfig, batch: i64, steps: usi
         opt.step(1e-4);
         times.push(t0.elapsed().as_secs_f64() * 1000.0);
     }
-    let mut timed = times.split_off(2);
-    timed.sort_by(f64::total_cmp);
-    timed[timed.len() / 2]
+    median(times.split_off(2))
 }
