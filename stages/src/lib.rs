@@ -7,7 +7,7 @@
 //! * [`context`]: what an operator is given when it runs: input paths, an output directory, a
 //!   checkpoint directory that survives a crash, the seed, a thread budget and a progress handle.
 //!
-//! * [`grid`]: the paper's ego grid and its JSON.
+//! * [`grid`]: the paper's ego grid and its JSON; [`segment`]: the segmentation metrics.
 //! * [`scenes`], [`labels`], [`captions`], [`tokens`], [`encoder`], [`probe`]: each artifact's directory layout, its
 //!   writer-side line formats and its reader; [`npy`] for their dense arrays.
 //!
@@ -23,6 +23,7 @@ pub mod npy;
 pub mod operator;
 pub mod probe;
 pub mod scenes;
+pub mod segment;
 pub mod tokens;
 
 pub use context::{Context, Device, Input, Progress, Reporter};
