@@ -129,6 +129,15 @@ impl Labels {
         self.masks.row_u8(frame as usize).with_context(|| format!("labels in {}", self.dir.display()))
     }
 
+    /// Checks that these labels describe a Scenes artifact of `frames` frames: a stage that reads
+    /// both must be given the scenes that were labelled.
+    pub fn check_scenes(&self, frames: u64) -> anyhow::Result<()> {
+        if self.frames.len() as u64 != frames {
+            bail!("the labels have {} frames but the scenes {frames}: give the stage the scenes that were labelled", self.frames.len());
+        }
+        Ok(())
+    }
+
     pub fn split(&self, split: Split) -> impl Iterator<Item = &FrameLabel> {
         self.frames.iter().filter(move |f| f.split == split)
     }

@@ -3,68 +3,22 @@
 //! learns (retrieval well above chance and above the same model untrained), a run killed
 //! between epochs resumes to the same weights, and two fresh processes give the same bytes.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-/// `rlmflow`, built beside this package's worker.
-fn rlmflow_exe() -> PathBuf {
-    let exe = Path::new(env!("CARGO_BIN_EXE_rlmflow-torch")).with_file_name("rlmflow");
-    assert!(exe.is_file(), "{} is missing: build the workspace (`cargo xtask test` does)", exe.display());
-    exe
-}
+use common::{rlmflow, rlmflow_exe, scratch};
 
-fn rlmflow(dir: &Path, args: &[&str]) -> (bool, String) {
-    let out = Command::new(rlmflow_exe()).current_dir(dir).args(args).output().unwrap();
-    (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
-}
-
-/// Procedural scenes, labels, template captions and tokens, then `pretrain` as given.
+/// The data stages, then `pretrain` as given.
 fn pipeline(pretrain: &str) -> String {
-    format!(
-        r#"[pipeline]
-name = "pretrain"
-seed = 3
-
-[stages.scenes]
-operator = "procedural"
-frames = 1200
-radar = {{ image = 32 }}
-
-[stages.labels]
-operator = "ego-grid"
-
-[stages.captions]
-operator = "template"
-per_frame = 3
-
-[stages.tokens]
-operator = "bpe"
-vocab = 400
-context = 128
-
-[stages.pretrain]
-operator = "clip"
-device = "cpu"
-batch = 64
-{pretrain}
-"#
-    )
-}
-
-fn scratch(name: &str, text: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rlmflow-pretrain-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    std::fs::write(dir.join("p.toml"), text).unwrap();
-    dir
+    format!("{}\n[stages.pretrain]\noperator = \"clip\"\ndevice = \"cpu\"\nbatch = 64\n{pretrain}\n", common::data_stages("pretrain", 3, 1200, 3))
 }
 
 /// The Encoder artifact of `label`.
 fn encoder(dir: &Path, label: &str) -> PathBuf {
-    let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
-    let record = store.record(&store.last_keys("pretrain").unwrap()[label]).unwrap().unwrap();
-    store.object_dir(&record.output)
+    common::output(dir, "pretrain", label)
 }
 
 fn summary(dir: &Path, label: &str) -> serde_json::Value {

@@ -3,40 +3,16 @@
 //! counts back better than a trivial predictor (each frame given the training split's mean
 //! counts, rounded), and the pixel baseline does not fan out over the encoder's variants.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod common;
 
+use std::path::{Path, PathBuf};
+
+use common::rlmflow;
 use rlmflow_stages::grid::CELLS;
 use rlmflow_stages::labels::{Labels, Split};
 use rlmflow_stages::probe::score;
 
-fn rlmflow(dir: &Path, args: &[&str]) -> (bool, String) {
-    let exe = Path::new(env!("CARGO_BIN_EXE_rlmflow-torch")).with_file_name("rlmflow");
-    let out = Command::new(exe).current_dir(dir).args(args).output().unwrap();
-    (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
-}
-
-const PIPELINE: &str = r#"[pipeline]
-name = "probe"
-seed = 5
-
-[stages.scenes]
-operator = "procedural"
-frames = 1000
-radar = { image = 32 }
-
-[stages.labels]
-operator = "ego-grid"
-
-[stages.captions]
-operator = "template"
-per_frame = 2
-
-[stages.tokens]
-operator = "bpe"
-vocab = 400
-context = 128
-
+const MODELS: &str = r#"
 [stages.pretrain]
 operator = "clip"
 device = "cpu"
@@ -58,17 +34,12 @@ inputs = { encoder = [] }
 "#;
 
 fn object(dir: &Path, label: &str) -> PathBuf {
-    let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
-    let record = store.record(&store.last_keys("probe").unwrap()[label]).unwrap().unwrap();
-    store.object_dir(&record.output)
+    common::output(dir, "probe", label)
 }
 
 #[test]
 fn ridge_on_encoder_features_and_on_pixels_beats_a_trivial_predictor() {
-    let dir = std::env::temp_dir().join(format!("rlmflow-probe-linear-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    std::fs::write(dir.join("p.toml"), PIPELINE).unwrap();
+    let dir = common::scratch("probe-linear", &format!("{}{MODELS}", common::data_stages("probe", 5, 1000, 2)));
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--json"]);
     assert!(ok, "{out}");
     let pixel_runs = out.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains("\"stage\":\"pixels")).count();

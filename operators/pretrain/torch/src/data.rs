@@ -30,9 +30,7 @@ impl Dataset {
         let scenes = Scenes::open(scenes)?;
         let labels = Labels::open(labels)?;
         let tokens = Tokens::open(tokens)?;
-        if labels.frames.len() as u64 != scenes.len() {
-            bail!("the labels have {} frames but the scenes {}: label the same scenes the encoder reads", labels.frames.len(), scenes.len());
-        }
+        labels.check_scenes(scenes.len())?;
         let side = scenes.summary.images[0].size as i64;
         let mut images = Vec::with_capacity(scenes.len() as usize * (side * side) as usize);
         for i in 0..scenes.len() {

@@ -39,9 +39,7 @@ impl Operator for Linear {
         tch::set_num_threads(s.threads as i32);
         let scenes = Scenes::open(ctx.input("scenes")?)?;
         let labels = Labels::open(ctx.input("labels")?)?;
-        if labels.frames.len() as u64 != scenes.len() {
-            bail!("the labels have {} frames but the scenes {}: label the scenes the probe reads", labels.frames.len(), scenes.len());
-        }
+        labels.check_scenes(scenes.len())?;
         let encoder = ctx.optional_input("encoder").map(Path::to_path_buf);
         let features: Vec<(&str, Vec<f64>, usize)> = match (s.source, &encoder) {
             (Source::Pixels, _) => {
