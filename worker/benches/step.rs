@@ -81,10 +81,9 @@ fn step_ms(config: &rlmflow_stages::encoder::ModelConfig, batch: i64, steps: usi
         let image = model.encode_image(&images, true).embedding;
         let l = logits(&image, &model.encode_text(&tokens), &model.scale());
         let loss = soft_clip_loss(&l, &soft_targets(&counts, 4.0, Distance::Raw));
-        opt.zero_grad();
-        loss.backward();
-        opt.clip_grad_norm(1.0);
-        opt.step(1e-4);
+        let grads = opt.gradients(&loss);
+        AdamW::clip_grad_norm(&grads, 1.0);
+        opt.step(&grads, 1e-4);
         times.push(t0.elapsed().as_secs_f64() * 1000.0);
     }
     median(times.split_off(2))

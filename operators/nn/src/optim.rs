@@ -29,16 +29,19 @@ impl AdamW {
         AdamW { m: zeros(&params), v: zeros(&params), params, steps: 0, betas, eps, weight_decay }
     }
 
-    pub fn zero_grad(&mut self) {
-        for (_, p) in &mut self.params {
-            p.zero_grad();
-        }
+    /// The gradients of `loss` for every optimised variable, in their order, as fresh tensors
+    /// (undefined for a variable the loss does not use): nothing is zeroed or accumulated into,
+    /// as in PyTorch's default step (`zero_grad(set_to_none=True)`; PyTorch measured 8 % slower
+    /// here when it zeroes and accumulates instead).
+    pub fn gradients(&self, loss: &Tensor) -> Vec<Tensor> {
+        let params: Vec<&Tensor> = self.params.iter().map(|(_, p)| p).collect();
+        Tensor::run_backward(&[loss], &params, false, false)
     }
 
-    /// Scales the gradients so their global L2 norm is at most `max`; returns the norm before.
-    pub fn clip_grad_norm(&self, max: f64) -> f64 {
+    /// Scales `grads` so their global L2 norm is at most `max`; returns the norm before.
+    pub fn clip_grad_norm(grads: &[Tensor], max: f64) -> f64 {
         tch::no_grad(|| {
-            let grads: Vec<Tensor> = self.params.iter().map(|(_, p)| p.grad()).filter(|g| g.defined()).collect();
+            let grads: Vec<&Tensor> = grads.iter().filter(|g| g.defined()).collect();
             let norms: Vec<Tensor> = grads.iter().map(|g| g.norm().square()).collect();
             let total = Tensor::stack(&norms, 0).sum(Kind::Float).sqrt().double_value(&[]);
             if total > max {
@@ -50,14 +53,14 @@ impl AdamW {
         })
     }
 
-    pub fn step(&mut self, lr: f64) {
+    /// One update with `grads` (from [`AdamW::gradients`]).
+    pub fn step(&mut self, grads: &[Tensor], lr: f64) {
         self.steps += 1;
         let (b1, b2) = self.betas;
         let correction1 = 1.0 - b1.powi(self.steps as i32);
         let correction2 = 1.0 - b2.powi(self.steps as i32);
         tch::no_grad(|| {
-            for (i, (_, p)) in self.params.iter_mut().enumerate() {
-                let g = p.grad();
+            for (i, ((_, p), g)) in self.params.iter_mut().zip(grads).enumerate() {
                 if !g.defined() {
                     continue;
                 }
@@ -65,7 +68,7 @@ impl AdamW {
                 if self.weight_decay > 0.0 && p.dim() >= 2 {
                     let _ = p.g_mul_scalar_(1.0 - lr * self.weight_decay);
                 }
-                let _ = self.m[i].lerp_(&g, 1.0 - b1);
+                let _ = self.m[i].lerp_(g, 1.0 - b1);
                 let _ = self.v[i].lerp_(&g.square(), 1.0 - b2);
                 // p += m / denom with denom = -(sqrt(v / correction2) + eps) * correction1 / lr.
                 let mut denom = self.v[i].sqrt();

@@ -145,10 +145,9 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
                 }
             };
             let value = finite(loss.double_value(&[]), global + 1, epoch + 1)?;
-            opt.zero_grad();
-            loss.backward();
-            opt.clip_grad_norm(s.clip_norm);
-            opt.step(lr);
+            let grads = opt.gradients(&loss);
+            AdamW::clip_grad_norm(&grads, s.clip_norm);
+            opt.step(&grads, lr);
             loss_sum += value;
             off_sum += off;
             progress.set_position(global + 1);
