@@ -6,7 +6,8 @@
 //!                    ln_final, text_projection, logit_scale)
 //! config.json        the ModelConfig (towers, sizes) the weights belong to
 //! train.jsonl        one line per epoch: loss, lr, tau, soft-target mass off the diagonal,
-//!                    test-split radar->text retrieval top-1 / top-5
+//!                    test-split radar->text retrieval top-1 / top-5, and per batch the loss
+//!                    and the off-diagonal mass (`batch_loss`, `batch_off_diagonal`)
 //! encoder.json       summary: objective, steps, samples, final metrics, chance levels
 //! ```
 //!

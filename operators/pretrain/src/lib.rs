@@ -166,7 +166,7 @@ pub fn spec() -> OperatorSpec {
     OperatorSpec {
         name: "clip",
         kind: "pretrain",
-        version: 1,
+        version: 2,
         inputs: None,
         summary: "radar and text towers trained with CLIP, SG-CLIP (alpha) or on the counts (libtorch, in rlmflow-torch)",
     }
