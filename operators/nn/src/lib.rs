@@ -3,13 +3,16 @@
 //! `rlmflow_stages::encoder`: [`transformer`] (pre-LN residual attention blocks), [`vision`]
 //! (the radar ViT, patch or convolutional stem), [`text`] (the causal text tower), [`clip`]
 //! (both towers and the logit scale), [`loss`] (CLIP and SG-CLIP), [`optim`] (AdamW with saveable
-//! state, clipping, the learning-rate schedule). Tensor names follow open_clip's CLIP layout, so
+//! state, clipping, the learning-rate schedule), [`segment`] (the PUP decoder, the U-Net, Dice +
+//! BCE), [`train`] (device choice, checkpoints). Tensor names follow open_clip's CLIP layout, so
 //! a Python user can map the weights onto it.
 
 pub mod clip;
 pub mod loss;
 pub mod optim;
+pub mod segment;
 pub mod text;
+pub mod train;
 pub mod transformer;
 pub mod vision;
 

@@ -40,13 +40,32 @@ impl Attention {
         }
     }
 
-    /// `x`: (batch, tokens, width).
-    fn forward(&self, x: &Tensor, causal: bool) -> Tensor {
+    /// Queries, keys and values of `x` (batch, tokens, width), each (batch, heads, tokens, head width).
+    fn qkv(&self, x: &Tensor) -> [Tensor; 3] {
         let (b, t, w) = x.size3().expect("(batch, tokens, width)");
         let qkv = x.linear(&self.in_proj_weight, Some(&self.in_proj_bias));
-        let split = |i: i64| qkv.narrow(2, i * w, w).view([b, t, self.heads, w / self.heads]).transpose(1, 2);
-        let out = Tensor::scaled_dot_product_attention::<Tensor>(&split(0), &split(1), &split(2), None, 0.0, causal, None, false);
-        self.out_proj.forward(&out.transpose(1, 2).contiguous().view([b, t, w]))
+        std::array::from_fn(|i| qkv.narrow(2, i as i64 * w, w).view([b, t, self.heads, w / self.heads]).transpose(1, 2))
+    }
+
+    /// Heads (batch, heads, tokens, head width) joined and projected back to (batch, tokens, width).
+    fn join(&self, heads: &Tensor) -> Tensor {
+        let (b, h, t, d) = heads.size4().expect("(batch, heads, tokens, head width)");
+        self.out_proj.forward(&heads.transpose(1, 2).contiguous().view([b, t, h * d]))
+    }
+
+    fn forward(&self, x: &Tensor, causal: bool) -> Tensor {
+        let [q, k, v] = self.qkv(x);
+        self.join(&Tensor::scaled_dot_product_attention::<Tensor>(&q, &k, &v, None, 0.0, causal, None, false))
+    }
+
+    /// The same attention computed step by step, so its probabilities come out as well (the
+    /// fused kernel does not return them): (output, probabilities averaged over the heads,
+    /// (batch, tokens, tokens)). Not causal: for the radar tower's attention maps.
+    fn forward_with_weights(&self, x: &Tensor) -> (Tensor, Tensor) {
+        let [q, k, v] = self.qkv(x);
+        let scale = (q.size()[3] as f64).powf(-0.5);
+        let weights = (q.matmul(&k.transpose(-2, -1)) * scale).softmax(-1, q.kind());
+        (self.join(&weights.matmul(&v)), weights.mean_dim([1].as_slice(), false, weights.kind()))
     }
 }
 
@@ -74,9 +93,18 @@ impl ResidualBlock {
     }
 
     fn forward(&self, x: &Tensor, causal: bool) -> Tensor {
-        let x = x + self.attn.forward(&self.ln_1.forward(x), causal);
-        let h = self.activation.apply(&self.c_fc.forward(&self.ln_2.forward(&x)));
-        &x + self.c_proj.forward(&h)
+        self.mlp(&(x + self.attn.forward(&self.ln_1.forward(x), causal)))
+    }
+
+    fn mlp(&self, x: &Tensor) -> Tensor {
+        let h = self.activation.apply(&self.c_fc.forward(&self.ln_2.forward(x)));
+        x + self.c_proj.forward(&h)
+    }
+
+    /// `forward` without a causal mask, with the block's attention probabilities.
+    fn forward_with_weights(&self, x: &Tensor) -> (Tensor, Tensor) {
+        let (attended, weights) = self.attn.forward_with_weights(&self.ln_1.forward(x));
+        (self.mlp(&(x + attended)), weights)
     }
 }
 
@@ -95,5 +123,40 @@ impl Transformer {
 
     pub fn forward(&self, x: &Tensor) -> Tensor {
         self.blocks.iter().fold(x.shallow_clone(), |x, block| block.forward(&x, self.causal))
+    }
+
+    /// `forward` of a non-causal stack, with each block's attention probabilities averaged over
+    /// the heads, (batch, tokens, tokens), first block first.
+    pub fn forward_with_weights(&self, x: &Tensor) -> (Tensor, Vec<Tensor>) {
+        assert!(!self.causal, "attention maps are for the radar tower");
+        let mut weights = Vec::with_capacity(self.blocks.len());
+        let out = self.blocks.iter().fold(x.shallow_clone(), |x, block| {
+            let (out, w) = block.forward_with_weights(&x);
+            weights.push(w);
+            out
+        });
+        (out, weights)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_step_by_step_attention_matches_the_fused_kernel_and_its_rows_sum_to_one() {
+        tch::manual_seed(3);
+        let vs = nn::VarStore::new(tch::Device::Cpu);
+        let transformer = Transformer::new(&vs.root(), 16, 2, 4, 32, Activation::Gelu, false);
+        let x = Tensor::randn([3, 5, 16], (tch::Kind::Float, tch::Device::Cpu));
+        let (out, weights) = transformer.forward_with_weights(&x);
+        let fused = transformer.forward(&x);
+        assert!((out - fused).abs().max().double_value(&[]) < 1e-5);
+        assert_eq!(weights.len(), 2);
+        for w in &weights {
+            assert_eq!(w.size(), [3, 5, 5]);
+            let rows = w.sum_dim_intlist([-1].as_slice(), false, tch::Kind::Float);
+            assert!((rows - 1.0).abs().max().double_value(&[]) < 1e-5);
+        }
     }
 }

@@ -87,6 +87,23 @@ impl VisionTower {
 
     /// `images`: (batch, 1, image, image), normalised.
     pub fn forward(&self, images: &Tensor, train: bool) -> VisionOutput {
+        let x = self.transformer.forward(&self.embed(images, train));
+        self.output(&x)
+    }
+
+    /// CLS attention rollout (Abnar and Zuidema, 2020) over the last `layers` blocks (0: all) of
+    /// the frozen tower: per block the head-averaged attention plus the identity (the residual
+    /// path), rows renormalised, multiplied through the blocks; the CLS row over the patches.
+    /// (batch, grid, grid), each map summing to at most 1.
+    pub fn attention_rollout(&self, images: &Tensor, layers: usize) -> Tensor {
+        let (_, weights) = self.transformer.forward_with_weights(&self.embed(images, false));
+        let grid = self.config.grid();
+        rollout(&weights[weights.len() - if layers == 0 { weights.len() } else { layers.min(weights.len()) }..]).view([-1, grid, grid])
+    }
+
+    /// Tokens entering the transformer: the stem's grid flattened, CLS first, positions added,
+    /// `ln_pre`.
+    fn embed(&self, images: &Tensor, train: bool) -> Tensor {
         let grid = match &self.embedding {
             Embedding::Patch(conv) => conv.forward(images),
             Embedding::Conv(layers) => {
@@ -96,14 +113,45 @@ impl VisionTower {
         let (b, w) = (grid.size()[0], grid.size()[1]);
         let patches = grid.flatten(2, 3).transpose(1, 2);
         let cls = self.class_embedding.view([1, 1, w]).expand([b, 1, w], false);
-        let x = Tensor::cat(&[cls, patches], 1) + &self.positional_embedding;
-        let x = self.transformer.forward(&self.ln_pre.forward(&x));
-        let tokens = self.ln_post.forward(&x);
+        self.ln_pre.forward(&(Tensor::cat(&[cls, patches], 1) + &self.positional_embedding))
+    }
+
+    fn output(&self, x: &Tensor) -> VisionOutput {
+        let tokens = self.ln_post.forward(x);
         let cls = tokens.select(1, 0);
         let embedding = match &self.projection {
             Projection::Linear(proj) => cls.matmul(proj),
             Projection::Mlp(fc1, fc2) => fc2.forward(&fc1.forward(&cls).gelu("none")),
         };
         VisionOutput { embedding, tokens }
+    }
+}
+
+/// The rollout of per-block attention probabilities (batch, tokens, tokens), first block
+/// first: the CLS token's row of prod_l normalise(A_l + I), without its own column,
+/// (batch, tokens - 1).
+pub fn rollout(attentions: &[Tensor]) -> Tensor {
+    let (b, t, _) = attentions[0].size3().expect("(batch, tokens, tokens)");
+    let identity = Tensor::eye(t, (attentions[0].kind(), attentions[0].device()));
+    let flow = attentions.iter().fold(identity.expand([b, t, t], false), |flow, a| {
+        let a = a + &identity;
+        let a = &a / a.sum_dim_intlist([-1].as_slice(), true, a.kind());
+        a.matmul(&flow)
+    });
+    flow.select(1, 0).narrow(1, 1, t - 1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rollout_of_a_hand_computed_case() {
+        // Two tokens; CLS attends half to itself and half to the patch, the patch to itself.
+        let a = Tensor::from_slice(&[0.5f32, 0.5, 0.0, 1.0]).view([1, 2, 2]);
+        // (A + I) with rows renormalised: [[0.75, 0.25], [0, 1]]; CLS -> patch 0.25.
+        assert!((rollout(&[a.shallow_clone()]).double_value(&[0, 0]) - 0.25).abs() < 1e-6);
+        // Two such blocks: [[0.5625, 0.4375], [0, 1]].
+        assert!((rollout(&[a.shallow_clone(), a]).double_value(&[0, 0]) - 0.4375).abs() < 1e-6);
     }
 }

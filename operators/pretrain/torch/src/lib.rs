@@ -21,6 +21,7 @@ use rand_chacha::ChaCha8Rng;
 use rlmflow_nn::clip::{Clip as Model, images_from_u8, logits};
 use rlmflow_nn::loss::{self, Distance as LossDistance};
 use rlmflow_nn::optim::{AdamW, warmup_cosine};
+use rlmflow_nn::train::{finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
 use rlmflow_pretrain::{ClipSettings, Distance, Objective};
 use rlmflow_stages::encoder::{self, ModelConfig};
@@ -47,35 +48,13 @@ impl Operator for Clip {
     }
 }
 
-/// The device the settings and the engine ask for.
-fn device(s: &ClipSettings, ctx: &Context) -> anyhow::Result<tch::Device> {
-    let cuda = |n: usize| {
-        if !tch::Cuda::is_available() {
-            bail!("device `{}`: this machine has no CUDA device libtorch can use", s.device);
-        }
-        Ok(tch::Device::Cuda(n))
-    };
-    match s.device.as_str() {
-        "cpu" => Ok(tch::Device::Cpu),
-        "cuda" => cuda(0),
-        "auto" => Ok(match ctx.device {
-            rlmflow_stages::Device::Cuda(n) => cuda(n)?,
-            rlmflow_stages::Device::Cpu if tch::Cuda::is_available() => tch::Device::Cuda(0),
-            rlmflow_stages::Device::Cpu => tch::Device::Cpu,
-        }),
-        other => cuda(other.trim_start_matches("cuda:").parse().context("device")?),
-    }
-}
-
-const CHECKPOINT_STATE: &str = "state.safetensors";
 /// Per-batch series in each epoch's log line.
 const BATCH_LOSS: &str = "batch_loss";
 const BATCH_OFF_DIAGONAL: &str = "batch_off_diagonal";
-const CHECKPOINT_LOG: &str = "state.json";
 
 fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     tch::set_num_threads(s.threads as i32);
-    let device = device(s, ctx)?;
+    let device = resolve_device(&s.device, ctx.device)?;
     let text = s.objective != Objective::Counts;
     let data = Dataset::load(ctx.input("scenes")?, ctx.input("labels")?, ctx.input("tokens")?, text)?;
     let config =
@@ -98,18 +77,8 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     let warmup = (s.warmup_epochs * steps_per_epoch as f64).round() as u64;
 
     // Resume from the last finished epoch.
-    let mut log: Vec<Value> = Vec::new();
-    let checkpoint = ctx.checkpoint_dir.join(CHECKPOINT_STATE);
-    if checkpoint.is_file() {
-        let state: HashMap<String, Tensor> = Tensor::read_safetensors(&checkpoint)?.into_iter().collect();
-        tch::no_grad(|| -> anyhow::Result<()> {
-            for (name, mut var) in vs.variables() {
-                var.copy_(state.get(&name).with_context(|| format!("the checkpoint has no `{name}`"))?);
-            }
-            Ok(())
-        })?;
-        opt.load_state(&state)?;
-        log = serde_json::from_slice(&std::fs::read(ctx.checkpoint_dir.join(CHECKPOINT_LOG))?)?;
+    let mut log = restore_checkpoint(&vs, &mut opt, &ctx.checkpoint_dir)?;
+    if !log.is_empty() {
         ctx.event("resumed", json!({"epoch": log.len()}));
     }
 
@@ -182,14 +151,6 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     write_artifact(s, ctx, &vs, &config, &data, &log, total)
 }
 
-/// The loss of `step` (1-based), or an error naming the step when it is not finite.
-fn finite(loss: f64, step: u64, epoch: u64) -> anyhow::Result<f64> {
-    if !loss.is_finite() {
-        bail!("the loss is {loss} at step {step} (epoch {epoch}); lower `lr` or raise `batch`");
-    }
-    Ok(loss)
-}
-
 /// Test-split metrics: radar->text retrieval top-1 / top-5 with a text tower, else the counts
 /// head's mean squared error.
 fn evaluate(model: &Model, data: &Dataset, device: tch::Device, text: bool) -> Vec<(&'static str, f64)> {
@@ -219,25 +180,6 @@ fn evaluate(model: &Model, data: &Dataset, device: tch::Device, text: bool) -> V
     })
 }
 
-/// Model variables sorted by name: the files' bytes never depend on a hash order.
-fn named_variables(vs: &nn::VarStore) -> Vec<(String, Tensor)> {
-    let mut vars: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
-    vars.sort_by(|a, b| a.0.cmp(&b.0));
-    vars
-}
-
-fn save_checkpoint(vs: &nn::VarStore, opt: &AdamW, log: &[Value], dir: &Path) -> anyhow::Result<()> {
-    let mut tensors = named_variables(vs);
-    tensors.extend(opt.state());
-    let tmp = dir.join(format!("{CHECKPOINT_STATE}.tmp"));
-    Tensor::write_safetensors(&tensors, &tmp)?;
-    std::fs::write(dir.join(format!("{CHECKPOINT_LOG}.tmp")), serde_json::to_vec(log)?)?;
-    // The log names the epochs the state holds: renamed last.
-    std::fs::rename(&tmp, dir.join(CHECKPOINT_STATE))?;
-    std::fs::rename(dir.join(format!("{CHECKPOINT_LOG}.tmp")), dir.join(CHECKPOINT_LOG))?;
-    Ok(())
-}
-
 fn write_artifact(
     s: &ClipSettings,
     ctx: &Context,
@@ -248,8 +190,7 @@ fn write_artifact(
     steps: u64,
 ) -> anyhow::Result<Outcome> {
     let out = &ctx.output_dir;
-    let cpu: Vec<(String, Tensor)> = named_variables(vs).into_iter().map(|(n, t)| (n, t.to_device(tch::Device::Cpu))).collect();
-    Tensor::write_safetensors(&cpu, out.join(encoder::WEIGHTS))?;
+    write_weights(vs, &out.join(encoder::WEIGHTS))?;
     std::fs::write(out.join(encoder::CONFIG), serde_json::to_vec_pretty(config)?)?;
     let lines: String = log.iter().map(|l| format!("{l}\n")).collect();
     std::fs::write(out.join(encoder::LOG), lines)?;
@@ -384,14 +325,6 @@ mod tests {
 
     fn var(vs: &nn::VarStore, name: &str) -> Tensor {
         vs.variables()[name].shallow_clone()
-    }
-
-    #[test]
-    fn a_non_finite_loss_stops_training_naming_the_step() {
-        assert_eq!(finite(2.5, 3, 1).unwrap(), 2.5);
-        let err = finite(f64::NAN, 17, 2).unwrap_err().to_string();
-        assert_eq!(err, "the loss is NaN at step 17 (epoch 2); lower `lr` or raise `batch`");
-        assert!(finite(f64::INFINITY, 1, 1).unwrap_err().to_string().contains("the loss is inf at step 1"));
     }
 
     #[test]
