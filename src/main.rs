@@ -13,6 +13,8 @@ fn registry() -> Registry {
     // Planned here, run by the rlmflow-torch worker.
     registry.add(rlmflow_pretrain::operator());
     registry.add(rlmflow_probe::linear());
+    registry.add(rlmflow_segment::pup());
+    registry.add(rlmflow_segment::unet());
     #[cfg(feature = "python")]
     registry.add(rlmflow_scenes::HighwayEnv);
     registry

@@ -1,4 +1,14 @@
-//! Segmentation metrics, shared by every segment operator and read by the report.
+//! The SegReport artifact, and the segmentation metrics every segment operator scores with.
+//!
+//! ```text
+//! segment.json      summary: operator, split sizes, metrics on the test split, the per-epoch
+//!                   log (loss, test loss, IoU and AP at 0.5), the sample frames, the rollout's
+//!                   blocks (pup), the settings
+//! samples.npy       uint8 (samples, side, side): predicted probability x 255 on the sample frames
+//! rollout.npy       uint8 (samples, grid, grid): the encoder's CLS attention rollout on the same
+//!                   frames, each map scaled to its maximum (pup only)
+//! head.safetensors  the trained head (PUP decoder or U-Net)
+//! ```
 //!
 //! Ground truth is the labels' mask binarised at 0.3 (value / 255 >= 0.3). A prediction in
 //! [0, 1] counts as positive at threshold t when it is >= t, for t = 0, 0.01, ..., 1; pixels of
@@ -10,6 +20,36 @@
 //! last threshold. A perfect predictor scores AP 1; a constant one scores the positive rate.
 
 use serde::{Deserialize, Serialize};
+
+pub const SUMMARY: &str = "segment.json";
+pub const SAMPLES: &str = "samples.npy";
+pub const ROLLOUT: &str = "rollout.npy";
+pub const WEIGHTS: &str = "head.safetensors";
+pub const FORMAT: u32 = 1;
+
+/// `segment.json`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Summary {
+    pub format: u32,
+    /// `pup` or `unet`.
+    pub operator: String,
+    pub train_frames: u64,
+    pub test_frames: u64,
+    pub epochs: u64,
+    pub steps: u64,
+    pub metrics: SegMetrics,
+    /// One line per epoch.
+    pub log: Vec<serde_json::Value>,
+    /// The test frames `samples.npy` (and `rollout.npy`) hold, in order.
+    pub sample_frames: Vec<u64>,
+    /// The encoder blocks the rollout multiplies (0-based), empty without one.
+    pub rollout_blocks: Vec<usize>,
+    pub generator: serde_json::Value,
+}
+
+pub fn read_summary(dir: &std::path::Path) -> anyhow::Result<Summary> {
+    crate::read_summary(dir, SUMMARY, "SegReport", "segment", FORMAT)
+}
 
 /// Thresholds 0, 0.01, ..., 1.
 pub const THRESHOLDS: usize = 101;

@@ -1,0 +1,271 @@
+//! The `segment` stage kind's operators as the planning binary sees them: settings, specs and
+//! resources. They run in the `rlmflow-torch` worker (`operators/segment/torch`) and write the
+//! SegReport artifact (`rlmflow_stages::segment`), scored by the same pixel metrics.
+//!
+//! `pup`: the paper's probe of spatial grounding at the patch level. The encoder stays frozen;
+//! a progressive-upsampling decoder learns vehicle masks from its patch tokens after `ln_post`.
+//! It also saves the CLS attention rollout of the encoder on the sample frames.
+//! `unet`: the paper's baseline, a U-Net trained on the heatmap pixels with the same masks, loss
+//! and metrics. It reads no encoder (its spec's inputs leave the slot out), so it runs once,
+//! not per encoder variant.
+//!
+//! Training: AdamW, warmup then cosine, global-norm clipping, loss `dice_weight` * soft Dice +
+//! (1 - `dice_weight`) * BCE against the labels' soft masks; one checkpoint per epoch.
+
+use rlmflow_stages::{InWorker, OperatorSpec, Resources, SettingError, Settings};
+use serde::{Deserialize, Serialize};
+
+/// The binary the segmenters run in.
+pub const WORKER: &str = "rlmflow-torch";
+
+/// The training schedule both segmenters share, checked the same way.
+#[derive(Clone, Debug)]
+pub struct Schedule {
+    pub epochs: u64,
+    pub batch: u64,
+    pub lr: f64,
+    pub warmup_epochs: f64,
+    pub warmup_lr: f64,
+    pub min_lr: f64,
+    pub weight_decay: f64,
+    pub clip_norm: f64,
+    pub dice_weight: f64,
+    pub samples: usize,
+    pub device: String,
+    pub threads: usize,
+}
+
+/// The [`Schedule`] of a settings struct with the same field names.
+macro_rules! schedule_of {
+    ($s:expr) => {
+        Schedule {
+            epochs: $s.epochs,
+            batch: $s.batch,
+            lr: $s.lr,
+            warmup_epochs: $s.warmup_epochs,
+            warmup_lr: $s.warmup_lr,
+            min_lr: $s.min_lr,
+            weight_decay: $s.weight_decay,
+            clip_norm: $s.clip_norm,
+            dice_weight: $s.dice_weight,
+            samples: $s.samples,
+            device: $s.device.clone(),
+            threads: $s.threads,
+        }
+    };
+}
+
+impl Schedule {
+    fn resources(&self) -> Resources {
+        Resources { threads: self.threads, gpu: self.device != "cpu" }
+    }
+
+    fn check(&self) -> Result<(), SettingError> {
+        SettingError::check_range("epochs", self.epochs, 1..=10_000)?;
+        SettingError::check_range("batch", self.batch, 1..=65_536)?;
+        if !(self.lr > 0.0 && self.lr <= 1.0) {
+            return Err(SettingError::new("lr", format!("must be in (0, 1], not {}", self.lr)));
+        }
+        SettingError::check_range("warmup_epochs", self.warmup_epochs, 0.0..=self.epochs as f64)?;
+        SettingError::check_range("warmup_lr", self.warmup_lr, 0.0..=self.lr)?;
+        SettingError::check_range("min_lr", self.min_lr, 0.0..=self.lr)?;
+        SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
+        if !(self.clip_norm > 0.0 && self.clip_norm <= 1e6) {
+            return Err(SettingError::new("clip_norm", format!("must be in (0, 1e6], not {}", self.clip_norm)));
+        }
+        SettingError::check_range("dice_weight", self.dice_weight, 0.0..=1.0)?;
+        SettingError::check_range("samples", self.samples, 0..=256)?;
+        SettingError::check_range("threads", self.threads, 1..=256)?;
+        let cuda_n = self.device.strip_prefix("cuda:").is_some_and(|n| n.parse::<u32>().is_ok());
+        if !(["auto", "cpu", "cuda"].contains(&self.device.as_str()) || cuda_n) {
+            return Err(SettingError::new("device", format!("unknown device `{}`; valid: auto, cpu, cuda, cuda:N", self.device)));
+        }
+        Ok(())
+    }
+}
+
+fn check_widths(key: &str, widths: &[i64], allow_empty: bool) -> Result<(), SettingError> {
+    if widths.is_empty() && !allow_empty {
+        return Err(SettingError::new(key, "must list at least one width"));
+    }
+    SettingError::check_range(&format!("{key} (count)"), widths.len(), 0..=8)?;
+    for (i, &w) in widths.iter().enumerate() {
+        SettingError::check_range(&format!("{key}.{i}"), w, 1..=4096)?;
+    }
+    Ok(())
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PupSettings {
+    /// Decoder widths, one conv + BN + ReLU + 2x upsampling stage each; empty: the paper's table
+    /// (256, 256, 128, 64), one stage per doubling from the encoder's grid to the image side.
+    pub channels: Vec<i64>,
+    /// Attention rollout over the encoder's last this many blocks (the paper's figure: 3); 0: all.
+    pub rollout_layers: usize,
+    /// Test frames whose predicted masks and rollout maps the artifact keeps, 0..=256.
+    pub samples: usize,
+    pub epochs: u64,
+    pub batch: u64,
+    pub lr: f64,
+    pub warmup_epochs: f64,
+    pub warmup_lr: f64,
+    pub min_lr: f64,
+    pub weight_decay: f64,
+    pub clip_norm: f64,
+    /// The Dice share of the loss, the rest BCE (the paper: 0.6).
+    pub dice_weight: f64,
+    /// `auto` (CUDA when present), `cpu`, `cuda` or `cuda:N`.
+    pub device: String,
+    /// CPU threads libtorch uses, 1..=256 (part of the result, as in pretraining).
+    pub threads: usize,
+}
+
+impl Default for PupSettings {
+    fn default() -> Self {
+        PupSettings {
+            channels: Vec::new(),
+            rollout_layers: 3,
+            samples: 8,
+            epochs: 6,
+            batch: 64,
+            lr: 1e-3,
+            warmup_epochs: 0.5,
+            warmup_lr: 1e-6,
+            min_lr: 1e-5,
+            weight_decay: 0.01,
+            clip_norm: 4.0,
+            dice_weight: 0.6,
+            device: "auto".into(),
+            threads: 2,
+        }
+    }
+}
+
+impl PupSettings {
+    pub fn schedule(&self) -> Schedule {
+        schedule_of!(self)
+    }
+}
+
+impl Settings for PupSettings {
+    fn check(&self) -> Result<(), SettingError> {
+        check_widths("channels", &self.channels, true)?;
+        SettingError::check_range("rollout_layers", self.rollout_layers, 0..=64)?;
+        self.schedule().check()
+    }
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct UnetSettings {
+    /// Widths per level, finest first (the original U-Net: 64, 128, 256, 512, 1024); the image
+    /// side must divide by 2^(levels - 1).
+    pub channels: Vec<i64>,
+    pub samples: usize,
+    pub epochs: u64,
+    pub batch: u64,
+    pub lr: f64,
+    pub warmup_epochs: f64,
+    pub warmup_lr: f64,
+    pub min_lr: f64,
+    pub weight_decay: f64,
+    pub clip_norm: f64,
+    pub dice_weight: f64,
+    pub device: String,
+    pub threads: usize,
+}
+
+impl Default for UnetSettings {
+    fn default() -> Self {
+        let pup = PupSettings::default();
+        UnetSettings {
+            channels: vec![16, 32, 64, 128],
+            samples: pup.samples,
+            epochs: pup.epochs,
+            batch: pup.batch,
+            lr: pup.lr,
+            warmup_epochs: pup.warmup_epochs,
+            warmup_lr: pup.warmup_lr,
+            min_lr: pup.min_lr,
+            weight_decay: pup.weight_decay,
+            clip_norm: pup.clip_norm,
+            dice_weight: pup.dice_weight,
+            device: pup.device,
+            threads: pup.threads,
+        }
+    }
+}
+
+impl UnetSettings {
+    pub fn schedule(&self) -> Schedule {
+        schedule_of!(self)
+    }
+}
+
+impl Settings for UnetSettings {
+    fn check(&self) -> Result<(), SettingError> {
+        check_widths("channels", &self.channels, false)?;
+        self.schedule().check()
+    }
+}
+
+pub fn pup_spec() -> OperatorSpec {
+    OperatorSpec {
+        name: "pup",
+        kind: "segment",
+        version: 1,
+        inputs: None,
+        summary: "progressive-upsampling decoder on the frozen encoder's patch tokens, with its attention rollout (libtorch, in rlmflow-torch)",
+    }
+}
+
+pub fn unet_spec() -> OperatorSpec {
+    OperatorSpec {
+        name: "unet",
+        kind: "segment",
+        version: 1,
+        // No encoder: the baseline must not fan out over the encoder's variants.
+        inputs: Some(&["scenes", "labels"]),
+        summary: "U-Net on the heatmap pixels, the segmentation baseline (libtorch, in rlmflow-torch)",
+    }
+}
+
+pub fn pup_resources(s: &PupSettings) -> Resources {
+    s.schedule().resources()
+}
+
+pub fn unet_resources(s: &UnetSettings) -> Resources {
+    s.schedule().resources()
+}
+
+/// `pup` as `rlmflow` registers it: validated and planned here, run by the worker.
+pub fn pup() -> InWorker<PupSettings> {
+    InWorker { spec: pup_spec(), worker: WORKER, resources: pup_resources }
+}
+
+/// `unet` as `rlmflow` registers it.
+pub fn unet() -> InWorker<UnetSettings> {
+    InWorker { spec: unet_spec(), worker: WORKER, resources: unet_resources }
+}
+
+#[cfg(test)]
+mod tests {
+    use rlmflow_stages::DynOperator;
+
+    use super::*;
+
+    #[test]
+    fn impossible_settings_name_their_key() {
+        let pup_key = |v: serde_json::Value| pup().settings(v).unwrap_err().key;
+        assert_eq!(pup_key(serde_json::json!({"channels": [64, 0]})), "channels.1");
+        assert_eq!(pup_key(serde_json::json!({"dice_weight": 1.5})), "dice_weight");
+        assert_eq!(pup_key(serde_json::json!({"device": "tpu"})), "device");
+        assert_eq!(pup_key(serde_json::json!({"epochs": 0})), "epochs");
+        let unet_key = |v: serde_json::Value| unet().settings(v).unwrap_err().key;
+        assert_eq!(unet_key(serde_json::json!({"channels": []})), "channels");
+        assert_eq!(unet_key(serde_json::json!({"min_lr": 1.0, "lr": 0.1})), "min_lr");
+        assert_eq!(unet_key(serde_json::json!({"rollout_layers": 3})), "rollout_layers", "the U-Net has no attention");
+        assert!(pup().settings(serde_json::json!({})).is_ok() && unet().settings(serde_json::json!({})).is_ok());
+    }
+}

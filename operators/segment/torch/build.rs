@@ -1,0 +1,3 @@
+fn main() {
+    rlmflow_libtorch::link();
+}
