@@ -13,6 +13,7 @@ fn registry() -> Registry {
     // Planned here, run by the rlmflow-torch worker.
     registry.add(rlmflow_pretrain::operator());
     registry.add(rlmflow_probe::linear());
+    registry.add(rlmflow_probe::clipcap());
     registry.add(rlmflow_segment::pup());
     registry.add(rlmflow_segment::unet());
     #[cfg(feature = "python")]

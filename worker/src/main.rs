@@ -13,6 +13,7 @@ fn registry() -> Registry {
     let mut registry = Registry::new(Catalog::paper());
     registry.add(rlmflow_pretrain_torch::Clip);
     registry.add(rlmflow_probe_torch::Linear);
+    registry.add(rlmflow_probe_torch::Clipcap);
     registry.add(rlmflow_segment_torch::Pup);
     registry.add(rlmflow_segment_torch::Unet);
     registry

@@ -4,10 +4,13 @@
 //! (the radar ViT, patch or convolutional stem), [`text`] (the causal text tower), [`clip`]
 //! (both towers and the logit scale), [`loss`] (CLIP and SG-CLIP), [`optim`] (AdamW with saveable
 //! state, clipping, the learning-rate schedule), [`segment`] (the PUP decoder, the U-Net, Dice +
-//! BCE), [`train`] (device choice, checkpoints). Tensor names follow open_clip's CLIP layout, so
+//! BCE), [`train`] (device choice, checkpoints), [`gpt`] and [`decode`] (ClipCap's
+//! mapper and decoder, greedy and beam search). Tensor names follow open_clip's CLIP layout, so
 //! a Python user can map the weights onto it.
 
 pub mod clip;
+pub mod decode;
+pub mod gpt;
 pub mod loss;
 pub mod optim;
 pub mod segment;

@@ -9,6 +9,8 @@ pub enum Activation {
     Gelu,
     /// x * sigmoid(1.702 x), as OpenAI's CLIP text tower.
     QuickGelu,
+    /// GELU's tanh approximation, as GPT-2.
+    GeluTanh,
 }
 
 impl Activation {
@@ -16,6 +18,7 @@ impl Activation {
         match self {
             Activation::Gelu => x.gelu("none"),
             Activation::QuickGelu => x * (x * 1.702).sigmoid(),
+            Activation::GeluTanh => x.gelu("tanh"),
         }
     }
 }
@@ -56,6 +59,22 @@ impl Attention {
     fn forward(&self, x: &Tensor, causal: bool) -> Tensor {
         let [q, k, v] = self.qkv(x);
         self.join(&Tensor::scaled_dot_product_attention::<Tensor>(&q, &k, &v, None, 0.0, causal, None, false))
+    }
+
+    /// Causal attention that remembers keys and values: the first call (no `past`) attends
+    /// causally over its tokens; each later call gives one new token, which attends to every
+    /// earlier one. Returns the output and the keys and values so far.
+    fn forward_cached(&self, x: &Tensor, past: Option<&(Tensor, Tensor)>) -> (Tensor, (Tensor, Tensor)) {
+        let [q, k, v] = self.qkv(x);
+        let (k, v, causal) = match past {
+            None => (k, v, true),
+            Some((pk, pv)) => {
+                assert_eq!(q.size()[2], 1, "one new token per cached step");
+                (Tensor::cat(&[pk, &k], 2), Tensor::cat(&[pv, &v], 2), false)
+            }
+        };
+        let out = Tensor::scaled_dot_product_attention::<Tensor>(&q, &k, &v, None, 0.0, causal, None, false);
+        (self.join(&out), (k, v))
     }
 
     /// The same attention computed step by step, so its probabilities come out as well (the
@@ -101,6 +120,11 @@ impl ResidualBlock {
         x + self.c_proj.forward(&h)
     }
 
+    fn forward_cached(&self, x: &Tensor, past: Option<&(Tensor, Tensor)>) -> (Tensor, (Tensor, Tensor)) {
+        let (attended, kv) = self.attn.forward_cached(&self.ln_1.forward(x), past);
+        (self.mlp(&(x + attended)), kv)
+    }
+
     /// `forward` without a causal mask, with the block's attention probabilities.
     fn forward_with_weights(&self, x: &Tensor) -> (Tensor, Tensor) {
         let (attended, weights) = self.attn.forward_with_weights(&self.ln_1.forward(x));
@@ -125,6 +149,24 @@ impl Transformer {
         self.blocks.iter().fold(x.shallow_clone(), |x, block| block.forward(&x, self.causal))
     }
 
+    /// `forward` of a causal stack one step at a time: the first call with the prompt, then one
+    /// token per call; `cache` keeps every block's keys and values between calls.
+    pub fn forward_cached(&self, x: &Tensor, cache: &mut KvCache) -> Tensor {
+        assert!(self.causal, "cached decoding is for causal stacks");
+        let first = cache.layers.is_empty();
+        let mut x = x.shallow_clone();
+        for (i, block) in self.blocks.iter().enumerate() {
+            let (out, kv) = block.forward_cached(&x, if first { None } else { Some(&cache.layers[i]) });
+            if first {
+                cache.layers.push(kv);
+            } else {
+                cache.layers[i] = kv;
+            }
+            x = out;
+        }
+        x
+    }
+
     /// `forward` of a non-causal stack, with each block's attention probabilities averaged over
     /// the heads, (batch, tokens, tokens), first block first.
     pub fn forward_with_weights(&self, x: &Tensor) -> (Tensor, Vec<Tensor>) {
@@ -136,6 +178,23 @@ impl Transformer {
             out
         });
         (out, weights)
+    }
+}
+
+/// Every block's keys and values of the positions decoded so far, (batch, heads, tokens, head
+/// width) each.
+#[derive(Default)]
+pub struct KvCache {
+    layers: Vec<(Tensor, Tensor)>,
+}
+
+impl KvCache {
+    /// Keeps the rows `index` names, in its order (beam search reorders and repeats rows).
+    pub fn select(&mut self, index: &Tensor) {
+        for (k, v) in &mut self.layers {
+            *k = k.index_select(0, index);
+            *v = v.index_select(0, index);
+        }
     }
 }
 
@@ -158,5 +217,20 @@ mod tests {
             let rows = w.sum_dim_intlist([-1].as_slice(), false, tch::Kind::Float);
             assert!((rows - 1.0).abs().max().double_value(&[]) < 1e-5);
         }
+    }
+
+    #[test]
+    fn decoding_with_the_cache_matches_the_full_causal_pass() {
+        tch::manual_seed(4);
+        let vs = nn::VarStore::new(tch::Device::Cpu);
+        let transformer = Transformer::new(&vs.root(), 16, 2, 4, 32, Activation::GeluTanh, true);
+        let x = Tensor::randn([2, 6, 16], (tch::Kind::Float, tch::Device::Cpu));
+        let full = transformer.forward(&x);
+        let mut cache = KvCache::default();
+        let mut steps = vec![transformer.forward_cached(&x.narrow(1, 0, 3), &mut cache)];
+        for t in 3..6 {
+            steps.push(transformer.forward_cached(&x.narrow(1, t, 1), &mut cache));
+        }
+        assert!((Tensor::cat(&steps, 1) - full).abs().max().double_value(&[]) < 1e-5);
     }
 }

@@ -8,6 +8,14 @@
 //! baseline, which reads no encoder (give its stage `inputs = { encoder = [] }` so it does not fan
 //! out over the encoder's variants). The ridge strength is chosen on a held-out share of the
 //! training split, then the ridge is refitted on all of it.
+//!
+//! `clipcap`: the paper's caption probe (ClipCap). A transformer mapper turns the frozen
+//! encoder's projected CLS embedding into `prefix` embeddings, and a GPT-style decoder over the
+//! tokens stage's vocabulary continues them with the caption; both are trained on the training
+//! captions (teacher forcing, one caption per frame per epoch), from scratch or with the decoder
+//! started from GPT-2 weights at a given path. The test frames' captions are generated (greedy
+//! or length-normalised beam search, to the end token), read back by the LLM-free parser and
+//! scored per cell like `linear`.
 
 use rlmflow_stages::{InWorker, OperatorSpec, Resources, SettingError, Settings};
 use serde::{Deserialize, Serialize};
@@ -58,6 +66,122 @@ impl Settings for LinearSettings {
     }
 }
 
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Decode {
+    Greedy,
+    Beam,
+}
+
+/// Decoder sizes: `tiny` (laptop) and `gpt2` (GPT-2 small, which `init` weights fit).
+pub const DECODERS: [&str; 2] = ["tiny", "gpt2"];
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ClipcapSettings {
+    /// `tiny` (width 128, 2 blocks, 4 heads) or `gpt2` (width 768, 12 blocks, 12 heads).
+    pub decoder: String,
+    /// GPT-2 safetensors (Hugging Face names) to start the decoder from; empty: from scratch.
+    /// Only with `decoder = "gpt2"`; GPT-2's token table is kept only if our vocabulary matched.
+    pub init: String,
+    /// Prefix embeddings the mapper makes (ClipCap: 10), 1..=64.
+    pub prefix: i64,
+    /// Mapper transformer blocks (ClipCap: 8), 1..=24.
+    pub mapper_layers: i64,
+    pub epochs: u64,
+    pub batch: u64,
+    pub lr: f64,
+    /// Warmup then cosine to `min_lr`; `min_lr = lr` with no warmup is the paper's constant rate.
+    pub warmup_epochs: f64,
+    pub warmup_lr: f64,
+    pub min_lr: f64,
+    pub weight_decay: f64,
+    pub clip_norm: f64,
+    pub decode: Decode,
+    /// Beam width for `decode = "beam"`, 1..=64.
+    pub beam: usize,
+    /// Longest generated caption in tokens; 0: the tokens stage's context.
+    pub max_tokens: usize,
+    /// `auto` (CUDA when present), `cpu`, `cuda` or `cuda:N`.
+    pub device: String,
+    pub threads: usize,
+}
+
+impl Default for ClipcapSettings {
+    fn default() -> Self {
+        ClipcapSettings {
+            decoder: "tiny".into(),
+            init: String::new(),
+            prefix: 10,
+            mapper_layers: 2,
+            epochs: 4,
+            batch: 64,
+            lr: 1e-3,
+            warmup_epochs: 0.5,
+            warmup_lr: 1e-6,
+            min_lr: 1e-5,
+            weight_decay: 0.01,
+            clip_norm: 4.0,
+            decode: Decode::Greedy,
+            beam: 5,
+            max_tokens: 0,
+            device: "auto".into(),
+            threads: 2,
+        }
+    }
+}
+
+impl Settings for ClipcapSettings {
+    fn check(&self) -> Result<(), SettingError> {
+        if !DECODERS.contains(&self.decoder.as_str()) {
+            return Err(SettingError::new("decoder", format!("unknown decoder `{}`; valid: {}", self.decoder, DECODERS.join(", "))));
+        }
+        if !self.init.is_empty() && self.decoder != "gpt2" {
+            return Err(SettingError::new("init", "GPT-2 weights fit only decoder = \"gpt2\""));
+        }
+        SettingError::check_range("prefix", self.prefix, 1..=64)?;
+        SettingError::check_range("mapper_layers", self.mapper_layers, 1..=24)?;
+        SettingError::check_range("epochs", self.epochs, 1..=10_000)?;
+        SettingError::check_range("batch", self.batch, 1..=65_536)?;
+        if !(self.lr > 0.0 && self.lr <= 1.0) {
+            return Err(SettingError::new("lr", format!("must be in (0, 1], not {}", self.lr)));
+        }
+        SettingError::check_range("warmup_epochs", self.warmup_epochs, 0.0..=self.epochs as f64)?;
+        SettingError::check_range("warmup_lr", self.warmup_lr, 0.0..=self.lr)?;
+        SettingError::check_range("min_lr", self.min_lr, 0.0..=self.lr)?;
+        SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
+        if !(self.clip_norm > 0.0 && self.clip_norm <= 1e6) {
+            return Err(SettingError::new("clip_norm", format!("must be in (0, 1e6], not {}", self.clip_norm)));
+        }
+        SettingError::check_range("beam", self.beam, 1..=64)?;
+        SettingError::check_range("max_tokens", self.max_tokens, 0..=100_000)?;
+        let cuda_n = self.device.strip_prefix("cuda:").is_some_and(|n| n.parse::<u32>().is_ok());
+        if !(["auto", "cpu", "cuda"].contains(&self.device.as_str()) || cuda_n) {
+            return Err(SettingError::new("device", format!("unknown device `{}`; valid: auto, cpu, cuda, cuda:N", self.device)));
+        }
+        SettingError::check_range("threads", self.threads, 1..=256)
+    }
+}
+
+pub fn clipcap_spec() -> OperatorSpec {
+    OperatorSpec {
+        name: "clipcap",
+        kind: "probe",
+        version: 1,
+        inputs: None,
+        summary: "ClipCap caption probe: mapper and GPT decoder on the frozen CLS embedding, captions parsed and scored per cell",
+    }
+}
+
+pub fn clipcap_resources(s: &ClipcapSettings) -> Resources {
+    Resources { threads: s.threads, gpu: s.device != "cpu" }
+}
+
+/// `clipcap` as `rlmflow` registers it.
+pub fn clipcap() -> InWorker<ClipcapSettings> {
+    InWorker { spec: clipcap_spec(), worker: WORKER, resources: clipcap_resources }
+}
+
 pub fn linear_spec() -> OperatorSpec {
     OperatorSpec {
         name: "linear",
@@ -90,5 +214,11 @@ mod tests {
         assert_eq!(key(serde_json::json!({"lambdas": []})), "lambdas");
         assert_eq!(key(serde_json::json!({"lambdas": [1.0, -2.0]})), "lambdas.1");
         assert_eq!(key(serde_json::json!({"holdout": 0.9})), "holdout");
+        let key = |v: serde_json::Value| clipcap().settings(v).unwrap_err().key;
+        assert_eq!(key(serde_json::json!({"decoder": "gpt3"})), "decoder");
+        assert_eq!(key(serde_json::json!({"init": "/w/gpt2.safetensors"})), "init");
+        assert_eq!(key(serde_json::json!({"decode": "sample"})), "decode");
+        assert_eq!(key(serde_json::json!({"beam": 0})), "beam");
+        assert!(clipcap().settings(serde_json::json!({"decoder": "gpt2", "init": "/w/gpt2.safetensors"})).is_ok());
     }
 }

@@ -1,6 +1,7 @@
 //! The probes on a frozen encoder, on libtorch (they run in the `rlmflow-torch` worker). See
 //! `rlmflow_probe` for what each does; the scoring rule is `rlmflow_stages::probe::score`.
 
+mod clipcap;
 mod ridge;
 
 use std::path::Path;
@@ -19,6 +20,7 @@ use rlmflow_stages::scenes::Scenes;
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources};
 use serde_json::json;
 
+pub use clipcap::{Clipcap, score_captions};
 pub use ridge::Ridge;
 
 pub struct Linear;

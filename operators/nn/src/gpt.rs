@@ -1,0 +1,207 @@
+//! ClipCap's two parts (Mokady et al., 2021): a transformer mapper from a frozen encoder's
+//! embedding to `prefix` embeddings, and a GPT-2-style causal decoder that continues them with
+//! caption tokens. The decoder's tensors are named as Hugging Face's `GPT2Model` at the ends
+//! (`wte`, `wpe`, `ln_f`; the head is tied to `wte`) and as open_clip's blocks in between
+//! (`transformer.resblocks.N`); [`Gpt::load_gpt2`] maps GPT-2 weights onto them.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use anyhow::{Context as _, bail};
+use tch::nn::{self, Module};
+use tch::{Kind, Tensor};
+
+use crate::decode::StepModel;
+use crate::transformer::{Activation, KvCache, Transformer};
+
+/// A decoder's shape.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GptConfig {
+    pub vocab: i64,
+    /// Positions: the prefix plus the longest caption.
+    pub positions: i64,
+    pub width: i64,
+    pub layers: i64,
+    pub heads: i64,
+    pub mlp: i64,
+}
+
+#[derive(Debug)]
+pub struct Gpt {
+    wte: Tensor,
+    wpe: Tensor,
+    transformer: Transformer,
+    ln_f: nn::LayerNorm,
+    pub config: GptConfig,
+}
+
+impl Gpt {
+    pub fn new(p: &nn::Path, c: &GptConfig) -> Gpt {
+        let init = nn::Init::Randn { mean: 0.0, stdev: 0.02 };
+        Gpt {
+            wte: p.var("wte.weight", &[c.vocab, c.width], init),
+            wpe: p.var("wpe.weight", &[c.positions, c.width], nn::Init::Randn { mean: 0.0, stdev: 0.01 }),
+            transformer: Transformer::new(&(p / "transformer"), c.width, c.layers, c.heads, c.mlp, Activation::GeluTanh, true),
+            ln_f: nn::layer_norm(p / "ln_f", vec![c.width], Default::default()),
+            config: c.clone(),
+        }
+    }
+
+    /// Token embeddings of ids (batch, tokens).
+    pub fn embed(&self, ids: &Tensor) -> Tensor {
+        Tensor::embedding(&self.wte, ids, -1, false, false)
+    }
+
+    /// Next-token logits at every position of embeddings `x` (batch, tokens, width), which start
+    /// at position 0: (batch, tokens, vocab).
+    pub fn forward(&self, x: &Tensor) -> Tensor {
+        let t = x.size()[1];
+        self.head(&self.transformer.forward(&(x + self.wpe.narrow(0, 0, t))))
+    }
+
+    /// The same one step at a time: `x` holds the positions from `start` on (the prompt first,
+    /// then one token per call); logits of those positions.
+    pub fn forward_cached(&self, x: &Tensor, start: i64, cache: &mut KvCache) -> Tensor {
+        let t = x.size()[1];
+        self.head(&self.transformer.forward_cached(&(x + self.wpe.narrow(0, start, t)), cache))
+    }
+
+    fn head(&self, x: &Tensor) -> Tensor {
+        self.ln_f.forward(x).matmul(&self.wte.tr())
+    }
+
+    /// Copies GPT-2 weights (Hugging Face `GPT2Model` or `GPT2LMHeadModel` names, with or
+    /// without the `transformer.` prefix) into `vs`, whose root holds this decoder under
+    /// `prefix`. GPT-2's Conv1D kernels are (in, out) and are transposed; the token and
+    /// position tables are kept only where their shapes fit (GPT-2's vocabulary is not ours).
+    /// Returns how many tensors were loaded.
+    pub fn load_gpt2(vs: &nn::VarStore, prefix: &str, path: &Path) -> anyhow::Result<usize> {
+        let source: HashMap<String, Tensor> =
+            Tensor::read_safetensors(path).with_context(|| format!("reading GPT-2 weights from {}", path.display()))?.into_iter().collect();
+        let get = |k: &str| source.get(k).or_else(|| source.get(&format!("transformer.{k}"))).map(Tensor::shallow_clone);
+        let mut loaded = 0;
+        tch::no_grad(|| -> anyhow::Result<()> {
+            for (name, mut var) in vs.variables() {
+                let Some(rest) = name.strip_prefix(prefix) else { continue };
+                let Some(found) = gpt2_source(rest, &get) else { continue };
+                if found.size() != var.size() {
+                    if rest == "wte.weight" || rest == "wpe.weight" {
+                        continue;
+                    }
+                    bail!("{}: the tensor for `{name}` has shape {:?}, the decoder needs {:?}", path.display(), found.size(), var.size());
+                }
+                var.copy_(&found.to_kind(var.kind()));
+                loaded += 1;
+            }
+            Ok(())
+        })?;
+        if loaded == 0 {
+            bail!("{}: no tensor with GPT-2 names (h.N.attn.c_attn.weight, ln_f.weight, ...)", path.display());
+        }
+        Ok(loaded)
+    }
+}
+
+/// The GPT-2 tensor for our decoder's `rest`, transposed to our layout.
+fn gpt2_source(rest: &str, get: &dyn Fn(&str) -> Option<Tensor>) -> Option<Tensor> {
+    match rest {
+        "wte.weight" | "wpe.weight" | "ln_f.weight" | "ln_f.bias" => get(rest),
+        _ => {
+            let (i, key) = rest.strip_prefix("transformer.resblocks.")?.split_once('.')?;
+            let h = |k: &str| get(&format!("h.{i}.{k}"));
+            match key {
+                "attn.in_proj_weight" => h("attn.c_attn.weight").map(|t| t.tr()),
+                "attn.in_proj_bias" => h("attn.c_attn.bias"),
+                "attn.out_proj.weight" => h("attn.c_proj.weight").map(|t| t.tr()),
+                "attn.out_proj.bias" => h("attn.c_proj.bias"),
+                "mlp.c_fc.weight" => h("mlp.c_fc.weight").map(|t| t.tr()),
+                "mlp.c_fc.bias" => h("mlp.c_fc.bias"),
+                "mlp.c_proj.weight" => h("mlp.c_proj.weight").map(|t| t.tr()),
+                "mlp.c_proj.bias" => h("mlp.c_proj.bias"),
+                "ln_1.weight" | "ln_1.bias" | "ln_2.weight" | "ln_2.bias" => h(key),
+                _ => None,
+            }
+        }
+    }
+    .map(|t| t.contiguous())
+}
+
+/// ClipCap's transformer mapper: the embedding linearly mapped to `prefix` tokens, followed by
+/// `prefix` learnt constants; after the transformer the constants' positions are the prefix.
+/// Names: `linear`, `prefix_const`, `transformer`.
+#[derive(Debug)]
+pub struct Mapper {
+    linear: nn::Linear,
+    prefix_const: Tensor,
+    transformer: Transformer,
+    prefix: i64,
+}
+
+impl Mapper {
+    pub fn new(p: &nn::Path, embed: i64, width: i64, prefix: i64, layers: i64, heads: i64) -> Mapper {
+        Mapper {
+            linear: nn::linear(p / "linear", embed, prefix * width, Default::default()),
+            prefix_const: p.randn_standard("prefix_const", &[prefix, width]),
+            transformer: Transformer::new(&(p / "transformer"), width, layers, heads, 4 * width, Activation::Gelu, false),
+            prefix,
+        }
+    }
+
+    /// (batch, embed) -> (batch, prefix, width).
+    pub fn forward(&self, embedding: &Tensor) -> Tensor {
+        let b = embedding.size()[0];
+        let mapped = self.linear.forward(embedding).view([b, self.prefix, -1]);
+        let constants = self.prefix_const.unsqueeze(0).expand([b, -1, -1], false);
+        self.transformer.forward(&Tensor::cat(&[mapped, constants], 1)).narrow(1, self.prefix, self.prefix)
+    }
+}
+
+/// Teacher-forced cross-entropy of captions after their prefixes: `ids` (batch, tokens) start
+/// with the start token; position k + j predicts token j + 1; padding (`pad`) is not scored.
+pub fn caption_loss(gpt: &Gpt, prefix: &Tensor, ids: &Tensor, pad: i64) -> Tensor {
+    let k = prefix.size()[1];
+    let t = ids.size()[1];
+    let inputs = ids.narrow(1, 0, t - 1);
+    let logits = gpt.forward(&Tensor::cat(&[prefix.shallow_clone(), gpt.embed(&inputs)], 1));
+    let predicted = logits.narrow(1, k, t - 1);
+    let targets = ids.narrow(1, 1, t - 1);
+    predicted.flatten(0, 1).cross_entropy_loss::<Tensor>(&targets.flatten(0, 1), None, tch::Reduction::Mean, pad, 0.0).to_kind(Kind::Float)
+}
+
+/// A decoder stepped over cached keys and values from each row's prefix and the start token.
+pub struct Steps<'a> {
+    gpt: &'a Gpt,
+    prompt: Option<Tensor>,
+    cache: KvCache,
+    position: i64,
+}
+
+impl<'a> Steps<'a> {
+    /// `prefix` (rows, k, width) is followed by `start_token`.
+    pub fn new(gpt: &'a Gpt, prefix: &Tensor, start_token: i64) -> Steps<'a> {
+        let rows = prefix.size()[0];
+        let start = Tensor::full([rows, 1], start_token, (Kind::Int64, prefix.device()));
+        Steps { gpt, prompt: Some(Tensor::cat(&[prefix.shallow_clone(), gpt.embed(&start)], 1)), cache: KvCache::default(), position: 0 }
+    }
+
+    fn last_log_probs(&mut self, x: &Tensor) -> Tensor {
+        let logits = self.gpt.forward_cached(x, self.position, &mut self.cache);
+        self.position += x.size()[1];
+        logits.select(1, -1).log_softmax(-1, Kind::Float)
+    }
+}
+
+impl StepModel for Steps<'_> {
+    fn start(&mut self) -> Tensor {
+        let prompt = self.prompt.take().expect("start is called once");
+        self.last_log_probs(&prompt)
+    }
+
+    fn next(&mut self, parents: Option<&Tensor>, tokens: &Tensor) -> Tensor {
+        if let Some(parents) = parents {
+            self.cache.select(&parents.to_device(tokens.device()));
+        }
+        let x = self.gpt.embed(&tokens.to_device(self.gpt.wte.device()));
+        self.last_log_probs(&x)
+    }
+}
