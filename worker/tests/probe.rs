@@ -64,3 +64,51 @@ fn ridge_on_encoder_features_and_on_pixels_beats_a_trivial_predictor() {
         }
     }
 }
+
+const CAPTIONER: &str = r#"
+[stages.pretrain]
+operator = "clip"
+device = "cpu"
+batch = 64
+epochs = 4
+
+[stages.clipcap]
+kind = "probe"
+operator = "clipcap"
+device = "cpu"
+epochs = 12
+batch = 32
+lr = 3e-3
+"#;
+
+#[test]
+fn clipcap_learns_to_caption_and_true_captions_score_perfectly() {
+    let dir = common::scratch("probe-clipcap", &format!("{}{CAPTIONER}", common::data_stages("clipcap", 5, 1000, 2)));
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
+    assert!(ok, "{out}");
+    let labels = Labels::open(&common::output(&dir, "clipcap", "labels")).unwrap();
+    let test: Vec<u64> = labels.split(Split::Test).map(|f| f.frame).collect();
+    let truth: Vec<[u32; CELLS]> = labels.split(Split::Test).map(|f| f.grid.counts).collect();
+
+    // The scoring path itself: the true template captions parse back to precision = recall = 1.
+    let captions = rlmflow_stages::captions::Captions::open(&common::output(&dir, "clipcap", "captions")).unwrap();
+    let first: Vec<String> =
+        test.iter().map(|&f| captions.captions.iter().find(|c| c.frame == f).expect("every frame has captions").caption.clone()).collect();
+    let (_, perfect) = rlmflow_probe_torch::score_captions(&first, &truth);
+    assert_eq!((perfect.overall.precision, perfect.overall.recall), (1.0, 1.0));
+
+    let object = common::output(&dir, "clipcap", "clipcap");
+    let summary = rlmflow_stages::probe::read_summary(&object).unwrap();
+    let row = &summary.rows[0];
+    let log = row.details["log"].as_array().unwrap();
+    let loss = |i: usize, k: &str| log[i][k].as_f64().unwrap();
+    assert!(loss(log.len() - 1, "loss") < loss(0, "loss") && loss(log.len() - 1, "test_loss") < loss(0, "test_loss"), "{log:?}");
+    // The trivial predictor: the training split's mean counts, rounded, for every test frame.
+    let train: Vec<&[u32; CELLS]> = labels.split(Split::Train).map(|f| &f.grid.counts).collect();
+    let mean: [u32; CELLS] = std::array::from_fn(|c| (train.iter().map(|t| f64::from(t[c])).sum::<f64>() / train.len() as f64).round() as u32);
+    let trivial = score(&vec![mean; truth.len()], &truth).overall.f1;
+    assert!(row.scores.overall.f1 > trivial, "F1 {} vs trivial {trivial}", row.scores.overall.f1);
+    let predictions = std::fs::read_to_string(object.join("predictions.jsonl")).unwrap();
+    assert_eq!(predictions.lines().count(), truth.len());
+    assert!(predictions.lines().all(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["caption"].is_string()));
+}

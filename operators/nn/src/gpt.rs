@@ -39,8 +39,8 @@ impl Gpt {
     pub fn new(p: &nn::Path, c: &GptConfig) -> Gpt {
         let init = nn::Init::Randn { mean: 0.0, stdev: 0.02 };
         Gpt {
-            wte: p.var("wte.weight", &[c.vocab, c.width], init),
-            wpe: p.var("wpe.weight", &[c.positions, c.width], nn::Init::Randn { mean: 0.0, stdev: 0.01 }),
+            wte: (p / "wte").var("weight", &[c.vocab, c.width], init),
+            wpe: (p / "wpe").var("weight", &[c.positions, c.width], nn::Init::Randn { mean: 0.0, stdev: 0.01 }),
             transformer: Transformer::new(&(p / "transformer"), c.width, c.layers, c.heads, c.mlp, Activation::GeluTanh, true),
             ln_f: nn::layer_norm(p / "ln_f", vec![c.width], Default::default()),
             config: c.clone(),
@@ -203,5 +203,84 @@ impl StepModel for Steps<'_> {
         }
         let x = self.gpt.embed(&tokens.to_device(self.gpt.wte.device()));
         self.last_log_probs(&x)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ramp(shape: &[i64], offset: f64) -> Tensor {
+        let n: i64 = shape.iter().product();
+        (Tensor::arange(n, (Kind::Float, tch::Device::Cpu)) / n as f64 + offset).view(shape)
+    }
+
+    #[test]
+    fn gpt2_weights_load_transposed_and_a_foreign_vocabulary_is_skipped() {
+        let config = GptConfig { vocab: 11, positions: 9, width: 8, layers: 2, heads: 2, mlp: 32 };
+        let vs = nn::VarStore::new(tch::Device::Cpu);
+        let _gpt = Gpt::new(&(vs.root() / "gpt"), &config);
+        // Hugging Face GPT2LMHeadModel names: Conv1D kernels are (in, out); vocabulary 50 != 11.
+        let mut tensors = vec![
+            ("transformer.wte.weight".to_owned(), ramp(&[50, 8], 0.0)),
+            ("transformer.wpe.weight".to_owned(), ramp(&[9, 8], 1.0)),
+            ("transformer.ln_f.weight".to_owned(), ramp(&[8], 2.0)),
+            ("transformer.ln_f.bias".to_owned(), ramp(&[8], 3.0)),
+        ];
+        for i in 0..2 {
+            let h = |k: &str| format!("transformer.h.{i}.{k}");
+            for (k, shape) in [
+                ("attn.c_attn.weight", vec![8, 24]),
+                ("attn.c_attn.bias", vec![24]),
+                ("attn.c_proj.weight", vec![8, 8]),
+                ("attn.c_proj.bias", vec![8]),
+                ("mlp.c_fc.weight", vec![8, 32]),
+                ("mlp.c_fc.bias", vec![32]),
+                ("mlp.c_proj.weight", vec![32, 8]),
+                ("mlp.c_proj.bias", vec![8]),
+                ("ln_1.weight", vec![8]),
+                ("ln_1.bias", vec![8]),
+                ("ln_2.weight", vec![8]),
+                ("ln_2.bias", vec![8]),
+            ] {
+                tensors.push((h(k), ramp(&shape, 10.0 + i as f64)));
+            }
+        }
+        let dir = std::env::temp_dir().join(format!("rlmflow-gpt2-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("gpt2.safetensors");
+        Tensor::write_safetensors(&tensors, &file).unwrap();
+        let total = vs.variables().len();
+        assert_eq!(Gpt::load_gpt2(&vs, "gpt.", &file).unwrap(), total - 1, "everything but the foreign token table");
+        let source: HashMap<String, Tensor> = tensors.into_iter().collect();
+        let ours = vs.variables();
+        assert!(ours["gpt.transformer.resblocks.1.attn.in_proj_weight"].equal(&source["transformer.h.1.attn.c_attn.weight"].tr()));
+        assert!(ours["gpt.transformer.resblocks.0.mlp.c_proj.weight"].equal(&source["transformer.h.0.mlp.c_proj.weight"].tr()));
+        assert!(ours["gpt.wpe.weight"].equal(&source["transformer.wpe.weight"]));
+        assert!(!ours["gpt.wte.weight"].equal(&source["transformer.wte.weight"].narrow(0, 0, 11)));
+
+        let wrong = vec![("h.0.ln_1.weight".to_owned(), ramp(&[768], 0.0))];
+        Tensor::write_safetensors(&wrong, &file).unwrap();
+        let err = Gpt::load_gpt2(&vs, "gpt.", &file).unwrap_err().to_string();
+        assert!(err.contains("`gpt.transformer.resblocks.0.ln_1.weight` has shape [768], the decoder needs [8]"), "{err}");
+        Tensor::write_safetensors(&[("unrelated".to_owned(), ramp(&[2], 0.0))], &file).unwrap();
+        assert!(Gpt::load_gpt2(&vs, "gpt.", &file).unwrap_err().to_string().contains("no tensor with GPT-2 names"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn cached_decoding_gives_the_full_pass_logits() {
+        tch::manual_seed(5);
+        let config = GptConfig { vocab: 13, positions: 12, width: 16, layers: 2, heads: 2, mlp: 32 };
+        let vs = nn::VarStore::new(tch::Device::Cpu);
+        let gpt = Gpt::new(&vs.root(), &config);
+        let prefix = Tensor::randn([2, 3, 16], (Kind::Float, tch::Device::Cpu));
+        let ids = Tensor::from_slice(&[1i64, 4, 7, 1, 9, 2]).view([2, 3]);
+        let full = gpt.forward(&Tensor::cat(&[prefix.shallow_clone(), gpt.embed(&ids)], 1)).log_softmax(-1, Kind::Float);
+        let mut steps = Steps::new(&gpt, &prefix, 1);
+        let first = steps.start();
+        assert!((first - full.select(1, 3)).abs().max().double_value(&[]) < 1e-5);
+        let next = steps.next(None, &ids.narrow(1, 1, 1));
+        assert!((next - full.select(1, 4)).abs().max().double_value(&[]) < 1e-5);
     }
 }
