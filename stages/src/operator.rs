@@ -44,6 +44,23 @@ impl SettingError {
         }
         Err(SettingError::new(key, format!("must be in {}..={}, not {value}", range.start(), range.end())))
     }
+
+    /// `value` in (0, `max`]: a rate or a norm that must not be zero.
+    pub fn check_positive(key: &str, value: f64, max: f64) -> Result<(), SettingError> {
+        if value > 0.0 && value <= max {
+            return Ok(());
+        }
+        Err(SettingError::new(key, format!("must be in (0, {max}], not {value}")))
+    }
+
+    /// A torch device setting: `auto`, `cpu`, `cuda` or `cuda:N`.
+    pub fn check_device(key: &str, value: &str) -> Result<(), SettingError> {
+        let cuda_n = value.strip_prefix("cuda:").is_some_and(|n| n.parse::<u32>().is_ok());
+        if ["auto", "cpu", "cuda"].contains(&value) || cuda_n {
+            return Ok(());
+        }
+        Err(SettingError::new(key, format!("unknown device `{value}`; valid: auto, cpu, cuda, cuda:N")))
+    }
 }
 
 impl fmt::Display for SettingError {

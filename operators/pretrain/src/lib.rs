@@ -132,9 +132,7 @@ impl Settings for ClipSettings {
         SettingError::check_range("tau", self.tau, 0.001..=1.0)?;
         SettingError::check_range("epochs", self.epochs, 0..=10_000)?;
         SettingError::check_range("batch", self.batch, 2..=65_536)?;
-        if !(self.lr > 0.0 && self.lr <= 1.0) {
-            return Err(SettingError::new("lr", format!("must be in (0, 1], not {}", self.lr)));
-        }
+        SettingError::check_positive("lr", self.lr, 1.0)?;
         SettingError::check_range("warmup_epochs", self.warmup_epochs, 0.0..=self.epochs as f64)?;
         SettingError::check_range("warmup_lr", self.warmup_lr, 0.0..=self.lr)?;
         SettingError::check_range("min_lr", self.min_lr, 0.0..=self.lr)?;
@@ -148,13 +146,8 @@ impl Settings for ClipSettings {
         }
         SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
         SettingError::check_range("threads", self.threads, 1..=256)?;
-        if !(self.clip_norm > 0.0 && self.clip_norm <= 1e6) {
-            return Err(SettingError::new("clip_norm", format!("must be in (0, 1e6], not {}", self.clip_norm)));
-        }
-        let cuda_n = self.device.strip_prefix("cuda:").is_some_and(|n| n.parse::<u32>().is_ok());
-        if !(["auto", "cpu", "cuda"].contains(&self.device.as_str()) || cuda_n) {
-            return Err(SettingError::new("device", format!("unknown device `{}`; valid: auto, cpu, cuda, cuda:N", self.device)));
-        }
+        SettingError::check_positive("clip_norm", self.clip_norm, 1e6)?;
+        SettingError::check_device("device", &self.device)?;
         if !self.init.is_empty() && self.encoder != "vit-b16" {
             return Err(SettingError::new("init", "CLIP weights fit only encoder = \"vit-b16\""));
         }

@@ -63,23 +63,16 @@ impl Schedule {
     fn check(&self) -> Result<(), SettingError> {
         SettingError::check_range("epochs", self.epochs, 1..=10_000)?;
         SettingError::check_range("batch", self.batch, 1..=65_536)?;
-        if !(self.lr > 0.0 && self.lr <= 1.0) {
-            return Err(SettingError::new("lr", format!("must be in (0, 1], not {}", self.lr)));
-        }
+        SettingError::check_positive("lr", self.lr, 1.0)?;
         SettingError::check_range("warmup_epochs", self.warmup_epochs, 0.0..=self.epochs as f64)?;
         SettingError::check_range("warmup_lr", self.warmup_lr, 0.0..=self.lr)?;
         SettingError::check_range("min_lr", self.min_lr, 0.0..=self.lr)?;
         SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
-        if !(self.clip_norm > 0.0 && self.clip_norm <= 1e6) {
-            return Err(SettingError::new("clip_norm", format!("must be in (0, 1e6], not {}", self.clip_norm)));
-        }
+        SettingError::check_positive("clip_norm", self.clip_norm, 1e6)?;
         SettingError::check_range("dice_weight", self.dice_weight, 0.0..=1.0)?;
         SettingError::check_range("samples", self.samples, 0..=256)?;
         SettingError::check_range("threads", self.threads, 1..=256)?;
-        let cuda_n = self.device.strip_prefix("cuda:").is_some_and(|n| n.parse::<u32>().is_ok());
-        if !(["auto", "cpu", "cuda"].contains(&self.device.as_str()) || cuda_n) {
-            return Err(SettingError::new("device", format!("unknown device `{}`; valid: auto, cpu, cuda, cuda:N", self.device)));
-        }
+        SettingError::check_device("device", &self.device)?;
         Ok(())
     }
 }
