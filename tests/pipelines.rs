@@ -80,6 +80,9 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     assert_eq!((finished(&second, "reused"), finished(&second, "ran")), (stages, 0), "{second}");
     let (ok, verify) = rlmflow(&dir, &["verify", "ci.toml"]);
     assert!(ok, "{verify}");
+    // The caption probes, greedy and beam, give the same bytes in fresh processes.
+    let (ok, check) = rlmflow(&dir, &["run", "ci.toml", "--check-determinism", "clipcap", "--check-determinism", "clipcap-beam"]);
+    assert!(ok && check.matches("same bytes").count() == 4, "{check}");
     let objects = dir.join(".rlmflow/objects");
     let scenes = artifacts(&objects, "scenes.mcap");
     assert_eq!(scenes.len(), 2, "one per scenes stage: {scenes:?}");
