@@ -66,6 +66,19 @@ impl Tokens {
         Ok(Tokens { summary, ids, frames: frames_npy.all_u32()? })
     }
 
+    /// The caption rows of each of `frames` frames, in row order; an error names a row whose
+    /// frame is past the end.
+    pub fn rows_by_frame(&self, frames: usize) -> anyhow::Result<Vec<Vec<usize>>> {
+        let mut rows = vec![Vec::new(); frames];
+        for (row, &frame) in self.frames.iter().enumerate() {
+            let Some(list) = rows.get_mut(frame as usize) else {
+                bail!("caption {row} names frame {frame}, past the scenes' {frames}");
+            };
+            list.push(row);
+        }
+        Ok(rows)
+    }
+
     /// Row `row`'s ids, `context` long.
     pub fn row(&self, row: usize) -> anyhow::Result<Vec<u32>> {
         self.ids.row_u32(row)

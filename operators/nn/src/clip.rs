@@ -63,10 +63,14 @@ pub fn images_from_u8(pixels: &[u8], batch: i64, side: i64, device: tch::Device)
     Tensor::from_slice(pixels).view([batch, 1, side, side]).to_device(device).to_kind(Kind::Float) / 127.5 - 1.0
 }
 
-/// A trained model read back from an Encoder artifact, frozen (no gradients), with its weights.
-pub fn load(dir: &std::path::Path, device: tch::Device) -> anyhow::Result<(nn::VarStore, Clip)> {
+/// A trained model read back from an Encoder artifact, frozen (no gradients), with its weights,
+/// for images of `side` pixels (an error names both sizes when the encoder was trained on others).
+pub fn load(dir: &std::path::Path, device: tch::Device, side: i64) -> anyhow::Result<(nn::VarStore, Clip)> {
     use anyhow::Context as _;
-    let encoder = rlmflow_stages::encoder::Encoder::open(dir)?;
+    let encoder = rlmflow_stages::encoder::Encoder::open(dir).with_context(|| format!("reading the encoder at {}", dir.display()))?;
+    if encoder.config.vision.image != side {
+        anyhow::bail!("the encoder was trained on {} px images, the scenes have {side} px", encoder.config.vision.image);
+    }
     let mut vs = nn::VarStore::new(device);
     let model = Clip::new(&vs.root(), &encoder.config, 0.07, false);
     let weights = dir.join(rlmflow_stages::encoder::WEIGHTS);

@@ -10,6 +10,8 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use anyhow::{Context as _, bail};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
 use serde_json::Value;
 use tch::{Tensor, nn};
 
@@ -37,6 +39,12 @@ pub fn resolve_device(setting: &str, engine: rlmflow_stages::Device) -> anyhow::
         }),
         other => cuda(other.trim_start_matches("cuda:").parse().with_context(|| format!("device `{other}`"))?),
     }
+}
+
+/// The generator of epoch `epoch`'s draws (frame order, captions): seeded by (seed, epoch) alone,
+/// so the finished epochs are all the state a resumed run needs.
+pub fn epoch_rng(seed: u64, epoch: u64) -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(seed ^ (epoch + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15))
 }
 
 /// The loss of `step` (1-based), or an error naming the step when it is not finite.

@@ -39,13 +39,7 @@ impl Dataset {
         let counts = labels.frames.iter().flat_map(|f| f.grid.counts.iter().map(|&c| c as f32)).collect();
         let context = tokens.summary.context as i64;
         let ids = tokens.ids.all_u32().context("reading the token ids")?;
-        let mut captions = vec![Vec::new(); labels.frames.len()];
-        for (row, &frame) in tokens.frames.iter().enumerate() {
-            let list = captions
-                .get_mut(frame as usize)
-                .with_context(|| format!("caption {row} names frame {frame}, past the scenes' {}", labels.frames.len()))?;
-            list.push(row);
-        }
+        let captions = tokens.rows_by_frame(labels.frames.len())?;
         let split = |s: Split| labels.split(s).map(|f| f.frame as usize).filter(|&f| !need_captions || !captions[f].is_empty()).collect::<Vec<_>>();
         let (train, test) = (split(Split::Train), split(Split::Test));
         if train.is_empty() || test.is_empty() {

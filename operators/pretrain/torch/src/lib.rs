@@ -16,12 +16,11 @@ use std::time::Instant;
 
 use anyhow::{Context as _, bail};
 use rand::seq::SliceRandom;
-use rand::{RngExt, SeedableRng};
-use rand_chacha::ChaCha8Rng;
+use rand::RngExt;
 use rlmflow_nn::clip::{Clip as Model, images_from_u8, logits};
 use rlmflow_nn::loss::{self, Distance as LossDistance};
 use rlmflow_nn::optim::{AdamW, warmup_cosine};
-use rlmflow_nn::train::{finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
+use rlmflow_nn::train::{epoch_rng, finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
 use rlmflow_pretrain::{ClipSettings, Distance, Objective};
 use rlmflow_stages::encoder::{self, ModelConfig};
@@ -87,7 +86,7 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     let scale = |m: &Model| m.scale().double_value(&[]);
     for epoch in log.len() as u64..s.epochs {
         let clock = Instant::now();
-        let mut rng = ChaCha8Rng::seed_from_u64(ctx.seed ^ (epoch + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let mut rng = epoch_rng(ctx.seed, epoch);
         let mut order = data.train.clone();
         order.shuffle(&mut rng);
         let (mut batch_loss, mut batch_off) = (Vec::new(), Vec::new());

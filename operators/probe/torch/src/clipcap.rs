@@ -8,14 +8,13 @@ use std::time::Instant;
 
 use anyhow::{Context as _, bail};
 use rand::seq::SliceRandom;
-use rand::{RngExt, SeedableRng};
-use rand_chacha::ChaCha8Rng;
+use rand::RngExt;
 use rlmflow_nn::clip::{self, images_from_u8};
 use rlmflow_nn::decode::{beam_search, greedy};
 use rlmflow_nn::gpt::{Gpt, GptConfig, Mapper, Steps, caption_loss};
 use rlmflow_nn::optim::{AdamW, warmup_cosine};
 use rlmflow_nn::tch::{self, Tensor, nn};
-use rlmflow_nn::train::{finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
+use rlmflow_nn::train::{epoch_rng, finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
 use rlmflow_probe::{ClipcapSettings, Decode};
 use rlmflow_stages::grid::{CELLS, Grid};
 use rlmflow_stages::labels::{Labels, Split};
@@ -102,11 +101,8 @@ fn load(ctx: &Context, device: tch::Device) -> anyhow::Result<(Data, Tokens, rlm
     labels.check_scenes(scenes.len())?;
     let tokens = Tokens::open(ctx.input("tokens")?)?;
     let dir = ctx.input("encoder")?;
-    let (_vs, encoder) = clip::load(dir, device).with_context(|| format!("reading the encoder at {}", dir.display()))?;
     let side = scenes.summary.images[0].size as i64;
-    if side != encoder.config.vision.image {
-        bail!("the encoder was trained on {} px images, the scenes have {side}", encoder.config.vision.image);
-    }
+    let (_vs, encoder) = clip::load(dir, device, side)?;
     let frames = scenes.len() as usize;
     let progress = ctx.progress(frames as u64, "frames embedded");
     let mut parts = Vec::new();
@@ -120,13 +116,7 @@ fn load(ctx: &Context, device: tch::Device) -> anyhow::Result<(Data, Tokens, rlm
         Ok(())
     })?;
     progress.finish();
-    let mut captions = vec![Vec::new(); frames];
-    for (row, &frame) in tokens.frames.iter().enumerate() {
-        captions
-            .get_mut(frame as usize)
-            .with_context(|| format!("caption {row} names frame {frame}, past the scenes' {frames}"))?
-            .push(row);
-    }
+    let captions = tokens.rows_by_frame(frames)?;
     let split = |s: Split| labels.split(s).map(|f| f.frame as usize).filter(|&f| !captions[f].is_empty()).collect::<Vec<_>>();
     let (train, test) = (split(Split::Train), split(Split::Test));
     if train.is_empty() || test.is_empty() {
@@ -180,7 +170,7 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     progress.set_position(opt.steps() as u64);
     for epoch in log.len() as u64..s.epochs {
         let clock = Instant::now();
-        let mut rng = ChaCha8Rng::seed_from_u64(ctx.seed ^ (epoch + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let mut rng = epoch_rng(ctx.seed, epoch);
         let mut order = data.train.clone();
         order.shuffle(&mut rng);
         let mut losses = Vec::new();

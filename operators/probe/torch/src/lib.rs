@@ -6,7 +6,7 @@ mod ridge;
 
 use std::path::Path;
 
-use anyhow::{Context as _, bail};
+use anyhow::bail;
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
@@ -124,11 +124,8 @@ fn round(predictions: &[f64]) -> Vec<[u32; CELLS]> {
 /// Every frame's projected CLS embedding and mean patch token from the frozen encoder.
 fn encoder_features(dir: &Path, scenes: &Scenes, ctx: &Context) -> anyhow::Result<Vec<(&'static str, Vec<f64>, usize)>> {
     let device = rlmflow_nn::device(ctx.device);
-    let (_vs, model) = clip::load(dir, device).with_context(|| format!("reading the encoder at {}", dir.display()))?;
     let side = scenes.summary.images[0].size as i64;
-    if side != model.config.vision.image {
-        bail!("the encoder was trained on {} px images, the scenes have {side} px", model.config.vision.image);
-    }
+    let (_vs, model) = clip::load(dir, device, side)?;
     let (mut cls, mut patches) = (Vec::new(), Vec::new());
     tch::no_grad(|| -> anyhow::Result<()> {
         for start in (0..scenes.len()).step_by(256) {

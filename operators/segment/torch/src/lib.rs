@@ -9,15 +9,13 @@
 
 use std::time::Instant;
 
-use anyhow::{Context as _, bail};
-use rand::SeedableRng;
+use anyhow::bail;
 use rand::seq::SliceRandom;
-use rand_chacha::ChaCha8Rng;
 use rlmflow_nn::clip::{self, Clip as Model, images_from_u8};
 use rlmflow_nn::optim::{AdamW, warmup_cosine};
 use rlmflow_nn::segment::{Pup as PupHead, UNet, dice_bce_loss, pup_widths};
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
-use rlmflow_nn::train::{finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
+use rlmflow_nn::train::{epoch_rng, finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
 use rlmflow_segment::{PupSettings, Schedule, UnetSettings};
 use rlmflow_stages::labels::{Labels, Split};
 use rlmflow_stages::npy::{Dtype, NpyWriter};
@@ -48,10 +46,7 @@ impl Operator for Pup {
         let schedule = s.schedule();
         let (device, data) = prepare(&schedule, ctx)?;
         let dir = ctx.input("encoder")?;
-        let (_encoder_vs, encoder) = clip::load(dir, device).with_context(|| format!("reading the encoder at {}", dir.display()))?;
-        if encoder.config.vision.image != data.side {
-            bail!("the encoder was trained on {} px images, the scenes have {}", encoder.config.vision.image, data.side);
-        }
+        let (_encoder_vs, encoder) = clip::load(dir, device, data.side)?;
         let vision = &encoder.config.vision;
         let widths = if s.channels.is_empty() { pup_widths(vision.grid(), data.side) } else { s.channels.clone() };
         let vs = nn::VarStore::new(device);
@@ -261,7 +256,7 @@ fn train(
     for epoch in log.len() as u64..s.epochs {
         let clock = Instant::now();
         let mut order = data.train.clone();
-        order.shuffle(&mut ChaCha8Rng::seed_from_u64(ctx.seed ^ (epoch + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15)));
+        order.shuffle(&mut epoch_rng(ctx.seed, epoch));
         let mut losses = Vec::with_capacity(steps_per_epoch as usize);
         for (step, frames) in order.chunks_exact(batch).enumerate() {
             let global = epoch * steps_per_epoch + step as u64;
