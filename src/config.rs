@@ -56,6 +56,8 @@ pub struct Pipeline {
     pub file: PathBuf,
     pub name: String,
     pub seed: u64,
+    /// `[pipeline] seeds`: every per-seed stage runs once per entry (empty: once, with `seed`).
+    pub seeds: Vec<u64>,
     /// The store directory (relative paths in the file are relative to the file).
     pub cache: PathBuf,
     pub stages: Vec<Stage>,
@@ -69,6 +71,8 @@ pub struct Stage {
     /// One entry per variant; a stage without variants has one unnamed entry.
     pub variants: Vec<Variant>,
     pub bindings: Vec<Binding>,
+    /// Runs once per seed of `[pipeline] seeds` (its kind's default, or its `per_seed` key).
+    pub per_seed: bool,
     pub line: usize,
 }
 
@@ -97,8 +101,12 @@ impl Pipeline {
     }
 }
 
-const PIPELINE_KEYS: &[&str] = &["name", "seed", "cache", "executor"];
-const STAGE_KEYS: &[&str] = &["kind", "operator", "inputs", "variants"];
+const PIPELINE_KEYS: &[&str] = &["name", "seed", "seeds", "cache", "executor"];
+const STAGE_KEYS: &[&str] = &["kind", "operator", "inputs", "variants", "per_seed"];
+/// The variant dimension seeds fan out on; no stage may take its name.
+pub const SEED_DIMENSION: &str = "seed";
+/// The most seeds a pipeline may list.
+const MAX_SEEDS: usize = 64;
 const EXECUTORS: &[&str] = &["local"];
 
 /// The longest pipeline, stage, variant or pin name: names become file names in the store.
@@ -296,6 +304,7 @@ impl Checker {
                 0
             }),
         };
+        let seeds = self.seeds(header);
         let cache = self.string(header, "pipeline", "cache").unwrap_or_else(|| ".rlmflow".into());
         let cache = file.parent().unwrap_or(Path::new(".")).join(cache);
         let cache = std::path::absolute(&cache).unwrap_or(cache);
@@ -340,8 +349,34 @@ impl Checker {
         if !self.errors.is_empty() {
             return None;
         }
+        if !seeds.is_empty() && stages.iter().any(|s| s.name == SEED_DIMENSION) {
+            let path = format!("stages.{SEED_DIMENSION}");
+            let msg = "a stage may not be named `seed` when [pipeline] seeds is set: seeds fan out on a dimension of that name".into();
+            self.error(self.line(&path), &path, msg, None);
+            return None;
+        }
         let stages = self.topological(stages)?;
-        Some(Pipeline { file: file.to_path_buf(), name, seed, cache, stages })
+        Some(Pipeline { file: file.to_path_buf(), name, seed, seeds, cache, stages })
+    }
+
+    /// `seeds = [1, 2, 3]`: distinct non-negative integers, at most [`MAX_SEEDS`].
+    fn seeds(&mut self, header: &Map<String, Value>) -> Vec<u64> {
+        let key = "pipeline.seeds";
+        let Some(value) = header.get("seeds") else { return Vec::new() };
+        let seeds: Option<Vec<u64>> = value.as_array().and_then(|items| items.iter().map(Value::as_u64).collect());
+        let problem = match &seeds {
+            None => Some(format!("must be a list of non-negative integers, not {value}")),
+            Some(s) if s.is_empty() || s.len() > MAX_SEEDS => Some(format!("must list 1 to {MAX_SEEDS} seeds, not {}", s.len())),
+            Some(s) if (1..s.len()).any(|i| s[..i].contains(&s[i])) => Some("lists a seed twice".into()),
+            Some(_) => None,
+        };
+        match problem {
+            Some(msg) => {
+                self.error(self.line(key), key, msg, Some("e.g. seeds = [1, 2, 3]".into()));
+                Vec::new()
+            }
+            None => seeds.unwrap_or_default(),
+        }
     }
 
     fn string(&mut self, table: &Map<String, Value>, at: &str, key: &str) -> Option<String> {
@@ -477,10 +512,19 @@ impl Checker {
                 self.error(self.line(&key), &key, msg, None);
             }
         }
+        let per_seed = match table.get("per_seed") {
+            None => kind.per_seed,
+            Some(Value::Bool(b)) => *b,
+            Some(other) => {
+                let key = format!("{path}.per_seed");
+                self.error(self.line(&key), &key, format!("must be true or false, not {other}"), None);
+                kind.per_seed
+            }
+        };
         if checked.is_empty() {
             return None;
         }
-        let stage = Stage { name: name.to_owned(), kind, operator: op_name, variants: checked, bindings: Vec::new(), line };
+        let stage = Stage { name: name.to_owned(), kind, operator: op_name, variants: checked, bindings: Vec::new(), per_seed, line };
         Some((stage, inputs))
     }
 

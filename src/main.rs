@@ -16,6 +16,7 @@ fn registry() -> Registry {
     registry.add(rlmflow_probe::clipcap());
     registry.add(rlmflow_segment::pup());
     registry.add(rlmflow_segment::unet());
+    registry.add(rlmflow_report::Paper);
     #[cfg(feature = "python")]
     registry.add(rlmflow_scenes::HighwayEnv);
     registry

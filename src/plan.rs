@@ -8,7 +8,7 @@ use rlmflow_cache::{ActionRecord, Change, Digest, InputDigest, Preimage, Store};
 use rlmflow_stages::{Arity, Registry};
 use serde_json::Value;
 
-use crate::config::{Pipeline, suggest};
+use crate::config::{Pipeline, SEED_DIMENSION, suggest};
 
 /// One stage run for one combination of upstream variants.
 #[derive(Clone, Debug)]
@@ -45,6 +45,9 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
     for (s, stage) in pipeline.stages.iter().enumerate() {
         let own = stage.variants.len() > 1 || stage.variants[0].name.is_some();
         let mut dims: Vec<String> = if own { vec![stage.name.clone()] } else { Vec::new() };
+        if stage.per_seed && !pipeline.seeds.is_empty() {
+            dims.push(SEED_DIMENSION.to_owned());
+        }
         for b in stage.bindings.iter().filter(|b| b.arity == Arity::One) {
             dims.extend(dims_of[b.providers[0]].iter().cloned());
         }
@@ -52,8 +55,12 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
         dims.dedup();
         let mut assignments = vec![BTreeMap::new()];
         for dim in &dims {
-            let owner = &pipeline.stages[pipeline.stage(dim).unwrap()];
-            let names: Vec<&String> = owner.variants.iter().filter_map(|v| v.name.as_ref()).collect();
+            let names: Vec<String> = if dim == SEED_DIMENSION {
+                pipeline.seeds.iter().map(u64::to_string).collect()
+            } else {
+                let owner = &pipeline.stages[pipeline.stage(dim).unwrap()];
+                owner.variants.iter().filter_map(|v| v.name.clone()).collect()
+            };
             assignments = assignments
                 .into_iter()
                 .flat_map(|a: BTreeMap<String, String>| {
@@ -105,10 +112,12 @@ fn assignment_key(a: &BTreeMap<String, String>) -> String {
     a.iter().map(|(d, v)| format!("{d}={v}")).collect::<Vec<_>>().join(",")
 }
 
+/// `stage`, `stage[variant]` for one variant dimension, `stage[dim=v,...]` for several; the seed
+/// always shows its name (`stage[seed=2]`), so a report can tell seeds from variants.
 fn label(stage: &str, a: &BTreeMap<String, String>) -> String {
     match a.len() {
         0 => stage.to_owned(),
-        1 => format!("{stage}[{}]", a.values().next().unwrap()),
+        1 if !a.contains_key(SEED_DIMENSION) => format!("{stage}[{}]", a.values().next().unwrap()),
         _ => format!("{stage}[{}]", assignment_key(a)),
     }
 }
@@ -160,7 +169,8 @@ impl Plan<'_> {
                 map.remove(*key);
             }
         }
-        Some(Preimage { operator: stage.operator.clone(), operator_version: op.spec().version, config, seed: self.pipeline.seed, inputs })
+        let seed = inst.assignment.get(SEED_DIMENSION).map_or(self.pipeline.seed, |s| s.parse().expect("seeds are integers"));
+        Some(Preimage { operator: stage.operator.clone(), operator_version: op.spec().version, config, seed, inputs })
     }
 }
 
@@ -293,10 +303,10 @@ mod tests {
     }
 
     const KINDS: &[StageKind] = &[
-        StageKind { name: "a", produces: "A", inputs: &[] },
-        StageKind { name: "b", produces: "B", inputs: &[] },
-        StageKind { name: "c", produces: "C", inputs: &[Slot::one("a", "A"), Slot::one("b", "B")] },
-        StageKind { name: "d", produces: "D", inputs: &[Slot::gather("c", "C")] },
+        StageKind { name: "a", produces: "A", inputs: &[], per_seed: false },
+        StageKind { name: "b", produces: "B", inputs: &[], per_seed: false },
+        StageKind { name: "c", produces: "C", inputs: &[Slot::one("a", "A"), Slot::one("b", "B")], per_seed: false },
+        StageKind { name: "d", produces: "D", inputs: &[Slot::gather("c", "C")], per_seed: false },
     ];
 
     fn registry() -> Registry {
@@ -340,6 +350,51 @@ operator = "od"
         let plan = plan(&p);
         assert_eq!(plan.instances[0].settings, serde_json::json!({"k": 1, "nested": {"a": 1, "b": 2}}));
         assert_eq!(plan.instances[1].settings, serde_json::json!({"k": 0, "nested": {"a": 1, "b": 5}}));
+    }
+
+    /// `a` as data shared across seeds, `c` trained per seed (its `per_seed` key), `d` gathering.
+    const SEEDS: &str = r#"
+[pipeline]
+seed = 7
+seeds = [1, 2]
+[stages.a]
+operator = "oa"
+variants = { x = {}, y = {} }
+[stages.b]
+operator = "ob"
+[stages.c]
+operator = "oc"
+per_seed = true
+[stages.d]
+operator = "od"
+"#;
+
+    #[test]
+    fn seeds_fan_out_the_per_seed_stages_and_run_with_their_seed() {
+        let r = registry();
+        let p = parse(Path::new("t.toml"), SEEDS, &r).unwrap();
+        let plan = plan(&p);
+        let labels: Vec<&str> = plan.instances.iter().map(|i| i.label.as_str()).collect();
+        assert_eq!(labels, ["a[x]", "a[y]", "b", "c[a=x,seed=1]", "c[a=x,seed=2]", "c[a=y,seed=1]", "c[a=y,seed=2]", "d"]);
+        // Both seeds of c[a=y] read the one a[y].
+        assert_eq!(plan.instances[5].inputs[0].providers, plan.instances[6].inputs[0].providers);
+        let outputs: Vec<Option<Digest>> = (0..plan.instances.len()).map(|i| Some(Digest::of(&[i as u8]))).collect();
+        let seed = |i: usize| plan.preimage(i, &r, &outputs).unwrap().seed;
+        assert_eq!((seed(0), seed(2), seed(3), seed(4), seed(7)), (7, 7, 1, 2, 7));
+        assert_ne!(plan.preimage(3, &r, &outputs).unwrap().key(), plan.preimage(4, &r, &outputs).unwrap().key());
+        assert_eq!(plan.instances[7].inputs[0].providers, [3, 4, 5, 6], "the gathering stage reads every seed");
+    }
+
+    #[test]
+    fn bad_seeds_are_config_errors() {
+        let r = registry();
+        for (seeds, expected) in [("[1, 1]", "lists a seed twice"), ("[]", "must list 1 to 64 seeds"), ("[-1]", "non-negative integers"), ("3", "must be a list")] {
+            let text = SEEDS.replace("seeds = [1, 2]", &format!("seeds = {seeds}"));
+            let e = parse(Path::new("t.toml"), &text, &r).unwrap_err().to_string();
+            assert!(e.contains("pipeline.seeds") && e.contains(expected), "{seeds}: {e}");
+        }
+        let e = parse(Path::new("t.toml"), &SEEDS.replace("per_seed = true", "per_seed = 1"), &r).unwrap_err().to_string();
+        assert!(e.contains("stages.c.per_seed: must be true or false"), "{e}");
     }
 
     #[test]

@@ -80,10 +80,25 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     assert_eq!((finished(&second, "reused"), finished(&second, "ran")), (stages, 0), "{second}");
     let (ok, verify) = rlmflow(&dir, &["verify", "ci.toml"]);
     assert!(ok, "{verify}");
-    // The caption probes, greedy and beam, give the same bytes in fresh processes.
-    let (ok, check) = rlmflow(&dir, &["run", "ci.toml", "--check-determinism", "clipcap", "--check-determinism", "clipcap-beam"]);
-    assert!(ok && check.matches("same bytes").count() == 4, "{check}");
+    // The caption probes, greedy and beam, and the report (its Rerun recording included) give
+    // the same bytes in fresh processes.
+    let (ok, check) =
+        rlmflow(&dir, &["run", "ci.toml", "--check-determinism", "clipcap", "--check-determinism", "clipcap-beam", "--check-determinism", "report"]);
+    assert!(ok && check.matches("same bytes").count() == 5, "{check}");
     let objects = dir.join(".rlmflow/objects");
+    the_report_holds_every_probe(&objects);
+
+    // One probe setting changed: only that probe's instances and the report run again.
+    let edited = std::fs::read_to_string(dir.join("ci.toml")).unwrap().replacen("source = \"pixels\"", "source = \"pixels\"\nlambdas = [0.1, 10.0]", 1);
+    std::fs::write(dir.join("ci.toml"), edited).unwrap();
+    let (ok, third) = rlmflow(&dir, &["run", "ci.toml", "--json"]);
+    assert!(ok, "{third}");
+    let ran: Vec<String> = third
+        .lines()
+        .filter(|l| l.contains("\"stage_finished\"") && l.contains("\"status\":\"ran\""))
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["stage"].as_str().unwrap().to_owned())
+        .collect();
+    assert_eq!(ran, ["pixels", "report"], "{third}");
     let scenes = artifacts(&objects, "scenes.mcap");
     assert_eq!(scenes.len(), 2, "one per scenes stage: {scenes:?}");
     for artifact in scenes {
@@ -96,6 +111,44 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     });
     every_caption_parses_to_its_labels(&labels, &captions);
     python_tokenizers_gives_the_same_ids(&captions, &tokens);
+}
+
+/// The report reads every probe and segmenter instance: its tables name them, `metrics.json`
+/// holds their numbers, and the Python `rerun` package reads its recording's entities.
+fn the_report_holds_every_probe(objects: &Path) {
+    let reports = artifacts(objects, "report.html");
+    assert_eq!(reports.len(), 1, "{reports:?}");
+    let report = &reports[0];
+    let html = std::fs::read_to_string(report.join("report.html")).unwrap();
+    let markdown = std::fs::read_to_string(report.join("report.md")).unwrap();
+    let metrics: serde_json::Value = serde_json::from_slice(&std::fs::read(report.join("metrics.json")).unwrap()).unwrap();
+    let captioning = metrics["captioning"].as_object().unwrap();
+    for row in ["clipcap · clip", "clipcap · random", "clipcap-beam · clip", "linear · clip (cls)", "linear · random (mean-patch)", "pixels (pixels)"] {
+        assert!(captioning.contains_key(row), "captioning row {row}: {:?}", captioning.keys());
+        assert!(html.contains(row) && markdown.contains(row), "{row} not in the report");
+    }
+    assert_eq!(captioning["clipcap · random"]["row"], "random init (sanity)");
+    assert_eq!(captioning["pixels (pixels)"]["row"], "pixels (baseline)");
+    let segmentation = metrics["segmentation"].as_object().unwrap();
+    assert_eq!(segmentation.keys().collect::<Vec<_>>(), ["pup · clip", "pup · random", "unet"]);
+    assert_eq!(segmentation["unet"]["paper"][2], 0.489, "the paper's U-Net IoU stands beside ours");
+    for figure in ["vehicles-per-frame.svg", "pretrain-loss.svg", "iou-threshold.svg"] {
+        assert!(report.join("figures").join(figure).exists(), "{figure}");
+    }
+    assert!(html.contains("<svg") && html.contains("data:image/png;base64,"), "figures inline");
+    const ENTITIES: &str = r#"
+import sys, warnings
+warnings.simplefilter("ignore")
+from rerun.chunk import RrdReader
+print("\n".join(sorted({c.entity_path for c in RrdReader(sys.argv[1]).stream()})))
+"#;
+    let env = rlmflow_python::ensure(&mut |_| {}).unwrap();
+    let out = Command::new(&env.python).arg("-c").arg(ENTITIES).arg(report.join("report.rrd")).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let entities: Vec<String> = String::from_utf8_lossy(&out.stdout).lines().map(str::to_owned).collect();
+    for entity in ["/radar/heatmap", "/radar/truth", "/radar/actors", "/radar/predicted/pup/clip", "/radar/predicted/unet", "/captions/true", "/captions/clipcap/clip", "/train/pretrain/clip/loss"] {
+        assert!(entities.contains(&entity.to_string()), "{entity} not in {entities:?}");
+    }
 }
 
 /// The artifact directories in a store that hold `file`.

@@ -44,6 +44,9 @@ pub struct StageKind {
     pub name: &'static str,
     pub produces: &'static str,
     pub inputs: &'static [Slot],
+    /// Whether its stages run once per seed when `[pipeline] seeds` is set (training does;
+    /// data is shared across seeds). A stage's `per_seed` key overrides it.
+    pub per_seed: bool,
 }
 
 impl StageKind {
@@ -76,25 +79,28 @@ const TOKENS: &str = "Tokens";
 const ENCODER: &str = "Encoder";
 
 const PAPER_KINDS: &[StageKind] = &[
-    StageKind { name: "scenes", produces: SCENES, inputs: &[] },
-    StageKind { name: "labels", produces: LABELS, inputs: &[Slot::one("scenes", SCENES)] },
-    StageKind { name: "captions", produces: CAPTIONS, inputs: &[Slot::one("labels", LABELS)] },
-    StageKind { name: "tokens", produces: TOKENS, inputs: &[Slot::one("captions", CAPTIONS)] },
+    StageKind { name: "scenes", produces: SCENES, inputs: &[], per_seed: false },
+    StageKind { name: "labels", produces: LABELS, inputs: &[Slot::one("scenes", SCENES)], per_seed: false },
+    StageKind { name: "captions", produces: CAPTIONS, inputs: &[Slot::one("labels", LABELS)], per_seed: false },
+    StageKind { name: "tokens", produces: TOKENS, inputs: &[Slot::one("captions", CAPTIONS)], per_seed: false },
     StageKind {
         name: "pretrain",
         produces: ENCODER,
         inputs: &[Slot::one("scenes", SCENES), Slot::one("labels", LABELS), Slot::one("tokens", TOKENS)],
+        per_seed: true,
     },
     StageKind {
         name: "probe",
         produces: "ProbeReport",
         // Optional: a pixel baseline reads no encoder (`inputs = { encoder = [] }`).
         inputs: &[Slot::optional("encoder", ENCODER), Slot::one("scenes", SCENES), Slot::one("labels", LABELS), Slot::one("tokens", TOKENS)],
+        per_seed: true,
     },
     StageKind {
         name: "segment",
         produces: "SegReport",
         inputs: &[Slot::optional("encoder", ENCODER), Slot::one("scenes", SCENES), Slot::one("labels", LABELS)],
+        per_seed: true,
     },
     StageKind {
         name: "report",
@@ -103,7 +109,10 @@ const PAPER_KINDS: &[StageKind] = &[
             Slot::gather("probe", "ProbeReport"),
             Slot::gather("segment", "SegReport"),
             Slot::gather("encoder", ENCODER),
-            Slot::gather("scenes", SCENES),
+            // The frames the samples are drawn from: the scenes and labels the probes read.
+            Slot::optional("scenes", SCENES),
+            Slot::optional("labels", LABELS),
         ],
+        per_seed: false,
     },
 ];

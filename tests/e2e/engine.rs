@@ -54,6 +54,26 @@ fn early_cutoff_stops_a_rerun_that_reproduces_the_same_bytes() {
 }
 
 #[test]
+fn seeds_fan_out_the_stochastic_stages_share_the_data_and_gather_into_one() {
+    let s = Scratch::new("seeds");
+    let seeded = CHAIN.replace("seed = 7", "seed = 7\nseeds = [1, 2, 3]").replace(r#"operator = "count""#, r#"operator = "sample""#);
+    s.pipeline(&seeded);
+    let events = s.run();
+    assert_eq!(events.with_status("ran"), ["collect", "map", "measure[seed=1]", "measure[seed=2]", "measure[seed=3]", "other", "source"]);
+    let listing = fs::read_to_string(output_dir(&s.store(), "chain", "collect").join("listing.txt")).unwrap();
+    assert_eq!(listing, "measure[seed=1] seed 1 picks A\nmeasure[seed=2] seed 2 picks D\nmeasure[seed=3] seed 3 picks A\n");
+    assert_eq!(s.run().with_status("ran"), Vec::<String>::new());
+    // One more seed: only its instance and the gathering stage run.
+    s.pipeline(&seeded.replace("seeds = [1, 2, 3]", "seeds = [1, 2, 3, 4]"));
+    assert_eq!(s.run().with_status("ran"), ["collect", "measure[seed=4]"]);
+    // A stage can opt out: one measure, run with [pipeline] seed.
+    s.pipeline(&seeded.replace(r#"operator = "sample""#, "operator = \"sample\"\nper_seed = false"));
+    let events = s.run();
+    assert_eq!(events.with_status("ran"), ["collect", "measure"]);
+    assert_eq!(fs::read_to_string(output_dir(&s.store(), "chain", "collect").join("listing.txt")).unwrap(), "measure seed 7 picks A\n");
+}
+
+#[test]
 fn variants_fan_out_downstream_and_are_gathered_side_by_side() {
     let s = Scratch::new("variants");
     s.pipeline(&CHAIN.replace(r#"suffix = "!""#, "[stages.map.variants]\nloud = { suffix = \"!!!\" }\nquiet = { suffix = \".\" }"));

@@ -15,16 +15,16 @@ use serde::{Deserialize, Serialize};
 
 pub fn registry() -> Registry {
     let mut r = Registry::new(Catalog { kinds: TEST_KINDS.to_vec() });
-    r.add(WriteText).add(Shout).add(Count).add(Collect).add(Echo);
+    r.add(WriteText).add(Shout).add(Count).add(Sample).add(Collect).add(Echo);
     r
 }
 
 const TEST_KINDS: &[StageKind] = &[
-    StageKind { name: "source", produces: "Text", inputs: &[] },
-    StageKind { name: "map", produces: "Mapped", inputs: &[Slot::one("text", "Text")] },
-    StageKind { name: "measure", produces: "Measure", inputs: &[Slot::one("mapped", "Mapped")] },
-    StageKind { name: "remap", produces: "Mapped", inputs: &[Slot::one("mapped", "Mapped")] },
-    StageKind { name: "collect", produces: "Collection", inputs: &[Slot::gather("measures", "Measure"), Slot::gather("mapped", "Mapped")] },
+    StageKind { name: "source", produces: "Text", inputs: &[], per_seed: false },
+    StageKind { name: "map", produces: "Mapped", inputs: &[Slot::one("text", "Text")], per_seed: false },
+    StageKind { name: "measure", produces: "Measure", inputs: &[Slot::one("mapped", "Mapped")], per_seed: true },
+    StageKind { name: "remap", produces: "Mapped", inputs: &[Slot::one("mapped", "Mapped")], per_seed: false },
+    StageKind { name: "collect", produces: "Collection", inputs: &[Slot::gather("measures", "Measure"), Slot::gather("mapped", "Mapped")], per_seed: false },
 ];
 
 fn trace(line: String) {
@@ -149,6 +149,23 @@ impl Operator for Count {
         trace(format!("start count {}", ctx.stage));
         let text = fs::read_to_string(ctx.input("mapped")?.join("mapped.txt"))?;
         fs::write(ctx.output_dir.join("count.txt"), text.chars().count().to_string())?;
+        Ok(Outcome::default())
+    }
+}
+
+/// Writes one character of its input chosen by the seed: a stochastic measure, as a training
+/// stage is, for testing seed fan-out.
+pub struct Sample;
+
+impl Operator for Sample {
+    type Settings = NoSettings;
+    fn spec(&self) -> OperatorSpec {
+        OperatorSpec { name: "sample", kind: "measure", version: 1, inputs: None, summary: "picks a character by the seed" }
+    }
+    fn run(&self, _: &NoSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        let chars: Vec<char> = fs::read_to_string(ctx.input("mapped")?.join("mapped.txt"))?.chars().collect();
+        let pick = chars.get(ctx.seed as usize % chars.len().max(1)).copied().unwrap_or(' ');
+        fs::write(ctx.output_dir.join("count.txt"), format!("seed {} picks {pick}", ctx.seed))?;
         Ok(Outcome::default())
     }
 }
