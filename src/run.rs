@@ -225,7 +225,28 @@ impl Executor<'_> {
         if s.failed > 0 {
             self.ui.say(format!("logs: {}", self.store.run_dir(&self.run).join("logs").display()));
         }
+        for (label, dir) in self.final_outputs() {
+            self.ui.say(format!("  output  {label}  {}", dir.display()));
+        }
         Ok(())
+    }
+
+    /// Where the outputs of the instances nothing consumes are (the report, say).
+    fn final_outputs(&self) -> Vec<(String, std::path::PathBuf)> {
+        let mut consumed = vec![false; self.plan.instances.len()];
+        for inst in &self.plan.instances {
+            inst.inputs.iter().flat_map(|input| &input.providers).for_each(|&p| consumed[p] = true);
+        }
+        self.plan
+            .instances
+            .iter()
+            .enumerate()
+            .filter(|&(i, _)| !consumed[i])
+            .filter_map(|(i, inst)| match &self.states[i] {
+                State::Done { output } => Some((inst.label.clone(), self.store.object_dir(output))),
+                _ => None,
+            })
+            .collect()
     }
 
     fn summary(&self) -> Summary {

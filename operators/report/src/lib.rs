@@ -69,7 +69,7 @@ impl Operator for Paper {
         OperatorSpec {
             name: "paper",
             kind: "report",
-            version: 1,
+            version: 2,
             inputs: None,
             summary: "the paper's tables and figures for this run: Markdown, self-contained HTML, metrics.json and a Rerun recording",
         }
@@ -79,7 +79,6 @@ impl Operator for Paper {
         let study = study::Study::read(ctx)?;
         let progress = ctx.progress(8, "sections");
         let mut report = sections::Report { blocks: Vec::new(), metrics: serde_json::Map::new() };
-        report.inputs(&study);
         report.dataset(&study)?;
         progress.inc(1);
         report.pretraining(&study)?;
@@ -91,6 +90,7 @@ impl Operator for Paper {
         report.samples(&study, s.samples)?;
         progress.inc(1);
         report.captions(&study, s.captions)?;
+        report.inputs(&study);
         progress.inc(1);
         doc::write(&ctx.output_dir, &s.title, &report.blocks)?;
         let metrics = serde_json::Value::Object(report.metrics);

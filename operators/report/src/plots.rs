@@ -107,42 +107,54 @@ pub fn bars(title: &str, x_desc: &str, y_desc: &str, bars: &[(String, f64)]) -> 
 pub fn cells(title: &str, values: &[f64], max: f64, label: &dyn Fn(f64) -> String) -> anyhow::Result<String> {
     let mut svg = String::new();
     {
-        let root = SVGBackend::with_string(&mut svg, (760, 330)).into_drawing_area();
+        let root = SVGBackend::with_string(&mut svg, (760, 340)).into_drawing_area();
         root.fill(&WHITE).map_err(draw_error)?;
-        let sectors = SECTORS.len();
+        let sectors = SECTORS.len() as i32;
+        let bins = DISTANCE_BINS.len() as i32;
+        // Segmented axes put one label at the centre of each cell.
         let mut chart = ChartBuilder::on(&root)
             .caption(title, (FONT, 18))
             .margin(12)
-            .x_label_area_size(84)
+            .x_label_area_size(110)
             .y_label_area_size(60)
-            .build_cartesian_2d(0.0..sectors as f64, 0.0..DISTANCE_BINS.len() as f64)
+            .build_cartesian_2d((0..sectors - 1).into_segmented(), (0..bins - 1).into_segmented())
             .map_err(draw_error)?;
+        let name = |names: &[&str], v: &SegmentValue<i32>| match v {
+            SegmentValue::CenterOf(i) => names.get(*i as usize).map(|s| s.replace('_', " ")).unwrap_or_default(),
+            _ => String::new(),
+        };
         chart
             .configure_mesh()
             .disable_mesh()
-            .x_labels(sectors)
+            .x_labels(SECTORS.len())
             .y_labels(DISTANCE_BINS.len())
-            .x_label_formatter(&|x| SECTORS.get(x.floor() as usize).map(|s| s.replace('_', " ")).unwrap_or_default())
-            .y_label_formatter(&|y| DISTANCE_BINS.get(y.floor() as usize).map(|s| s.to_string()).unwrap_or_default())
-            .x_label_style((FONT, 9).into_font().transform(FontTransform::Rotate90))
+            .x_label_formatter(&|v| name(&SECTORS, v))
+            .y_label_formatter(&|v| name(&DISTANCE_BINS, v))
+            .x_label_style((FONT, 10).into_font().transform(FontTransform::Rotate90))
             .draw()
             .map_err(draw_error)?;
         let max = if max > 0.0 { max } else { 1.0 };
+        let corner = |c: usize, dx: i32, dy: i32| {
+            let (bin, sector) = ((c / SECTORS.len()) as i32, (c % SECTORS.len()) as i32);
+            (SegmentValue::Exact(sector + dx), SegmentValue::Exact(bin + dy))
+        };
         chart
-            .draw_series(values.iter().enumerate().map(|(c, &v)| {
-                let (bin, sector) = ((c / sectors) as f64, (c % sectors) as f64);
-                Rectangle::new([(sector, bin), (sector + 1.0, bin + 1.0)], heat(v / max).filled())
-            }))
+            .draw_series(values.iter().enumerate().map(|(c, &v)| Rectangle::new([corner(c, 0, 0), corner(c, 1, 1)], heat(v / max).filled())))
             .map_err(draw_error)?;
         chart
-            .draw_series(values.iter().enumerate().map(|(c, &v)| {
-                let (bin, sector) = ((c / sectors) as f64, (c % sectors) as f64);
-                Text::new(label(v), (sector + 0.2, bin + 0.6), (FONT, 11).into_font().color(&BLACK))
-            }))
+            .draw_series(
+                values.iter().enumerate().map(|(c, &v)| Text::new(label(v), corner(c, 0, 1), (FONT, 11).into_font().color(&BLACK).pos(text_anchor()))),
+            )
             .map_err(draw_error)?;
         root.present().map_err(draw_error)?;
     }
     Ok(svg)
+}
+
+/// Cell labels hang from the cell's top-left corner, inset a little.
+fn text_anchor() -> plotters::style::text_anchor::Pos {
+    use plotters::style::text_anchor::{HPos, Pos, VPos};
+    Pos::new(HPos::Left, VPos::Top)
 }
 
 /// White to deep blue.
