@@ -187,7 +187,7 @@ mod tests {
         assert!(svg.contains("vehicles") && svg.contains("<rect"));
         let values: Vec<f64> = (0..48).map(|c| c as f64).collect();
         let svg = cells("F1", &values, 47.0, &|v| format!("{v:.0}")).unwrap();
-        assert!(svg.contains(">47<") && svg.contains("30-40m"));
+        assert!(svg.contains("\n47\n") && svg.contains("\n30-40m\n"), "cell labels and bins are text");
     }
 
     #[test]
