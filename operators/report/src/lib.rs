@@ -97,18 +97,23 @@ impl Operator for Paper {
         let text = serde_json::to_string_pretty(&metrics)? + "\n";
         std::fs::write(ctx.output_dir.join("metrics.json"), &text)?;
         progress.inc(1);
-        let mut entities = 0;
         #[cfg(feature = "rerun")]
-        if s.rerun {
+        let entities = if s.rerun {
             let id = format!("rlmflow-report-{}", &blake3::hash(text.as_bytes()).to_hex()[..16]);
-            entities = recording::write(ctx, &study, &ctx.output_dir, &id, s.samples)?;
-        }
+            recording::write(ctx, &study, &ctx.output_dir, &id, s.samples)?
+        } else {
+            0
+        };
+        // Settings::check refuses rerun = true without the feature.
+        #[cfg(not(feature = "rerun"))]
+        let entities = 0;
         progress.inc(1);
         progress.finish();
         let rows = |key: &str| metrics.get(key).and_then(|v| v.as_object()).map_or(0, |o| o.len());
-        ctx.event("report", serde_json::json!({"captioning_rows": rows("captioning"), "segmentation_rows": rows("segmentation"), "rerun_entities": entities}));
+        let counts = serde_json::json!({"captioning_rows": rows("captioning"), "segmentation_rows": rows("segmentation"), "rerun_entities": entities});
+        ctx.event("report", counts.clone());
         Ok(Outcome {
-            metrics: serde_json::json!({"captioning_rows": rows("captioning"), "segmentation_rows": rows("segmentation"), "rerun_entities": entities}),
+            metrics: counts,
             summary: format!(
                 "{} encoders, {} caption-table rows, {} segmentation rows{}",
                 rows("pretrain"),
