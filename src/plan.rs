@@ -388,7 +388,9 @@ operator = "od"
     #[test]
     fn bad_seeds_are_config_errors() {
         let r = registry();
-        for (seeds, expected) in [("[1, 1]", "lists a seed twice"), ("[]", "must list 1 to 64 seeds"), ("[-1]", "non-negative integers"), ("3", "must be a list")] {
+        for (seeds, expected) in
+            [("[1, 1]", "lists a seed twice"), ("[]", "must list 1 to 64 seeds"), ("[-1]", "non-negative integers"), ("3", "must be a list")]
+        {
             let text = SEEDS.replace("seeds = [1, 2]", &format!("seeds = {seeds}"));
             let e = parse(Path::new("t.toml"), &text, &r).unwrap_err().to_string();
             assert!(e.contains("pipeline.seeds") && e.contains(expected), "{seeds}: {e}");

@@ -89,7 +89,8 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     the_report_holds_every_probe(&objects);
 
     // One probe setting changed: only that probe's instances and the report run again.
-    let edited = std::fs::read_to_string(dir.join("ci.toml")).unwrap().replacen("source = \"pixels\"", "source = \"pixels\"\nlambdas = [0.1, 10.0]", 1);
+    let edited =
+        std::fs::read_to_string(dir.join("ci.toml")).unwrap().replacen("source = \"pixels\"", "source = \"pixels\"\nlambdas = [0.1, 10.0]", 1);
     std::fs::write(dir.join("ci.toml"), edited).unwrap();
     let (ok, third) = rlmflow(&dir, &["run", "ci.toml", "--json"]);
     assert!(ok, "{third}");
@@ -123,7 +124,8 @@ fn the_report_holds_every_probe(objects: &Path) {
     let markdown = std::fs::read_to_string(report.join("report.md")).unwrap();
     let metrics: serde_json::Value = serde_json::from_slice(&std::fs::read(report.join("metrics.json")).unwrap()).unwrap();
     let captioning = metrics["captioning"].as_object().unwrap();
-    for row in ["clipcap · clip", "clipcap · random", "clipcap-beam · clip", "linear · clip (cls)", "linear · random (mean-patch)", "pixels (pixels)"] {
+    for row in ["clipcap · clip", "clipcap · random", "clipcap-beam · clip", "linear · clip (cls)", "linear · random (mean-patch)", "pixels (pixels)"]
+    {
         assert!(captioning.contains_key(row), "captioning row {row}: {:?}", captioning.keys());
         assert!(html.contains(row) && markdown.contains(row), "{row} not in the report");
     }
@@ -146,7 +148,16 @@ print("\n".join(sorted({c.entity_path for c in RrdReader(sys.argv[1]).stream()})
     let out = Command::new(&env.python).arg("-c").arg(ENTITIES).arg(report.join("report.rrd")).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let entities: Vec<String> = String::from_utf8_lossy(&out.stdout).lines().map(str::to_owned).collect();
-    for entity in ["/radar/heatmap", "/radar/truth", "/radar/actors", "/radar/predicted/pup/clip", "/radar/predicted/unet", "/captions/true", "/captions/clipcap/clip", "/train/pretrain/clip/loss"] {
+    for entity in [
+        "/radar/heatmap",
+        "/radar/truth",
+        "/radar/actors",
+        "/radar/predicted/pup/clip",
+        "/radar/predicted/unet",
+        "/captions/true",
+        "/captions/clipcap/clip",
+        "/train/pretrain/clip/loss",
+    ] {
         assert!(entities.contains(&entity.to_string()), "{entity} not in {entities:?}");
     }
 }

@@ -24,7 +24,12 @@ const TEST_KINDS: &[StageKind] = &[
     StageKind { name: "map", produces: "Mapped", inputs: &[Slot::one("text", "Text")], per_seed: false },
     StageKind { name: "measure", produces: "Measure", inputs: &[Slot::one("mapped", "Mapped")], per_seed: true },
     StageKind { name: "remap", produces: "Mapped", inputs: &[Slot::one("mapped", "Mapped")], per_seed: false },
-    StageKind { name: "collect", produces: "Collection", inputs: &[Slot::gather("measures", "Measure"), Slot::gather("mapped", "Mapped")], per_seed: false },
+    StageKind {
+        name: "collect",
+        produces: "Collection",
+        inputs: &[Slot::gather("measures", "Measure"), Slot::gather("mapped", "Mapped")],
+        per_seed: false,
+    },
 ];
 
 fn trace(line: String) {

@@ -40,7 +40,8 @@ channels = [8, 16, 32]
 /// The data stages with masks drawn twice the paper's relative size, so 32 px frames hold
 /// blobs of a few pixels.
 fn pipeline() -> String {
-    let data = common::data_stages("segment", 5, 1000, 2).replace("operator = \"ego-grid\"\n", "operator = \"ego-grid\"\nmask = { reference_size = 64 }\n");
+    let data =
+        common::data_stages("segment", 5, 1000, 2).replace("operator = \"ego-grid\"\n", "operator = \"ego-grid\"\nmask = { reference_size = 64 }\n");
     format!("{data}{MODELS}")
 }
 

@@ -154,11 +154,7 @@ mod tests {
         // is poor; `b` (0.4) leads to the end at 0.95.
         let first = [0.6, 0.38, 0.02];
         let table = [[0.4, 0.3, 0.3], [0.03, 0.02, 0.95], [0.1, 0.1, 0.8]];
-        let markov = || Markov {
-            table: Tensor::from_slice(&table.concat()).view([3, 3]),
-            first: Tensor::from_slice(&first),
-            rows: 2,
-        };
+        let markov = || Markov { table: Tensor::from_slice(&table.concat()).view([3, 3]), first: Tensor::from_slice(&first), rows: 2 };
         let known = brute_force(&first, &table, 2, 5);
         assert_eq!(known, [1, 2], "the model is built so that b, end is the argmax");
         assert_eq!(beam_search(&mut markov(), 5, 2, 5), [known.clone(), known.clone()]);

@@ -9,9 +9,15 @@ use crate::images;
 pub enum Block {
     Heading(u8, String),
     Paragraph(String),
-    Table { header: Vec<String>, rows: Vec<Vec<String>> },
+    Table {
+        header: Vec<String>,
+        rows: Vec<Vec<String>>,
+    },
     /// An SVG chart, saved as `figures/<name>.svg`.
-    Chart { name: String, svg: String },
+    Chart {
+        name: String,
+        svg: String,
+    },
     /// A row of PNG images with captions, saved as `figures/<name>.png`.
     Images(Vec<Picture>),
     /// Text shown as it is (settings, captions).
@@ -105,8 +111,14 @@ pub fn html(title: &str, blocks: &[Block]) -> String {
             Block::Images(pictures) => {
                 out.push_str("<div>");
                 for p in pictures {
-                    write!(out, "<figure><img alt=\"{}\" src=\"{}\"><figcaption>{}</figcaption></figure>", escape(&p.name), images::data_uri(&p.png), escape(&p.caption))
-                        .unwrap();
+                    write!(
+                        out,
+                        "<figure><img alt=\"{}\" src=\"{}\"><figcaption>{}</figcaption></figure>",
+                        escape(&p.name),
+                        images::data_uri(&p.png),
+                        escape(&p.caption)
+                    )
+                    .unwrap();
                 }
                 out.push_str("</div>\n");
             }

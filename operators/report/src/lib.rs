@@ -110,7 +110,8 @@ impl Operator for Paper {
         progress.inc(1);
         progress.finish();
         let rows = |key: &str| metrics.get(key).and_then(|v| v.as_object()).map_or(0, |o| o.len());
-        let counts = serde_json::json!({"captioning_rows": rows("captioning"), "segmentation_rows": rows("segmentation"), "rerun_entities": entities});
+        let counts =
+            serde_json::json!({"captioning_rows": rows("captioning"), "segmentation_rows": rows("segmentation"), "rerun_entities": entities});
         ctx.event("report", counts.clone());
         Ok(Outcome {
             metrics: counts,

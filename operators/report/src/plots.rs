@@ -143,7 +143,10 @@ pub fn cells(title: &str, values: &[f64], max: f64, label: &dyn Fn(f64) -> Strin
             .map_err(draw_error)?;
         chart
             .draw_series(
-                values.iter().enumerate().map(|(c, &v)| Text::new(label(v), corner(c, 0, 1), (FONT, 11).into_font().color(&BLACK).pos(text_anchor()))),
+                values
+                    .iter()
+                    .enumerate()
+                    .map(|(c, &v)| Text::new(label(v), corner(c, 0, 1), (FONT, 11).into_font().color(&BLACK).pos(text_anchor()))),
             )
             .map_err(draw_error)?;
         root.present().map_err(draw_error)?;

@@ -43,8 +43,7 @@ pub fn write(ctx: &Context, study: &Study, dir: &Path, recording_id: &str, sampl
     let mut scalars = serde_json::Map::new();
     for (row, group) in rows(&study.encoders, |e| &e.instance) {
         for key in ["loss", "top1", "off_diagonal"] {
-            let points: Vec<serde_json::Value> =
-                group[0].log.iter().filter_map(|l| Some(json!([l["epoch"].as_u64()?, l[key].as_f64()?]))).collect();
+            let points: Vec<serde_json::Value> = group[0].log.iter().filter_map(|l| Some(json!([l["epoch"].as_u64()?, l[key].as_f64()?]))).collect();
             if !points.is_empty() {
                 scalars.insert(format!("train/{}/{key}", entity(&row)), points.into());
             }

@@ -32,7 +32,8 @@ fn cell_key(c: usize) -> String {
 
 /// The non-zero cells of a grid, one per line: `0-10m in_lane_front_side: 2`.
 pub fn grid_text(grid: &Grid) -> String {
-    let cells: Vec<String> = (0..CELLS).filter(|&c| grid.counts[c] > 0).map(|c| format!("{}: {}", cell_key(c).replace('/', " "), grid.counts[c])).collect();
+    let cells: Vec<String> =
+        (0..CELLS).filter(|&c| grid.counts[c] > 0).map(|c| format!("{}: {}", cell_key(c).replace('/', " "), grid.counts[c])).collect();
     if cells.is_empty() { "no vehicles within 40 m".into() } else { cells.join(", ") }
 }
 
@@ -67,10 +68,14 @@ impl Report {
             s.frames, s.train, s.test
         )));
         let bars: Vec<(String, f64)> = s.vehicles_per_frame.iter().enumerate().map(|(n, f)| (n.to_string(), *f as f64)).collect();
-        self.blocks.push(Block::Chart { name: "vehicles-per-frame".into(), svg: plots::bars("Vehicles per frame", "vehicles in the grid", "frames", &bars)? });
+        self.blocks.push(Block::Chart {
+            name: "vehicles-per-frame".into(),
+            svg: plots::bars("Vehicles per frame", "vehicles in the grid", "frames", &bars)?,
+        });
         let per_cell: Vec<f64> = (0..CELLS).map(|c| s.cells.get(&cell_key(c)).copied().unwrap_or(0) as f64).collect();
         let max = per_cell.iter().cloned().fold(0.0, f64::max);
-        self.blocks.push(Block::Chart { name: "vehicles-per-cell".into(), svg: plots::cells("Vehicles per cell", &per_cell, max, &|v| format!("{v:.0}"))? });
+        self.blocks
+            .push(Block::Chart { name: "vehicles-per-cell".into(), svg: plots::cells("Vehicles per cell", &per_cell, max, &|v| format!("{v:.0}"))? });
         self.metrics.insert(
             "dataset".into(),
             json!({"frames": s.frames, "train": s.train, "test": s.test, "vehicles_per_frame": s.vehicles_per_frame, "cells": s.cells}),
@@ -135,7 +140,8 @@ impl Report {
             self.blocks.push(Block::Chart { name: "pretrain-lr".into(), svg: plots::lines("Learning rate", "epoch", "lr", &lr, false)? });
         }
         if top1.iter().any(|s| !s.points.is_empty()) {
-            self.blocks.push(Block::Chart { name: "pretrain-top1".into(), svg: plots::lines("Test retrieval top-1", "epoch", "top-1", &top1, true)? });
+            self.blocks
+                .push(Block::Chart { name: "pretrain-top1".into(), svg: plots::lines("Test retrieval top-1", "epoch", "top-1", &top1, true)? });
         }
         if !off.is_empty() {
             self.blocks.push(Block::Chart {

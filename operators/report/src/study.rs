@@ -54,8 +54,7 @@ impl Instance {
     /// The variant part a table shows (`alpha4`, `captions=llm, pretrain=alpha4`), empty for none.
     pub fn variant(&self) -> String {
         let named = self.assignment.len() > 1;
-        let parts: Vec<String> =
-            self.assignment.iter().map(|(d, v)| if named && !d.is_empty() { format!("{d}={v}") } else { v.clone() }).collect();
+        let parts: Vec<String> = self.assignment.iter().map(|(d, v)| if named && !d.is_empty() { format!("{d}={v}") } else { v.clone() }).collect();
         parts.join(", ")
     }
 
@@ -166,12 +165,26 @@ impl Study {
         let probes = ctx
             .gathered("probe")
             .iter()
-            .map(|i| Ok(ProbeRun { label: i.label.clone(), instance: Instance::parse(&i.label), summary: probe::read_summary(&i.path)?, dir: i.path.clone() }))
+            .map(|i| {
+                Ok(ProbeRun {
+                    label: i.label.clone(),
+                    instance: Instance::parse(&i.label),
+                    summary: probe::read_summary(&i.path)?,
+                    dir: i.path.clone(),
+                })
+            })
             .collect::<anyhow::Result<Vec<_>>>()?;
         let segments = ctx
             .gathered("segment")
             .iter()
-            .map(|i| Ok(SegRun { label: i.label.clone(), instance: Instance::parse(&i.label), summary: segment::read_summary(&i.path)?, dir: i.path.clone() }))
+            .map(|i| {
+                Ok(SegRun {
+                    label: i.label.clone(),
+                    instance: Instance::parse(&i.label),
+                    summary: segment::read_summary(&i.path)?,
+                    dir: i.path.clone(),
+                })
+            })
             .collect::<anyhow::Result<Vec<_>>>()?;
         let labels = ctx.optional_input("labels").map(Labels::open).transpose()?;
         let scenes = ctx.optional_input("scenes").map(Scenes::open).transpose()?;

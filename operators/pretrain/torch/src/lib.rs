@@ -15,13 +15,13 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{Context as _, bail};
-use rand::seq::SliceRandom;
 use rand::RngExt;
+use rand::seq::SliceRandom;
 use rlmflow_nn::clip::{Clip as Model, images_from_u8, logits};
 use rlmflow_nn::loss::{self, Distance as LossDistance};
 use rlmflow_nn::optim::{AdamW, warmup_cosine};
-use rlmflow_nn::train::{epoch_rng, finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
+use rlmflow_nn::train::{epoch_rng, finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
 use rlmflow_pretrain::{ClipSettings, Distance, Objective};
 use rlmflow_stages::encoder::{self, ModelConfig};
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources};

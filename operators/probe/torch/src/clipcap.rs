@@ -7,8 +7,8 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{Context as _, bail};
-use rand::seq::SliceRandom;
 use rand::RngExt;
+use rand::seq::SliceRandom;
 use rlmflow_nn::clip::{self, images_from_u8};
 use rlmflow_nn::decode::{beam_search, greedy};
 use rlmflow_nn::gpt::{Gpt, GptConfig, Mapper, Steps, caption_loss};

@@ -58,11 +58,8 @@ impl Operator for Pup {
             let take = if s.rollout_layers == 0 { layers } else { s.rollout_layers.min(layers) };
             (layers - take..layers).collect()
         };
-        let segmenter = Segmenter {
-            name: "pup",
-            vs,
-            forward: Box::new(move |frames: &[usize], train: bool| head.forward_t(&tokens.get(frames), train)),
-        };
+        let segmenter =
+            Segmenter { name: "pup", vs, forward: Box::new(move |frames: &[usize], train: bool| head.forward_t(&tokens.get(frames), train)) };
         let rollout = |frames: &[usize]| {
             let images = images_from_u8(&data.pixels(frames), frames.len() as i64, data.side, device);
             tch::no_grad(|| encoder.visual.attention_rollout(&images, blocks.len()))
@@ -95,7 +92,8 @@ impl Operator for Unet {
         tch::manual_seed(ctx.seed as i64);
         let unet = UNet::new(&vs.root(), &s.channels);
         let pixels = |frames: &[usize]| images_from_u8(&data.pixels(frames), frames.len() as i64, data.side, device);
-        let segmenter = Segmenter { name: "unet", vs, forward: Box::new(move |frames: &[usize], train: bool| unet.forward_t(&pixels(frames), train)) };
+        let segmenter =
+            Segmenter { name: "unet", vs, forward: Box::new(move |frames: &[usize], train: bool| unet.forward_t(&pixels(frames), train)) };
         train(&schedule, ctx, &data, device, segmenter, None, serde_json::to_value(s)?)
     }
 }
@@ -116,7 +114,10 @@ impl Data {
         labels.check_scenes(scenes.len())?;
         let side = scenes.summary.images[0].size;
         if labels.summary.mask.size != side {
-            bail!("the labels' masks are {} px but the scenes' primary image {side} px: give the stage the scenes that were labelled", labels.summary.mask.size);
+            bail!(
+                "the labels' masks are {} px but the scenes' primary image {side} px: give the stage the scenes that were labelled",
+                labels.summary.mask.size
+            );
         }
         let pixels = (0..scenes.len()).map(|i| scenes.heatmap(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
         let masks = (0..scenes.len()).map(|i| labels.mask(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
@@ -346,7 +347,15 @@ fn write_artifact(
     let m = &metrics;
     Ok(Outcome {
         metrics: json!({"precision": m.precision, "recall": m.recall, "iou": m.iou, "dice": m.dice, "peak_iou": m.peak_iou, "ap": m.ap, "positive_rate": m.positive_rate}),
-        summary: format!("{} test frames: IoU {:.3} Dice {:.3} peak IoU {:.3} AP {:.3} (positive rate {:.3})", data.test.len(), m.iou, m.dice, m.peak_iou, m.ap, m.positive_rate),
+        summary: format!(
+            "{} test frames: IoU {:.3} Dice {:.3} peak IoU {:.3} AP {:.3} (positive rate {:.3})",
+            data.test.len(),
+            m.iou,
+            m.dice,
+            m.peak_iou,
+            m.ap,
+            m.positive_rate
+        ),
     })
 }
 
