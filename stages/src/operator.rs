@@ -53,6 +53,15 @@ impl SettingError {
         Err(SettingError::new(key, format!("must be in (0, {max}], not {value}")))
     }
 
+    /// The learning-rate schedule every training operator shares: `lr` in (0, 1], warmup within
+    /// the epochs, the warmup start and final rates at most `lr`.
+    pub fn check_schedule(epochs: u64, lr: f64, warmup_epochs: f64, warmup_lr: f64, min_lr: f64) -> Result<(), SettingError> {
+        SettingError::check_positive("lr", lr, 1.0)?;
+        SettingError::check_range("warmup_epochs", warmup_epochs, 0.0..=epochs as f64)?;
+        SettingError::check_range("warmup_lr", warmup_lr, 0.0..=lr)?;
+        SettingError::check_range("min_lr", min_lr, 0.0..=lr)
+    }
+
     /// A torch device setting: `auto`, `cpu`, `cuda` or `cuda:N`.
     pub fn check_device(key: &str, value: &str) -> Result<(), SettingError> {
         let cuda_n = value.strip_prefix("cuda:").is_some_and(|n| n.parse::<u32>().is_ok());

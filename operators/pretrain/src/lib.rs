@@ -132,10 +132,7 @@ impl Settings for ClipSettings {
         SettingError::check_range("tau", self.tau, 0.001..=1.0)?;
         SettingError::check_range("epochs", self.epochs, 0..=10_000)?;
         SettingError::check_range("batch", self.batch, 2..=65_536)?;
-        SettingError::check_positive("lr", self.lr, 1.0)?;
-        SettingError::check_range("warmup_epochs", self.warmup_epochs, 0.0..=self.epochs as f64)?;
-        SettingError::check_range("warmup_lr", self.warmup_lr, 0.0..=self.lr)?;
-        SettingError::check_range("min_lr", self.min_lr, 0.0..=self.lr)?;
+        SettingError::check_schedule(self.epochs, self.lr, self.warmup_epochs, self.warmup_lr, self.min_lr)?;
         for (i, b) in self.betas.iter().enumerate() {
             if !(0.0..1.0).contains(b) {
                 return Err(SettingError::new(format!("betas.{i}"), format!("must be in [0, 1), not {b}")));

@@ -63,10 +63,7 @@ impl Schedule {
     fn check(&self) -> Result<(), SettingError> {
         SettingError::check_range("epochs", self.epochs, 1..=10_000)?;
         SettingError::check_range("batch", self.batch, 1..=65_536)?;
-        SettingError::check_positive("lr", self.lr, 1.0)?;
-        SettingError::check_range("warmup_epochs", self.warmup_epochs, 0.0..=self.epochs as f64)?;
-        SettingError::check_range("warmup_lr", self.warmup_lr, 0.0..=self.lr)?;
-        SettingError::check_range("min_lr", self.min_lr, 0.0..=self.lr)?;
+        SettingError::check_schedule(self.epochs, self.lr, self.warmup_epochs, self.warmup_lr, self.min_lr)?;
         SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
         SettingError::check_positive("clip_norm", self.clip_norm, 1e6)?;
         SettingError::check_range("dice_weight", self.dice_weight, 0.0..=1.0)?;
