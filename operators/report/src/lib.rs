@@ -21,6 +21,7 @@ mod paper;
 mod plots;
 #[cfg(feature = "rerun")]
 mod recording;
+mod samples;
 mod sections;
 mod stats;
 mod study;
@@ -87,9 +88,10 @@ impl Operator for Paper {
         progress.inc(1);
         report.segmentation(&study)?;
         progress.inc(1);
-        report.samples(&study, s.samples)?;
+        let (samples, captioners) = (samples::samples(&study, s.samples)?, samples::captioners(&study)?);
+        report.samples(&samples)?;
         progress.inc(1);
-        report.captions(&study, s.captions)?;
+        report.captions(&study, &captioners, s.captions)?;
         report.inputs(&study);
         progress.inc(1);
         doc::write(&ctx.output_dir, &s.title, &report.blocks)?;
@@ -100,7 +102,7 @@ impl Operator for Paper {
         #[cfg(feature = "rerun")]
         let entities = if s.rerun {
             let id = format!("rlmflow-report-{}", &blake3::hash(text.as_bytes()).to_hex()[..16]);
-            recording::write(ctx, &study, &ctx.output_dir, &id, s.samples)?
+            recording::write(ctx, &study, &samples, &captioners, &ctx.output_dir, &id)?
         } else {
             0
         };

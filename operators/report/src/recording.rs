@@ -6,13 +6,13 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use rlmflow_python::embed::{self, pyo3};
-use rlmflow_stages::npy::Npy;
-use rlmflow_stages::{Context, segment};
+use rlmflow_stages::Context;
 use serde_json::json;
 
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyDict};
 
+use crate::samples::{Captioner, Sample};
 use crate::sections::grid_text;
 use crate::stats::rows;
 use crate::study::{Instance, Study};
@@ -27,19 +27,8 @@ fn entity(row: &Instance) -> String {
     if variant.is_empty() { row.stage.clone() } else { format!("{}/{variant}", row.stage) }
 }
 
-struct Frame {
-    frame: u64,
-    side: usize,
-    heatmap: Vec<u8>,
-    truth: Vec<u8>,
-    masks: BTreeMap<String, Vec<u8>>,
-    actors: Vec<[f64; 2]>,
-    true_grid: String,
-    captions: BTreeMap<String, String>,
-}
-
 /// Writes the recording; returns how many entities it holds.
-pub fn write(ctx: &Context, study: &Study, dir: &Path, recording_id: &str, samples: usize) -> anyhow::Result<usize> {
+pub fn write(ctx: &Context, study: &Study, samples: &[Sample], captioners: &[Captioner], dir: &Path, recording_id: &str) -> anyhow::Result<usize> {
     let mut scalars = serde_json::Map::new();
     for (row, group) in rows(&study.encoders, |e| &e.instance) {
         for key in ["loss", "top1", "off_diagonal"] {
@@ -49,13 +38,12 @@ pub fn write(ctx: &Context, study: &Study, dir: &Path, recording_id: &str, sampl
             }
         }
     }
-    let frames = sample_frames(study, samples)?;
     let env = rlmflow_python::ensure(&mut |note| ctx.event("python", json!({ "note": note })))?;
     embed::start(&env)?;
     Python::attach(|py| -> anyhow::Result<usize> {
         let py_err = |e: PyErr| anyhow::anyhow!("writing {FILE}: {}", embed::traceback(py, &e));
         let module = embed::module(py, "rlmflow_rerun_report", HELPER)?;
-        let list = frames
+        let list = samples
             .iter()
             .map(|f| -> PyResult<Bound<'_, PyDict>> {
                 let d = PyDict::new(py);
@@ -64,13 +52,16 @@ pub fn write(ctx: &Context, study: &Study, dir: &Path, recording_id: &str, sampl
                 d.set_item("heatmap", PyBytes::new(py, &f.heatmap))?;
                 d.set_item("truth", PyBytes::new(py, &f.truth))?;
                 let masks = PyDict::new(py);
-                for (name, mask) in &f.masks {
-                    masks.set_item(name, PyBytes::new(py, mask))?;
+                for (_, row, mask) in &f.masks {
+                    masks.set_item(entity(row), PyBytes::new(py, mask))?;
                 }
                 d.set_item("masks", masks)?;
                 d.set_item("actors", f.actors.iter().map(|a| a.to_vec()).collect::<Vec<_>>())?;
-                d.set_item("true_grid", &f.true_grid)?;
-                d.set_item("captions", f.captions.clone())?;
+                let truth = study.labels.as_ref().map(|l| grid_text(&l.frames[f.frame as usize].grid)).unwrap_or_default();
+                d.set_item("true_grid", truth)?;
+                let captions: BTreeMap<String, &String> =
+                    captioners.iter().filter_map(|c| c.generated.get(&f.frame).map(|(caption, _)| (entity(&c.row), caption))).collect();
+                d.set_item("captions", captions)?;
                 Ok(d)
             })
             .collect::<PyResult<Vec<_>>>()
@@ -83,45 +74,4 @@ pub fn write(ctx: &Context, study: &Study, dir: &Path, recording_id: &str, sampl
             .map_err(py_err)?;
         Ok(entities)
     })
-}
-
-/// The sample test frames every segmenter kept, with what each probe said of them.
-fn sample_frames(study: &Study, samples: usize) -> anyhow::Result<Vec<Frame>> {
-    let (Some(scenes), Some(labels)) = (&study.scenes, &study.labels) else { return Ok(Vec::new()) };
-    let Some(first) = study.segments.iter().find(|s| !s.summary.sample_frames.is_empty()) else { return Ok(Vec::new()) };
-    let segmenters = rows(&study.segments, |s| &s.instance);
-    let captioners: Vec<(String, BTreeMap<u64, (String, rlmflow_stages::grid::Grid)>)> = rows(&study.probes, |p| &p.instance)
-        .into_iter()
-        .filter(|(_, g)| g[0].summary.probe == "clipcap")
-        .map(|(row, g)| Ok((entity(&row), crate::sections::generated(g[0])?)))
-        .collect::<anyhow::Result<_>>()?;
-    let side = scenes.summary.images[0].size;
-    let mut frames = Vec::new();
-    for &frame in first.summary.sample_frames.iter().take(samples) {
-        let mut masks = BTreeMap::new();
-        for (row, group) in &segmenters {
-            if let Some(k) = group[0].summary.sample_frames.iter().position(|&f| f == frame) {
-                masks.insert(entity(row), Npy::open(&group[0].dir.join(segment::SAMPLES))?.row_u8(k)?);
-            }
-        }
-        let actors = scenes
-            .frame(frame)?
-            .actors
-            .iter()
-            .filter(|a| a.is_vehicle() && (0.0..side as f64).contains(&a.col) && (0.0..side as f64).contains(&a.row))
-            .map(|a| [a.col, a.row])
-            .collect();
-        let captions = captioners.iter().filter_map(|(name, g)| g.get(&frame).map(|(c, _)| (name.clone(), c.clone()))).collect();
-        frames.push(Frame {
-            frame,
-            side,
-            heatmap: scenes.heatmap(frame)?,
-            truth: labels.mask(frame)?,
-            masks,
-            actors,
-            true_grid: grid_text(&labels.frames[frame as usize].grid),
-            captions,
-        });
-    }
-    Ok(frames)
 }

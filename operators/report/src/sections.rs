@@ -1,11 +1,8 @@
 //! The report's sections. Each reads the [`Study`], appends blocks to the document and puts
 //! every number it shows into `metrics.json`.
 
-use std::collections::BTreeMap;
-
 use anyhow::Context as _;
 use rlmflow_stages::grid::{CELLS, DISTANCE_BINS, Grid, SECTORS};
-use rlmflow_stages::npy::Npy;
 use rlmflow_stages::{probe, segment};
 use serde_json::{Map, Value, json};
 
@@ -13,8 +10,9 @@ use crate::doc::{Block, Picture};
 use crate::images::{self, Gray};
 use crate::paper;
 use crate::plots::{self, Series};
+use crate::samples::{Captioner, Sample};
 use crate::stats::{Stat, name, rows};
-use crate::study::{EncoderRun, ProbeRun, Role, Study};
+use crate::study::{EncoderRun, Role, Study};
 
 /// The document and the numbers, built section by section.
 pub struct Report {
@@ -277,12 +275,8 @@ impl Report {
 
     /// Sample test frames: the heatmap, the true mask, each segmenter's prediction and each
     /// encoder's attention rollout over the heatmap.
-    pub fn samples(&mut self, study: &Study, count: usize) -> anyhow::Result<()> {
-        let (Some(scenes), Some(labels)) = (&study.scenes, &study.labels) else { return Ok(()) };
-        let Some(first) = study.segments.iter().find(|s| !s.summary.sample_frames.is_empty()) else { return Ok(()) };
-        let groups = rows(&study.segments, |s| &s.instance);
-        let frames: Vec<u64> = first.summary.sample_frames.iter().copied().take(count).collect();
-        if frames.is_empty() {
+    pub fn samples(&mut self, samples: &[Sample]) -> anyhow::Result<()> {
+        if samples.is_empty() {
             return Ok(());
         }
         self.blocks.push(Block::Heading(1, "Sample test frames".into()));
@@ -291,31 +285,18 @@ impl Report {
              CLS attention rollout laid over the heatmap in red."
                 .into(),
         ));
-        for &frame in &frames {
-            let heat = scenes.heatmap(frame)?;
-            let side = scenes.summary.images[0].size;
-            let mask = labels.mask(frame)?;
+        for sample in samples {
+            let (frame, side) = (sample.frame, sample.side);
             let gray = |pixels: &[u8]| images::gray_png(&Gray { side, pixels });
             let mut pictures = vec![
-                Picture { name: format!("frame{frame}-heatmap"), caption: format!("frame {frame}"), png: gray(&heat)? },
-                Picture { name: format!("frame{frame}-truth"), caption: "true mask".into(), png: gray(&mask)? },
+                Picture { name: format!("frame{frame}-heatmap"), caption: format!("frame {frame}"), png: gray(&sample.heatmap)? },
+                Picture { name: format!("frame{frame}-truth"), caption: "true mask".into(), png: gray(&sample.truth)? },
             ];
-            for (i, (row, group)) in groups.iter().enumerate() {
-                let run = group[0];
-                let Some(k) = run.summary.sample_frames.iter().position(|&f| f == frame) else { continue };
-                let predicted = Npy::open(&run.dir.join(segment::SAMPLES))?.row_u8(k)?;
-                pictures.push(Picture { name: format!("frame{frame}-seg{i}"), caption: name(row), png: gray(&predicted)? });
+            for (i, row, mask) in &sample.masks {
+                pictures.push(Picture { name: format!("frame{frame}-seg{i}"), caption: name(row), png: gray(mask)? });
             }
-            for (i, (row, group)) in groups.iter().enumerate() {
-                let run = group[0];
-                let Some(k) = run.summary.sample_frames.iter().position(|&f| f == frame) else { continue };
-                if run.summary.rollout_blocks.is_empty() {
-                    continue;
-                }
-                let rollout = Npy::open(&run.dir.join(segment::ROLLOUT))?;
-                let grid = rollout.shape[1];
-                let map = rollout.row_u8(k)?;
-                let png = images::overlay_png(&Gray { side, pixels: &heat }, &Gray { side: grid, pixels: &map })?;
+            for (i, row, grid, map) in &sample.rollouts {
+                let png = images::overlay_png(&Gray { side, pixels: &sample.heatmap }, &Gray { side: *grid, pixels: map })?;
                 pictures.push(Picture { name: format!("frame{frame}-rollout{i}"), caption: format!("rollout: {}", row.variant()), png });
             }
             self.blocks.push(Block::Images(pictures));
@@ -324,15 +305,10 @@ impl Report {
     }
 
     /// A few test frames' true grids beside what each caption probe generated and its parse.
-    pub fn captions(&mut self, study: &Study, count: usize) -> anyhow::Result<()> {
+    pub fn captions(&mut self, study: &Study, captioners: &[Captioner], count: usize) -> anyhow::Result<()> {
         let Some(labels) = &study.labels else { return Ok(()) };
-        let captioners: Vec<(String, BTreeMap<u64, (String, Grid)>)> = rows(&study.probes, |p| &p.instance)
-            .into_iter()
-            .filter(|(_, g)| g[0].summary.probe == "clipcap")
-            .map(|(row, g)| Ok((name(&row), generated(g[0])?)))
-            .collect::<anyhow::Result<_>>()?;
-        let Some((_, first)) = captioners.first() else { return Ok(()) };
-        let frames: Vec<u64> = first.keys().copied().take(count).collect();
+        let Some(first) = captioners.first() else { return Ok(()) };
+        let frames: Vec<u64> = first.generated.keys().copied().take(count).collect();
         if frames.is_empty() {
             return Ok(());
         }
@@ -341,30 +317,15 @@ impl Report {
         for frame in frames {
             let truth = &labels.frames.get(frame as usize).with_context(|| format!("frame {frame} is not in the labels"))?.grid;
             text += &format!("frame {frame}\n  true grid: {}\n", grid_text(truth));
-            for (row, generated) in &captioners {
-                if let Some((caption, grid)) = generated.get(&frame) {
-                    text += &format!("  {row}: {caption}\n    parsed: {}\n", grid_text(grid));
+            for c in captioners {
+                if let Some((caption, grid)) = c.generated.get(&frame) {
+                    text += &format!("  {}: {caption}\n    parsed: {}\n", name(&c.row), grid_text(grid));
                 }
             }
         }
         self.blocks.push(Block::Code(text));
         Ok(())
     }
-}
-
-/// A caption probe's generated caption and parsed grid per test frame.
-pub(crate) fn generated(run: &ProbeRun) -> anyhow::Result<BTreeMap<u64, (String, Grid)>> {
-    let path = run.dir.join(probe::PREDICTIONS);
-    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-    let mut out = BTreeMap::new();
-    for (n, line) in text.lines().enumerate() {
-        let bad = || format!("{}:{}: not a prediction line", path.display(), n + 1);
-        let v: Value = serde_json::from_str(line).with_context(bad)?;
-        let (Some(frame), Some(caption)) = (v["frame"].as_u64(), v["caption"].as_str()) else { anyhow::bail!(bad()) };
-        let grid = Grid::from_json(&v["grid"]).map_err(|e| anyhow::anyhow!("{}: {e}", bad()))?;
-        out.insert(frame, (caption.to_owned(), grid));
-    }
-    Ok(out)
 }
 
 /// An encoder's log averaged across seeds, epoch by epoch.
