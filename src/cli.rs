@@ -37,9 +37,13 @@ enum Command {
         /// Run only these stages and what they need (repeatable).
         #[arg(long, value_name = "STAGE")]
         only: Vec<String>,
-        /// CPU threads shared by concurrently running stages; default: all cores.
+        /// CPU threads shared by concurrently running stages; default: all cores (with
+        /// HyperQueue, its workers times their cores).
         #[arg(long, short)]
         jobs: Option<usize>,
+        /// Where actions run, overriding `[pipeline] executor`: local or hyperqueue.
+        #[arg(long, value_name = "EXECUTOR")]
+        executor: Option<String>,
         /// Print the JSON event log on stdout instead of progress.
         #[arg(long)]
         json: bool,
@@ -132,7 +136,10 @@ enum Command {
     },
 }
 
+/// The command line of a binary with `registry`'s operators. Call it first thing in `main`.
 pub fn main(registry: Registry) -> ExitCode {
+    #[cfg(feature = "python")]
+    rlmflow_python::embed::pin_home();
     let cli = Cli::parse();
     match dispatch(cli.command, &registry) {
         Ok(code) => code,
@@ -159,8 +166,12 @@ fn store_root(pipeline: &Pipeline, arg: &StoreArg) -> PathBuf {
 
 fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
     match command {
-        Command::Run { pipeline, dry_run, only, jobs, json, device, verify_inputs, check_determinism, store } => {
-            let p = config::load(&pipeline, registry)?;
+        Command::Run { pipeline, dry_run, only, jobs, executor, json, device, verify_inputs, check_determinism, store } => {
+            let mut p = config::load(&pipeline, registry)?;
+            if let Some(name) = executor {
+                p.executor = config::Executor::parse(&name)
+                    .with_context(|| format!("unknown executor `{name}` for --executor; valid: {}", config::Executor::NAMES.join(", ")))?;
+            }
             let plan = plan(&p);
             let selected = plan.select(&only)?;
             let root = store_root(&p, &store);
@@ -169,7 +180,12 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 print_status(&plan, registry, store.as_ref(), &selected, json)?;
                 return Ok(ExitCode::SUCCESS);
             }
-            let jobs = jobs.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())).max(1);
+            let jobs = jobs
+                .unwrap_or_else(|| match p.executor {
+                    config::Executor::Local => std::thread::available_parallelism().map_or(1, |n| n.get()),
+                    config::Executor::HyperQueue => p.hyperqueue.workers * p.hyperqueue.cores(),
+                })
+                .max(1);
             let store = Store::open(&root)?;
             let opts = RunOptions { jobs, json, device, verify_inputs };
             if !check_determinism.is_empty() {

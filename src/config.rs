@@ -10,6 +10,8 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 
 use rlmflow_stages::{Arity, Need, Registry, StageKind};
+
+use crate::dispatch::HyperQueueSettings;
 use serde_json::{Map, Value};
 use toml::de::{DeTable, DeValue};
 
@@ -60,7 +62,31 @@ pub struct Pipeline {
     pub seeds: Vec<u64>,
     /// The store directory (relative paths in the file are relative to the file).
     pub cache: PathBuf,
+    pub executor: Executor,
+    /// `[pipeline.hyperqueue]`, also used when `run --executor hyperqueue` overrides a local one.
+    pub hyperqueue: HyperQueueSettings,
     pub stages: Vec<Stage>,
+}
+
+/// `[pipeline] executor`: where actions run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Executor {
+    /// Child processes of the engine.
+    Local,
+    /// Tasks of a HyperQueue server (`[pipeline.hyperqueue]`).
+    HyperQueue,
+}
+
+impl Executor {
+    pub const NAMES: &[&str] = &["local", "hyperqueue"];
+
+    pub fn parse(name: &str) -> Option<Executor> {
+        match name {
+            "local" => Some(Executor::Local),
+            "hyperqueue" => Some(Executor::HyperQueue),
+            _ => None,
+        }
+    }
 }
 
 #[derive(Debug)]
@@ -101,13 +127,12 @@ impl Pipeline {
     }
 }
 
-const PIPELINE_KEYS: &[&str] = &["name", "seed", "seeds", "cache", "executor"];
+const PIPELINE_KEYS: &[&str] = &["name", "seed", "seeds", "cache", "executor", "hyperqueue"];
 const STAGE_KEYS: &[&str] = &["kind", "operator", "inputs", "variants", "per_seed"];
 /// The variant dimension seeds fan out on; no stage may take its name.
 pub const SEED_DIMENSION: &str = "seed";
 /// The most seeds a pipeline may list.
 const MAX_SEEDS: usize = 64;
-const EXECUTORS: &[&str] = &["local"];
 
 /// The longest pipeline, stage, variant or pin name: names become file names in the store.
 pub const MAX_NAME: usize = 128;
@@ -308,13 +333,15 @@ impl Checker {
         let cache = self.string(header, "pipeline", "cache").unwrap_or_else(|| ".rlmflow".into());
         let cache = file.parent().unwrap_or(Path::new(".")).join(cache);
         let cache = std::path::absolute(&cache).unwrap_or(cache);
-        if let Some(executor) = self.string(header, "pipeline", "executor")
-            && !EXECUTORS.contains(&executor.as_str())
-        {
-            let help = format!("valid executors: {}{}", EXECUTORS.join(", "), suggest(&executor, EXECUTORS));
-            let msg = format!("unknown executor `{executor}`");
-            self.error(self.line("pipeline.executor"), "pipeline.executor", msg, Some(help));
-        }
+        let executor = match self.string(header, "pipeline", "executor") {
+            None => Executor::Local,
+            Some(name) => Executor::parse(&name).unwrap_or_else(|| {
+                let help = format!("valid executors: {}{}", Executor::NAMES.join(", "), suggest(&name, Executor::NAMES));
+                self.error(self.line("pipeline.executor"), "pipeline.executor", format!("unknown executor `{name}`"), Some(help));
+                Executor::Local
+            }),
+        };
+        let hyperqueue = self.hyperqueue(file, header.get("hyperqueue"));
 
         let stages_table = match root.get("stages") {
             Some(Value::Object(t)) if !t.is_empty() => t.clone(),
@@ -356,7 +383,36 @@ impl Checker {
             return None;
         }
         let stages = self.topological(stages)?;
-        Some(Pipeline { file: file.to_path_buf(), name, seed, seeds, cache, stages })
+        Some(Pipeline { file: file.to_path_buf(), name, seed, seeds, cache, executor, hyperqueue, stages })
+    }
+
+    /// `[pipeline.hyperqueue]`, its `server_dir` made absolute against the pipeline file.
+    fn hyperqueue(&mut self, file: &Path, table: Option<&Value>) -> HyperQueueSettings {
+        let Some(table) = table else { return HyperQueueSettings::default() };
+        let parsed = serde_path_to_error::deserialize::<_, HyperQueueSettings>(table.clone());
+        let mut settings = match parsed {
+            Ok(s) => s,
+            Err(e) => {
+                let inner = e.path().to_string();
+                let key = if inner == "." { "pipeline.hyperqueue".to_owned() } else { format!("pipeline.hyperqueue.{inner}") };
+                let message = e.into_inner().to_string();
+                let key = match message.strip_prefix("unknown field `").and_then(|m| m.split('`').next()) {
+                    Some(field) => format!("pipeline.hyperqueue.{field}"),
+                    None => key,
+                };
+                self.error(self.line(&key), &key, message, None);
+                return HyperQueueSettings::default();
+            }
+        };
+        if let Err((key, message)) = settings.check() {
+            let key = format!("pipeline.hyperqueue.{key}");
+            self.error(self.line(&key), &key, message, None);
+        }
+        if let Some(dir) = &settings.server_dir {
+            let dir = file.parent().unwrap_or(Path::new(".")).join(dir);
+            settings.server_dir = Some(std::path::absolute(&dir).unwrap_or(dir));
+        }
+        settings
     }
 
     /// `seeds = [1, 2, 3]`: distinct non-negative integers, at most [`MAX_SEEDS`].

@@ -1,13 +1,12 @@
-//! The local executor: runs a plan's instances as child processes (`rlmflow exec`), independent
-//! ones concurrently within a thread budget, reusing every cached action.
+//! The executor: walks a plan's instances in dependency order, reuses every cached action, and
+//! starts the others (`rlmflow exec KEY`) through a dispatcher (`dispatch/`: child processes or
+//! HyperQueue tasks), independent ones concurrently within a thread budget.
 
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::io::{BufRead, BufReader, Write};
+use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::process::{Command, ExitStatus, Stdio};
 use std::sync::mpsc;
-use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use anyhow::Context as _;
@@ -16,7 +15,9 @@ use rlmflow_cache::{ActionRequest, Digest, PlanEntry, Preimage, RunPlan, Store, 
 use rlmflow_stages::{Device, Registry};
 use serde_json::{Value, json};
 
-use crate::exec::{EXIT_CORRUPT_INPUT, Message, PREFIX};
+use crate::config::Executor as ExecutorKind;
+use crate::dispatch::{Dispatch, Exit, Launch, Local, Report};
+use crate::exec::{EXIT_CORRUPT_INPUT, Message};
 use crate::plan::{Freshness, Plan, assess, why};
 
 #[derive(Clone, Debug)]
@@ -74,12 +75,6 @@ enum State {
     Skipped,
 }
 
-/// What a child's reader thread tells the scheduler.
-enum Report {
-    Message(Message),
-    Exited(std::io::Result<ExitStatus>),
-}
-
 struct Executor<'a> {
     plan: &'a Plan<'a>,
     registry: &'a Registry,
@@ -97,6 +92,7 @@ struct Executor<'a> {
     last: BTreeMap<String, Digest>,
     /// Outputs re-hashed this run (`verify_inputs`).
     verified: std::collections::BTreeSet<Digest>,
+    dispatch: Box<dyn Dispatch>,
 }
 
 /// Runs the plan; returns its summary.
@@ -107,6 +103,8 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
     let events = EventLog::create(&store.run_dir(&run), opts.json)?;
     let states = selected.iter().map(|&s| if s { State::Waiting } else { State::Excluded }).collect();
     let n = plan.instances.len();
+    let ui = Ui::new(opts.json);
+    let dispatch = dispatcher(plan, store, &run, &ui)?;
     let mut ex = Executor {
         plan,
         registry,
@@ -117,14 +115,33 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
         keys: vec![None; n],
         plan_dirty: true,
         events,
-        ui: Ui::new(opts.json),
+        ui,
         results: vec![None; n],
         recoveries: vec![0; n],
         last: store.last_keys(&plan.pipeline.name)?,
         verified: Default::default(),
+        dispatch,
     };
     ex.execute()?;
     Ok(ex.summary())
+}
+
+/// The pipeline's dispatcher. An existing HyperQueue server is checked here, before anything runs.
+fn dispatcher(plan: &Plan, store: &Store, run: &str, ui: &Ui) -> anyhow::Result<Box<dyn Dispatch>> {
+    match plan.pipeline.executor {
+        ExecutorKind::Local => Ok(Box::new(Local)),
+        #[cfg(feature = "python")]
+        ExecutorKind::HyperQueue => {
+            let dir = store.run_dir(run).join("hyperqueue");
+            let hq = crate::dispatch::HyperQueue::connect(plan.pipeline.hyperqueue.clone(), &dir, &mut |note| ui.say(note.to_owned()))?;
+            Ok(Box::new(hq))
+        }
+        #[cfg(not(feature = "python"))]
+        ExecutorKind::HyperQueue => {
+            let _ = (store, run, ui);
+            anyhow::bail!("executor = \"hyperqueue\" needs the embedded Python (build rlmflow with its default `python` feature)")
+        }
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -140,9 +157,18 @@ impl Executor<'_> {
         let clock = Instant::now();
         let p = self.plan.pipeline;
         let selected = self.states.iter().filter(|s| !matches!(s, State::Excluded)).count();
-        self.events
-            .write("run_started", json!({"run": self.run, "pipeline": p.name, "file": p.file, "instances": selected, "jobs": self.opts.jobs}))?;
-        self.ui.say(format!("rlmflow run {} ({} stage instances, {} threads, run {})", p.file.display(), selected, self.opts.jobs, self.run));
+        let executor = self.dispatch.describe();
+        self.events.write(
+            "run_started",
+            json!({"run": self.run, "pipeline": p.name, "file": p.file, "instances": selected, "jobs": self.opts.jobs, "executor": executor}),
+        )?;
+        self.ui.say(format!(
+            "rlmflow run {} ({} stage instances, {} threads, {executor}, run {})",
+            p.file.display(),
+            selected,
+            self.opts.jobs,
+            self.run
+        ));
 
         let (tx, rx) = mpsc::channel::<(usize, Report)>();
         let mut bars: BTreeMap<usize, ProgressBar> = BTreeMap::new();
@@ -158,8 +184,8 @@ impl Executor<'_> {
                 let State::Ready { key } = self.states[i] else { continue };
                 let op = self.registry.get(&self.plan.pipeline.stages[self.plan.instances[i].stage].operator).unwrap();
                 let wants = op.resources(&self.plan.instances[i].settings);
-                let threads = wants.threads.clamp(1, self.opts.jobs);
-                let fits = threads_in_use + threads <= self.opts.jobs && !(wants.gpu && gpu_in_use);
+                let threads = wants.threads.clamp(1, self.opts.jobs).min(self.dispatch.max_threads().unwrap_or(usize::MAX));
+                let fits = threads_in_use + threads <= self.opts.jobs && !(wants.gpu && gpu_in_use && self.dispatch.serialises_gpu());
                 if !fits && !started.is_empty() {
                     continue;
                 }
@@ -177,7 +203,7 @@ impl Executor<'_> {
                 let label = self.plan.instances[i].label.clone();
                 self.events.write("stage_started", json!({"stage": label, "key": key, "threads": threads}))?;
                 bars.insert(i, self.ui.bar(&label));
-                self.spawn(i, &exe, key, threads, tx.clone())?;
+                self.start(i, exe, key, threads, wants.gpu, tx.clone())?;
             }
             if started.is_empty() {
                 break;
@@ -200,13 +226,13 @@ impl Executor<'_> {
                 Report::Message(message) => {
                     outcome.insert(i, message);
                 }
-                Report::Exited(status) => {
+                Report::Exited(exit) => {
                     let (t0, threads, gpu) = started.remove(&i).unwrap();
                     threads_in_use -= threads;
                     gpu_in_use &= !gpu;
                     bars.remove(&i).unwrap().finish_and_clear();
                     let secs = t0.elapsed().as_secs_f64();
-                    self.finish(i, status, outcome.remove(&i), secs)?;
+                    self.finish(i, exit, outcome.remove(&i), secs)?;
                 }
             }
         }
@@ -352,46 +378,15 @@ impl Executor<'_> {
         self.store.run_dir(&self.run).join("logs").join(format!("{}.log", file_safe(label)))
     }
 
-    fn spawn(&self, i: usize, exe: &Path, key: Digest, threads: usize, tx: mpsc::Sender<(usize, Report)>) -> anyhow::Result<()> {
-        let label = &self.plan.instances[i].label;
-        let log_path = self.log_path(label);
-        let log = Arc::new(Mutex::new(File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?));
-        let mut cmd = Command::new(exe);
-        cmd.arg("exec")
-            .arg(key.to_string())
-            .arg("--store")
-            .arg(self.store.root())
-            .arg("--threads")
-            .arg(threads.to_string())
-            .arg("--device")
-            .arg(self.opts.device.to_string())
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped());
-        die_with_parent(&mut cmd);
-        let mut child = cmd.spawn().context("starting `rlmflow exec`")?;
-        let stdout = child.stdout.take().unwrap();
-        let stderr = child.stderr.take().unwrap();
-        let err_log = log.clone();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-                let _ = writeln!(err_log.lock().unwrap(), "{line}");
-            }
-        });
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-                match line.strip_prefix(PREFIX).map(serde_json::from_str::<Message>) {
-                    Some(Ok(message)) => {
-                        let _ = tx.send((i, Report::Message(message)));
-                    }
-                    _ => {
-                        let _ = writeln!(log.lock().unwrap(), "{line}");
-                    }
-                }
-            }
-            let _ = tx.send((i, Report::Exited(child.wait())));
-        });
-        Ok(())
+    fn start(&mut self, i: usize, exe: PathBuf, key: Digest, threads: usize, gpu: bool, tx: mpsc::Sender<(usize, Report)>) -> anyhow::Result<()> {
+        let label = self.plan.instances[i].label.clone();
+        let args = ["exec", &key.to_string(), "--store", &self.store.root().to_string_lossy(), "--threads", &threads.to_string()]
+            .into_iter()
+            .map(str::to_owned)
+            .chain(["--device".to_owned(), self.opts.device.to_string()])
+            .collect();
+        let log = self.log_path(&label);
+        self.dispatch.start(i, Launch { exe, args, label, threads, gpu, log }, tx)
     }
 
     /// An instance that could not be started (its worker binary is missing) fails like one
@@ -405,10 +400,10 @@ impl Executor<'_> {
         Ok(())
     }
 
-    fn finish(&mut self, i: usize, status: std::io::Result<ExitStatus>, outcome: Option<Message>, secs: f64) -> anyhow::Result<()> {
+    fn finish(&mut self, i: usize, exit: Exit, outcome: Option<Message>, secs: f64) -> anyhow::Result<()> {
         let label = self.plan.instances[i].label.clone();
         let State::Running { key } = self.states[i] else { unreachable!("finished a stage that was not running") };
-        let code = status.as_ref().ok().and_then(|s| s.code());
+        let code = exit.code();
         match outcome {
             Some(Message::Done { .. } | Message::Reused) if code == Some(0) => {
                 let record = self.store.fresh(&key)?.context("a finished action has no record")?;
@@ -439,11 +434,10 @@ impl Executor<'_> {
                 self.states[i] = State::Waiting;
             }
             other => {
-                let message = match (other, &status) {
-                    (Some(Message::Failed { message }), _) => message,
-                    (Some(Message::CorruptInput { digest, .. }), _) => format!("input {} is still corrupt after recomputing it", digest.short()),
-                    (_, Ok(s)) => describe_exit(s),
-                    (_, Err(e)) => format!("could not wait for the child: {e}"),
+                let message = match other {
+                    Some(Message::Failed { message }) => message,
+                    Some(Message::CorruptInput { digest, .. }) => format!("input {} is still corrupt after recomputing it", digest.short()),
+                    _ => exit.describe(),
                 };
                 self.states[i] = State::Failed;
                 self.results[i] = Some((Outcome::Failed, 0.0));
@@ -456,29 +450,6 @@ impl Executor<'_> {
             }
         }
         Ok(())
-    }
-}
-
-fn describe_exit(status: &ExitStatus) -> String {
-    use std::os::unix::process::ExitStatusExt;
-    match (status.code(), status.signal()) {
-        (_, Some(sig)) => format!("the stage process was killed by signal {sig}"),
-        (Some(code), _) => format!("the stage process exited with status {code}"),
-        _ => "the stage process ended abnormally".into(),
-    }
-}
-
-/// The child dies with the engine (Linux), so a killed run leaves no stage computing alone.
-fn die_with_parent(cmd: &mut Command) {
-    #[cfg(target_os = "linux")]
-    unsafe {
-        use std::os::unix::process::CommandExt;
-        cmd.pre_exec(|| {
-            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
-                return Err(std::io::Error::last_os_error());
-            }
-            Ok(())
-        });
     }
 }
 

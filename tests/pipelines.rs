@@ -87,6 +87,7 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     assert!(ok && check.matches("same bytes").count() == 5, "{check}");
     let objects = dir.join(".rlmflow/objects");
     the_report_holds_every_probe(&objects);
+    a_local_hyperqueue_cluster_gives_the_same_keys_and_bytes(&dir, stages);
 
     // One probe setting changed: only that probe's instances and the report run again.
     let edited =
@@ -101,7 +102,7 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
         .collect();
     assert_eq!(ran, ["pixels", "report"], "{third}");
     let scenes = artifacts(&objects, "scenes.mcap");
-    assert_eq!(scenes.len(), 2, "one per scenes stage: {scenes:?}");
+    assert_eq!(scenes.len(), 4, "one per scenes stage, and the mix: {scenes:?}");
     for artifact in scenes {
         a_stock_mcap_reader_agrees(&artifact);
     }
@@ -112,6 +113,33 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     });
     every_caption_parses_to_its_labels(&labels, &captions);
     python_tokenizers_gives_the_same_ids(&captions, &tokens);
+}
+
+/// `examples/ci.toml` run in `local` (by the local executor) again through a local HyperQueue
+/// cluster into a store of its own: every action has the same key and output digest, and a second
+/// run reuses everything and starts no cluster.
+fn a_local_hyperqueue_cluster_gives_the_same_keys_and_bytes(local: &Path, stages: usize) {
+    let dir = local.with_extension("hyperqueue");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::copy(local.join("ci.toml"), dir.join("ci.toml")).unwrap();
+    let (ok, first) = rlmflow(&dir, &["run", "ci.toml", "--json", "--executor", "hyperqueue"]);
+    assert!(ok, "{first}");
+    assert!(first.contains("\"executor\":\"hyperqueue (local cluster"), "{first}");
+    let actions = |dir: &Path| {
+        let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
+        let keys = store.last_keys("ci").unwrap();
+        keys.into_iter().map(|(label, key)| (label, key, store.record(&key).unwrap().unwrap().output)).collect::<Vec<_>>()
+    };
+    let (through_hq, locally) = (actions(&dir), actions(local));
+    assert_eq!(through_hq.len(), stages);
+    assert_eq!(through_hq, locally);
+    let (ok, second) = rlmflow(&dir, &["run", "ci.toml", "--json", "--executor", "hyperqueue"]);
+    assert!(ok, "{second}");
+    assert_eq!(second.matches("\"status\":\"reused\"").count(), stages, "{second}");
+    let run = second.lines().find(|l| l.contains("\"run_started\"")).unwrap();
+    let run = serde_json::from_str::<serde_json::Value>(run).unwrap()["run"].as_str().unwrap().to_owned();
+    assert!(!dir.join(".rlmflow/runs").join(run).join("hyperqueue/server").exists(), "a warm run starts no cluster");
 }
 
 /// The report reads every probe and segmenter instance: its tables name them, `metrics.json`

@@ -155,7 +155,7 @@ fn create(python: &Path, scratch: &Path, root: &Path, version: &str, note: &mut 
     )?;
     let site = Command::new(&venv_python).args(["-c", "import sysconfig; print(sysconfig.get_path('purelib'))"]).output()?;
     let site_packages = PathBuf::from(String::from_utf8_lossy(&site.stdout).trim());
-    run(Command::new(&venv_python).args(["-c", "import highway_env, mcap, tokenizers, rerun"]), "checking the packages import")?;
+    run(Command::new(&venv_python).args(["-c", "import highway_env, mcap, tokenizers, rerun, hyperqueue"]), "checking the packages import")?;
     // The venv is moved into place: record paths as they will be.
     let relative = site_packages.strip_prefix(scratch).context("site-packages lies outside the venv")?.to_path_buf();
     let env = Environment { root: root.to_path_buf(), python: root.join("bin/python"), site_packages: root.join(relative), version: version.into() };

@@ -36,6 +36,10 @@ impl Slot {
     pub const fn gather(name: &'static str, artifact: &'static str) -> Slot {
         Slot { name, artifact, need: Need::Optional, arity: Arity::All }
     }
+    /// Every instance of the providing stages, at least one of them.
+    pub const fn gather_some(name: &'static str, artifact: &'static str) -> Slot {
+        Slot { name, artifact, need: Need::Required, arity: Arity::All }
+    }
 }
 
 /// A stage kind: a named transformation from input artifacts to one output artifact.
@@ -80,6 +84,8 @@ const ENCODER: &str = "Encoder";
 
 const PAPER_KINDS: &[StageKind] = &[
     StageKind { name: "scenes", produces: SCENES, inputs: &[], per_seed: false },
+    // Several Scenes artifacts as one (drives mixed with placed scenes, for pretraining).
+    StageKind { name: "mix", produces: SCENES, inputs: &[Slot::gather_some("scenes", SCENES)], per_seed: false },
     StageKind { name: "labels", produces: LABELS, inputs: &[Slot::one("scenes", SCENES)], per_seed: false },
     StageKind { name: "captions", produces: CAPTIONS, inputs: &[Slot::one("labels", LABELS)], per_seed: false },
     StageKind { name: "tokens", produces: TOKENS, inputs: &[Slot::one("captions", CAPTIONS)], per_seed: false },

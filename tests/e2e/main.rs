@@ -4,4 +4,5 @@
 mod config_errors;
 mod engine;
 mod harness;
+mod hyperqueue;
 mod store_repair;

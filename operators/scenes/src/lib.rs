@@ -1,8 +1,9 @@
-//! The `scenes` stage kind's operators. `procedural` (pure Rust) places vehicles, without
+//! The `scenes` stage kind's operators, and `concat` (kind `mix`), which joins Scenes artifacts. `procedural` (pure Rust) places vehicles, without
 //! dynamics, on sampled road layouts; `highway-env` (with the `highway` feature) simulates
 //! traffic in highway-env through the embedded Python. Both render through the shared radar
 //! model and write the same Scenes artifact.
 
+mod concat;
 #[cfg(feature = "highway")]
 mod highway;
 mod layout;
@@ -10,6 +11,7 @@ mod procedural;
 mod render;
 mod writer;
 
+pub use concat::{Concat, ConcatSettings};
 #[cfg(feature = "highway")]
 pub use highway::{HighwayEnv, HighwaySettings, SCENARIOS, ScenarioMix};
 pub use procedural::{Procedural, ProceduralSettings};

@@ -1,0 +1,153 @@
+//! Dispatch: how an action's process is started and watched. The executor (`run.rs`) decides
+//! what runs, when, and what its outcome means; a dispatcher only starts `rlmflow exec KEY
+//! --store DIR` (or the worker binary's) somewhere and reports back, on one channel, the
+//! protocol messages the process prints and how it ended. Planning, keys, locks, the commit
+//! protocol and records are the same whichever dispatcher runs the action.
+//!
+//! `local.rs` starts child processes; `hyperqueue.rs` submits HyperQueue tasks. Another backend
+//! (Slurm directly, Kubernetes) is one more file implementing [`Dispatch`].
+
+use std::path::PathBuf;
+use std::sync::mpsc::Sender;
+
+use serde::{Deserialize, Serialize};
+
+use crate::exec::Message;
+
+#[cfg(feature = "python")]
+mod hyperqueue;
+mod local;
+
+#[cfg(feature = "python")]
+pub use hyperqueue::HyperQueue;
+pub use local::Local;
+
+/// One action to start.
+#[derive(Clone, Debug)]
+pub struct Launch {
+    /// `rlmflow` or the worker binary that runs the operator.
+    pub exe: PathBuf,
+    /// The arguments after the executable (`exec KEY --store DIR ...`).
+    pub args: Vec<String>,
+    /// The instance's label, for names and messages.
+    pub label: String,
+    pub threads: usize,
+    pub gpu: bool,
+    /// Where the process's output that is not protocol goes (`runs/<id>/logs/<label>.log`).
+    pub log: PathBuf,
+}
+
+/// What a dispatcher tells the executor about a started action.
+pub enum Report {
+    Message(Message),
+    Exited(Exit),
+}
+
+/// How an action's process ended.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Exit {
+    Code(i32),
+    Signal(i32),
+    /// It could not be started or watched, or the cluster lost it.
+    Lost(String),
+}
+
+impl Exit {
+    pub fn code(&self) -> Option<i32> {
+        match self {
+            Exit::Code(c) => Some(*c),
+            _ => None,
+        }
+    }
+
+    pub fn describe(&self) -> String {
+        match self {
+            Exit::Code(c) => format!("the stage process exited with status {c}"),
+            Exit::Signal(s) => format!("the stage process was killed by signal {s}"),
+            Exit::Lost(why) => why.clone(),
+        }
+    }
+}
+
+/// Starts actions and reports on them.
+pub trait Dispatch {
+    /// Starts `launch`; its messages, then exactly one `Exited`, come back on `tx` tagged `id`.
+    fn start(&mut self, id: usize, launch: Launch, tx: Sender<(usize, Report)>) -> anyhow::Result<()>;
+
+    /// The most CPU threads one action may be given (a worker's cores), if the backend has a cap.
+    fn max_threads(&self) -> Option<usize> {
+        None
+    }
+
+    /// Whether the executor must run at most one GPU stage at a time itself (locally it must;
+    /// a cluster schedules GPUs by resource request).
+    fn serialises_gpu(&self) -> bool {
+        true
+    }
+
+    /// For the run's header and first event, e.g. `local` or `hyperqueue (local cluster, 2 workers x 1 cores)`.
+    fn describe(&self) -> String;
+}
+
+/// Reads protocol lines from `reader` into `tx`; other lines go to `log`.
+pub(crate) fn forward_lines(reader: impl std::io::BufRead, id: usize, tx: &Sender<(usize, Report)>, log: &std::sync::Mutex<std::fs::File>) {
+    for line in reader.lines().map_while(Result::ok) {
+        forward_line(&line, id, tx, log);
+    }
+}
+
+/// One line of a stage's stdout: a protocol message to `tx`, anything else to `log`.
+pub(crate) fn forward_line(line: &str, id: usize, tx: &Sender<(usize, Report)>, log: &std::sync::Mutex<std::fs::File>) {
+    use std::io::Write;
+    match line.strip_prefix(crate::exec::PREFIX).map(serde_json::from_str::<Message>) {
+        Some(Ok(message)) => {
+            let _ = tx.send((id, Report::Message(message)));
+        }
+        _ => {
+            let _ = writeln!(log.lock().unwrap(), "{line}");
+        }
+    }
+}
+
+/// `[pipeline.hyperqueue]`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct HyperQueueSettings {
+    /// The directory of a running server (`hq server start --server-dir DIR`), relative to the
+    /// pipeline file; none starts a local cluster for the run.
+    pub server_dir: Option<PathBuf>,
+    /// Workers in the cluster: started when local; on a server, how many the engine keeps busy.
+    pub workers: usize,
+    /// Cores per worker (0: this machine's): the most CPU threads one task asks for.
+    pub cores: usize,
+    /// Times a task that ended without an outcome is submitted again (0: the stage fails at once).
+    pub retries: u32,
+    /// Whether a stage that can use a GPU asks for one (the workers must have GPUs).
+    pub gpus: bool,
+}
+
+impl Default for HyperQueueSettings {
+    fn default() -> Self {
+        HyperQueueSettings { server_dir: None, workers: 1, cores: 0, retries: 1, gpus: false }
+    }
+}
+
+impl HyperQueueSettings {
+    /// Checks ranges; returns the offending key and what is valid.
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
+        if !(1..=4096).contains(&self.workers) {
+            return Err(("workers", format!("must be in 1..=4096, not {}", self.workers)));
+        }
+        if self.cores > 4096 {
+            return Err(("cores", format!("must be in 0..=4096 (0: this machine's cores), not {}", self.cores)));
+        }
+        if self.retries > 100 {
+            return Err(("retries", format!("must be in 0..=100, not {}", self.retries)));
+        }
+        Ok(())
+    }
+
+    pub fn cores(&self) -> usize {
+        if self.cores > 0 { self.cores } else { std::thread::available_parallelism().map_or(1, |n| n.get()) }
+    }
+}

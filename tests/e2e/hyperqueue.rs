@@ -1,0 +1,142 @@
+//! `executor = "hyperqueue"`: a real HyperQueue server and workers (a local cluster on loopback,
+//! from the `hyperqueue` package in the managed Python environment).
+
+use std::fs;
+use std::time::{Duration, Instant};
+
+use crate::harness::{CHAIN, Events, Scratch, output_dir, text};
+
+fn hyperqueue(pipeline: &str, table: &str) -> String {
+    pipeline.replacen("seed = 7\n", &format!("seed = 7\nexecutor = \"hyperqueue\"\n\n[pipeline.hyperqueue]\n{table}\n"), 1)
+}
+
+/// Every instance's key and output digest, from the store's last run.
+fn keys_and_outputs(s: &Scratch) -> Vec<(String, String, String)> {
+    let store = rlmflow_cache::Store::open_existing(&s.store()).unwrap().unwrap();
+    store
+        .last_keys("chain")
+        .unwrap()
+        .into_iter()
+        .map(|(label, key)| (label, key.to_string(), store.record(&key).unwrap().unwrap().output.to_string()))
+        .collect()
+}
+
+fn wait_for(s: &Scratch, needle: &str) -> String {
+    let t0 = Instant::now();
+    loop {
+        if let Some(line) = s.trace().into_iter().find(|l| l.contains(needle)) {
+            return line;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(120), "never saw `{needle}` in {:?}", s.trace());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn a_local_cluster_gives_the_keys_and_bytes_of_the_local_executor_and_reuses_everything_next() {
+    let local = Scratch::new("hq-same-local");
+    local.pipeline(CHAIN).run();
+    let hq = Scratch::new("hq-same");
+    hq.pipeline(&hyperqueue(CHAIN, "workers = 1\ncores = 2"));
+    let first = hq.run();
+    assert_eq!(first.with_status("ran").len(), 5, "{:?}", first.finished());
+    assert!(first.of("run_started")[0]["executor"].as_str().unwrap().starts_with("hyperqueue (local cluster"));
+    assert_eq!(keys_and_outputs(&hq), keys_and_outputs(&local));
+    // Progress and operator events come back from the task's output as from a child.
+    assert!(first.of("operator_event").iter().any(|e| e["stage"] == "source" && e["name"] == "wrote"), "{:?}", first.0);
+
+    let again = hq.run();
+    assert_eq!(again.with_status("reused").len(), 5);
+    let run = again.of("run_started")[0]["run"].as_str().unwrap().to_owned();
+    assert!(!hq.store().join("runs").join(&run).join("hyperqueue").join("server").exists(), "a warm run starts no cluster");
+}
+
+#[test]
+fn two_workers_run_independent_stages_at_the_same_time() {
+    let s = Scratch::new("hq-parallel");
+    let slow = CHAIN
+        .replace(r#"text = "radar""#, "text = \"radar\"\nsteps = 8\nstep_ms = 150")
+        .replace(r#"text = "independent""#, "text = \"independent\"\nsteps = 8\nstep_ms = 150");
+    s.pipeline(&hyperqueue(&slow, "workers = 2\ncores = 1"));
+    let events = s.run();
+    let at = |event: &str, stage: &str| -> f64 {
+        events.of(event).iter().find(|e| e["stage"] == stage).unwrap_or_else(|| panic!("no {event} for {stage}"))["t"].as_f64().unwrap()
+    };
+    let (a0, a1, b0, b1) =
+        (at("stage_started", "source"), at("stage_finished", "source"), at("stage_started", "other"), at("stage_finished", "other"));
+    assert!(a0 < b1 && b0 < a1, "source {a0}..{a1} and other {b0}..{b1} did not overlap");
+}
+
+#[test]
+fn a_killed_task_is_submitted_again_and_resumes_from_its_checkpoint() {
+    let s = Scratch::new("hq-kill-retry");
+    let slow = CHAIN.replace(r#"text = "radar""#, "text = \"radar\"\nsteps = 30\nstep_ms = 50");
+    s.pipeline(&hyperqueue(&slow, "workers = 1\ncores = 2\nretries = 1"));
+    let child = s.command(&["run", "p.toml", "--json"]).stdout(std::process::Stdio::piped()).spawn().unwrap();
+    kill_task_at_step(&s, 5);
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success(), "{}", text(&out.stdout));
+    let events = Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    let retry = events.of("operator_event").into_iter().find(|e| e["name"] == "hyperqueue_retry").expect("a retry event");
+    assert!(retry["data"]["reason"].as_str().unwrap().contains("signal 9"), "{retry}");
+    let starts: Vec<String> = s.trace().into_iter().filter(|l| l.starts_with("start write-text source")).collect();
+    assert_eq!(starts.len(), 2, "{starts:?}");
+    assert!(!starts[1].contains("from=0"), "the second attempt resumed: {starts:?}");
+    assert_eq!(fs::read_to_string(output_dir(&s.store(), "chain", "source").join("text.txt")).unwrap(), "radar");
+}
+
+#[test]
+fn without_retries_a_killed_task_fails_its_stage_clearly_and_the_next_run_resumes() {
+    let s = Scratch::new("hq-kill-fail");
+    let slow = CHAIN.replace(r#"text = "radar""#, "text = \"radar\"\nsteps = 30\nstep_ms = 50");
+    s.pipeline(&hyperqueue(&slow, "workers = 1\ncores = 2\nretries = 0"));
+    let child = s.command(&["run", "p.toml", "--json"]).stdout(std::process::Stdio::piped()).spawn().unwrap();
+    kill_task_at_step(&s, 5);
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let events = Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    let failed = events.of("stage_finished").into_iter().find(|e| e["stage"] == "source").unwrap().clone();
+    assert_eq!(failed["error"], "the stage process was killed by signal 9", "{failed}");
+    assert_eq!(events.status_of("other"), "ran", "an independent branch finishes");
+    assert_eq!(events.status_of("map"), "skipped");
+
+    let verify = s.cli(&["verify", "p.toml"]);
+    assert!(verify.status.success(), "{}", text(&verify.stdout));
+    s.clear_trace();
+    let next = s.run();
+    assert_eq!(next.status_of("source"), "ran");
+    let start = wait_for(&s, "start write-text source");
+    assert!(!start.contains("from=0"), "resumed from the checkpoint: {start}");
+}
+
+/// Waits for the source stage's step `step`, then kills its process (the trace names its pid).
+fn kill_task_at_step(s: &Scratch, step: u32) {
+    let line = wait_for(s, &format!("step write-text source {step} "));
+    let pid: i32 = line.rsplit("pid=").next().unwrap().trim().parse().unwrap();
+    unsafe { libc::kill(pid, libc::SIGKILL) };
+}
+
+#[test]
+fn an_unreachable_server_is_a_clear_error_before_anything_runs() {
+    let s = Scratch::new("hq-unreachable");
+    s.pipeline(&hyperqueue(CHAIN, "server_dir = \"no-server-here\""));
+    let out = s.cli(&["run", "p.toml"]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = text(&out.stderr);
+    assert!(err.contains("cannot reach a HyperQueue server in") && err.contains("no-server-here"), "{err}");
+    assert!(err.contains("server start`"), "says what to do: {err}");
+    assert!(s.trace().is_empty(), "nothing ran: {:?}", s.trace());
+}
+
+#[test]
+fn bad_hyperqueue_settings_name_their_key_and_line() {
+    let s = Scratch::new("hq-config");
+    s.pipeline(&hyperqueue(CHAIN, "workers = 2\nretry = 3"));
+    let err = text(&s.cli(&["run", "p.toml", "--dry-run"]).stderr);
+    assert!(err.contains("p.toml:9: pipeline.hyperqueue.retry: unknown field `retry`, expected one of"), "{err}");
+    s.pipeline(&hyperqueue(CHAIN, "workers = 0"));
+    let err = text(&s.cli(&["run", "p.toml", "--dry-run"]).stderr);
+    assert!(err.contains("p.toml:8: pipeline.hyperqueue.workers: must be in 1..=4096, not 0"), "{err}");
+    let err = text(&s.pipeline(CHAIN).cli(&["run", "p.toml", "--executor", "slurm"]).stderr);
+    assert!(err.contains("unknown executor `slurm` for --executor; valid: local, hyperqueue"), "{err}");
+}
