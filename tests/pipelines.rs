@@ -80,11 +80,12 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     assert_eq!((finished(&second, "reused"), finished(&second, "ran")), (stages, 0), "{second}");
     let (ok, verify) = rlmflow(&dir, &["verify", "ci.toml"]);
     assert!(ok, "{verify}");
-    // The caption probes, greedy and beam, and the report (its Rerun recording included) give
-    // the same bytes in fresh processes.
-    let (ok, check) =
-        rlmflow(&dir, &["run", "ci.toml", "--check-determinism", "clipcap", "--check-determinism", "clipcap-beam", "--check-determinism", "report"]);
-    assert!(ok && check.matches("same bytes").count() == 5, "{check}");
+    // The caption probes, greedy and beam, the report (its Rerun recording included) and the
+    // scenes mix give the same bytes in fresh processes.
+    let checked = ["clipcap", "clipcap-beam", "report", "mixed"];
+    let args: Vec<&str> = ["run", "ci.toml"].into_iter().chain(checked.iter().flat_map(|s| ["--check-determinism", s])).collect();
+    let (ok, check) = rlmflow(&dir, &args);
+    assert!(ok && check.matches("same bytes").count() == 6, "{check}");
     let objects = dir.join(".rlmflow/objects");
     the_report_holds_every_probe(&objects);
     a_local_hyperqueue_cluster_gives_the_same_keys_and_bytes(&dir, stages);

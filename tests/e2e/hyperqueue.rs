@@ -69,14 +69,8 @@ fn two_workers_run_independent_stages_at_the_same_time() {
 
 #[test]
 fn a_killed_task_is_submitted_again_and_resumes_from_its_checkpoint() {
-    let s = Scratch::new("hq-kill-retry");
-    let slow = CHAIN.replace(r#"text = "radar""#, "text = \"radar\"\nsteps = 30\nstep_ms = 50");
-    s.pipeline(&hyperqueue(&slow, "workers = 1\ncores = 2\nretries = 1"));
-    let child = s.command(&["run", "p.toml", "--json"]).stdout(std::process::Stdio::piped()).spawn().unwrap();
-    kill_task_at_step(&s, 5);
-    let out = child.wait_with_output().unwrap();
-    assert!(out.status.success(), "{}", text(&out.stdout));
-    let events = Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    let (s, code, events) = run_killing_the_source_task("hq-kill-retry", 1);
+    assert_eq!(code, Some(0), "{:?}", events.0);
     let retry = events.of("operator_event").into_iter().find(|e| e["name"] == "hyperqueue_retry").expect("a retry event");
     assert!(retry["data"]["reason"].as_str().unwrap().contains("signal 9"), "{retry}");
     let starts: Vec<String> = s.trace().into_iter().filter(|l| l.starts_with("start write-text source")).collect();
@@ -87,14 +81,8 @@ fn a_killed_task_is_submitted_again_and_resumes_from_its_checkpoint() {
 
 #[test]
 fn without_retries_a_killed_task_fails_its_stage_clearly_and_the_next_run_resumes() {
-    let s = Scratch::new("hq-kill-fail");
-    let slow = CHAIN.replace(r#"text = "radar""#, "text = \"radar\"\nsteps = 30\nstep_ms = 50");
-    s.pipeline(&hyperqueue(&slow, "workers = 1\ncores = 2\nretries = 0"));
-    let child = s.command(&["run", "p.toml", "--json"]).stdout(std::process::Stdio::piped()).spawn().unwrap();
-    kill_task_at_step(&s, 5);
-    let out = child.wait_with_output().unwrap();
-    assert_eq!(out.status.code(), Some(1));
-    let events = Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    let (s, code, events) = run_killing_the_source_task("hq-kill-fail", 0);
+    assert_eq!(code, Some(1));
     let failed = events.of("stage_finished").into_iter().find(|e| e["stage"] == "source").unwrap().clone();
     assert_eq!(failed["error"], "the stage process was killed by signal 9", "{failed}");
     assert_eq!(events.status_of("other"), "ran", "an independent branch finishes");
@@ -109,11 +97,19 @@ fn without_retries_a_killed_task_fails_its_stage_clearly_and_the_next_run_resume
     assert!(!start.contains("from=0"), "resumed from the checkpoint: {start}");
 }
 
-/// Waits for the source stage's step `step`, then kills its process (the trace names its pid).
-fn kill_task_at_step(s: &Scratch, step: u32) {
-    let line = wait_for(s, &format!("step write-text source {step} "));
+/// Runs a slow chain through a local cluster with `retries`, killing the source stage's task
+/// process (the trace names its pid) with SIGKILL at step 5; returns the exit code and events.
+fn run_killing_the_source_task(name: &str, retries: u32) -> (Scratch, Option<i32>, Events) {
+    let s = Scratch::new(name);
+    let slow = CHAIN.replace(r#"text = "radar""#, "text = \"radar\"\nsteps = 30\nstep_ms = 50");
+    s.pipeline(&hyperqueue(&slow, &format!("workers = 1\ncores = 2\nretries = {retries}")));
+    let child = s.command(&["run", "p.toml", "--json"]).stdout(std::process::Stdio::piped()).spawn().unwrap();
+    let line = wait_for(&s, "step write-text source 5 ");
     let pid: i32 = line.rsplit("pid=").next().unwrap().trim().parse().unwrap();
     unsafe { libc::kill(pid, libc::SIGKILL) };
+    let out = child.wait_with_output().unwrap();
+    let events = Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    (s, out.status.code(), events)
 }
 
 #[test]
