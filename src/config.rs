@@ -7,9 +7,10 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::fmt;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 
-use rlmflow_stages::{Arity, Need, Registry, StageKind};
+use rlmflow_stages::{Arity, DynOperator, Need, Registry, StageKind};
 
 use crate::dispatch::HyperQueueSettings;
 use serde_json::{Map, Value};
@@ -99,6 +100,8 @@ pub struct Stage {
     pub bindings: Vec<Binding>,
     /// Runs once per seed of `[pipeline] seeds` (its kind's default, or its `per_seed` key).
     pub per_seed: bool,
+    /// How the parts of a sharded stage (`shards` or `shard_size`) join into its artifact.
+    pub merge: Option<Merge>,
     pub line: usize,
 }
 
@@ -107,6 +110,35 @@ pub struct Variant {
     pub name: Option<String>,
     /// Every setting, defaults filled in.
     pub settings: Value,
+    /// A sharded stage's parts: the items each computes and its settings, in order.
+    pub shards: Vec<(Range<u64>, Value)>,
+}
+
+/// The action that joins a sharded stage's parts: an operator gathering them, in order, into one
+/// artifact of the stage's type.
+#[derive(Clone, Debug)]
+pub struct Merge {
+    pub operator: String,
+    pub slot: &'static str,
+    pub settings: Value,
+}
+
+/// `shards = N` (N equal parts) or `shard_size = K` (parts of K items: growing the stage keeps
+/// the parts it had).
+#[derive(Clone, Copy, Debug)]
+enum Split {
+    Count(u64),
+    Size(u64),
+}
+
+impl Split {
+    fn ranges(self, items: u64) -> Vec<Range<u64>> {
+        let at = |j: u64, n: u64| (j as u128 * items as u128 / n as u128) as u64;
+        match self {
+            Split::Count(n) => (0..n).map(|j| at(j, n)..at(j + 1, n)).collect(),
+            Split::Size(k) => (0..items.div_ceil(k)).map(|j| j * k..(j * k).saturating_add(k).min(items)).collect(),
+        }
+    }
 }
 
 /// An input slot bound to the stages that provide it (indices into `Pipeline::stages`).
@@ -128,7 +160,9 @@ impl Pipeline {
 }
 
 const PIPELINE_KEYS: &[&str] = &["name", "seed", "seeds", "cache", "executor", "hyperqueue"];
-const STAGE_KEYS: &[&str] = &["kind", "operator", "inputs", "variants", "per_seed"];
+const STAGE_KEYS: &[&str] = &["kind", "operator", "inputs", "variants", "per_seed", "shards", "shard_size"];
+/// The most parts one stage instance may be split into.
+const MAX_SHARDS: u64 = 4_096;
 /// The variant dimension seeds fan out on; no stage may take its name.
 pub const SEED_DIMENSION: &str = "seed";
 /// The most seeds a pipeline may list.
@@ -514,7 +548,7 @@ impl Checker {
         let mut checked = Vec::new();
         for (variant, merged) in variants {
             match op.settings(Value::Object(merged)) {
-                Ok(settings) => checked.push(Variant { name: variant.map(|v| v.0), settings }),
+                Ok(settings) => checked.push(Variant { name: variant.map(|v| v.0), settings, shards: Vec::new() }),
                 Err(e) => {
                     // Point at the variant's line when the variant set the key.
                     let top = e.key.split('.').next().unwrap_or_default();
@@ -577,11 +611,72 @@ impl Checker {
                 kind.per_seed
             }
         };
+        let split = self.split(table, &path);
         if checked.is_empty() {
             return None;
         }
-        let stage = Stage { name: name.to_owned(), kind, operator: op_name, variants: checked, bindings: Vec::new(), per_seed, line };
+        let merge = match split {
+            Some((key, split)) => Some(self.shard(&key, op, kind, &mut checked, split, registry)?),
+            None => None,
+        };
+        let stage = Stage { name: name.to_owned(), kind, operator: op_name, variants: checked, bindings: Vec::new(), per_seed, merge, line };
         Some((stage, inputs))
+    }
+
+    /// A stage's `shards` or `shard_size` key, with the key's path.
+    fn split(&mut self, table: &Map<String, Value>, path: &str) -> Option<(String, Split)> {
+        let mut split = None;
+        for (name, max, make) in [("shards", MAX_SHARDS, Split::Count as fn(u64) -> Split), ("shard_size", u64::MAX, Split::Size)] {
+            let Some(value) = table.get(name) else { continue };
+            let key = format!("{path}.{name}");
+            match value.as_u64().filter(|n| (1..=max).contains(n)) {
+                Some(_) if split.is_some() => self.error(self.line(&key), &key, "set `shards` or `shard_size`, not both".into(), None),
+                Some(n) => split = Some((key, make(n))),
+                None => self.error(self.line(&key), &key, format!("must be an integer in 1..={max}, not {value}"), None),
+            }
+        }
+        split
+    }
+
+    /// Splits every variant of a sharded stage into its parts; returns how the parts merge.
+    fn shard(&mut self, key: &str, op: &dyn DynOperator, kind: StageKind, variants: &mut [Variant], split: Split, registry: &Registry) -> Option<Merge> {
+        let name = op.spec().name;
+        let Some(merge) = op.merge() else {
+            let can: Vec<&str> = registry.operators().filter(|o| o.merge().is_some()).map(|o| o.spec().name).collect();
+            let help = format!("operators that can: {}", can.join(", "));
+            self.error(self.line(key), key, format!("operator `{name}` cannot run as shards"), Some(help));
+            return None;
+        };
+        let merger = registry.get(merge);
+        let slot = merger.and_then(|m| {
+            let merge_kind = registry.kind(m.spec().kind)?;
+            let slot = merge_kind.inputs.iter().find(|s| s.arity == Arity::All && s.artifact == kind.produces)?;
+            (merge_kind.produces == kind.produces).then_some(slot.name)
+        });
+        let (Some(merger), Some(slot)) = (merger, slot) else {
+            let msg = format!("`{name}` merges its shards with `{merge}`, which this rlmflow lacks as an operator gathering {}", kind.produces);
+            self.error(self.line(key), key, msg, None);
+            return None;
+        };
+        for variant in variants.iter_mut() {
+            let (items, unit) = op.items(&variant.settings).expect("a shardable operator counts the items of valid settings");
+            let ranges = split.ranges(items);
+            let at = variant.name.as_ref().map_or(String::new(), |v| format!(" in variant `{v}`"));
+            if let Split::Count(n) = split
+                && n > items
+            {
+                self.error(self.line(key), key, format!("{n} shards, but `{name}` makes only {items} {unit}{at}"), Some("at most one shard per item".into()));
+                return None;
+            }
+            if ranges.len() as u64 > MAX_SHARDS {
+                let msg = format!("{} shards of `{name}`'s {items} {unit}{at}; at most {MAX_SHARDS}", ranges.len());
+                self.error(self.line(key), key, msg, Some("raise shard_size".into()));
+                return None;
+            }
+            variant.shards = ranges.into_iter().map(|r| (r.clone(), op.part(&variant.settings, r).expect("a shardable operator splits valid settings"))).collect();
+        }
+        let settings = merger.settings(Value::Object(Map::new())).expect("an operator's default settings are valid");
+        Some(Merge { operator: merge.to_owned(), slot, settings })
     }
 
     /// Binds every input slot an operator reads: to the stages named in `inputs`, else to the one

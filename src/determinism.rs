@@ -46,7 +46,7 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
         };
         store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone() })?;
         println!("check-determinism {} (key {})", inst.label, key.short());
-        let exe = crate::exec::executable(registry.get(&plan.pipeline.stages[inst.stage].operator).expect("validated operator"))?;
+        let exe = crate::exec::executable(registry.get(&inst.operator).expect("validated operator"))?;
         let mut attempts: Vec<(PathBuf, Digest)> = Vec::new();
         for (attempt, &n) in threads.iter().enumerate() {
             let scratch = store.root().join("tmp").join(format!("check-{}-{}-{attempt}", key.hex(), std::process::id()));

@@ -2,6 +2,7 @@
 //! whether each is cached, will run (and why), or waits for an upstream that will run.
 
 use std::collections::{BTreeMap, HashMap};
+use std::ops::Range;
 
 use anyhow::bail;
 use rlmflow_cache::{ActionRecord, Change, Digest, InputDigest, Preimage, Store};
@@ -10,17 +11,22 @@ use serde_json::Value;
 
 use crate::config::{Pipeline, SEED_DIMENSION, suggest};
 
-/// One stage run for one combination of upstream variants.
+/// One stage run for one combination of upstream variants; a sharded stage's instance is its
+/// parts (`scenes#0`, `scenes#1`, ...) and the merge of them (`scenes`), which consumers read.
 #[derive(Clone, Debug)]
 pub struct Instance {
     pub stage: usize,
-    /// `scenes`, `pretrain[alpha4]`, or `probe[captions=llm,pretrain=alpha4]`.
+    /// `scenes`, `pretrain[alpha4]`, `probe[captions=llm,pretrain=alpha4]`, or `scenes#2`.
     pub label: String,
     /// Variant dimension (the stage that declared the variants) -> variant name.
     pub assignment: BTreeMap<String, String>,
+    /// The operator it runs: the stage's, or the merge operator of a sharded stage.
+    pub operator: String,
     /// Every setting of this instance.
     pub settings: Value,
     pub inputs: Vec<InstanceInput>,
+    /// The items a shard computes (`None`: not a shard).
+    pub shard: Option<Range<u64>>,
 }
 
 #[derive(Clone, Debug)]
@@ -73,9 +79,9 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                 .collect();
         }
         for assignment in assignments {
-            let settings = match assignment.get(&stage.name) {
-                Some(v) => stage.variants.iter().find(|x| x.name.as_ref() == Some(v)).unwrap().settings.clone(),
-                None => stage.variants[0].settings.clone(),
+            let variant = match assignment.get(&stage.name) {
+                Some(v) => stage.variants.iter().find(|x| x.name.as_ref() == Some(v)).unwrap(),
+                None => &stage.variants[0],
             };
             let inputs = stage
                 .bindings
@@ -88,7 +94,9 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                             vec![by_assignment[&(p, key)]]
                         }
                         Arity::All => {
-                            let mut all: Vec<usize> = (0..instances.len()).filter(|&i| b.providers.contains(&instances[i].stage)).collect();
+                            let mut all: Vec<usize> = (0..instances.len())
+                                .filter(|&i| b.providers.contains(&instances[i].stage) && instances[i].shard.is_none())
+                                .collect();
                             all.sort_by(|&x, &y| instances[x].label.cmp(&instances[y].label));
                             all
                         }
@@ -96,8 +104,29 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                     InstanceInput { slot: b.slot, arity: b.arity, providers }
                 })
                 .collect();
+            let label = label(&stage.name, &assignment);
+            let whole = match &stage.merge {
+                None => Instance { stage: s, label, assignment: assignment.clone(), operator: stage.operator.clone(), settings: variant.settings.clone(), inputs, shard: None },
+                Some(merge) => {
+                    let mut parts = Vec::new();
+                    for (j, (range, settings)) in variant.shards.iter().enumerate() {
+                        parts.push(instances.len());
+                        instances.push(Instance {
+                            stage: s,
+                            label: format!("{label}#{j}"),
+                            assignment: assignment.clone(),
+                            operator: stage.operator.clone(),
+                            settings: settings.clone(),
+                            inputs: inputs.clone(),
+                            shard: Some(range.clone()),
+                        });
+                    }
+                    let inputs = vec![InstanceInput { slot: merge.slot, arity: Arity::All, providers: parts }];
+                    Instance { stage: s, label, assignment: assignment.clone(), operator: merge.operator.clone(), settings: merge.settings.clone(), inputs, shard: None }
+                }
+            };
             by_assignment.insert((s, assignment_key(&assignment)), instances.len());
-            instances.push(Instance { stage: s, label: label(&stage.name, &assignment), assignment, settings, inputs });
+            instances.push(whole);
         }
         dims_of.push(dims);
     }
@@ -150,14 +179,16 @@ impl Plan<'_> {
     /// The preimage of instance `i`, once every input's output digest is known.
     pub fn preimage(&self, i: usize, registry: &Registry, outputs: &[Option<Digest>]) -> Option<Preimage> {
         let inst = &self.instances[i];
-        let stage = &self.pipeline.stages[inst.stage];
-        let op = registry.get(&stage.operator).expect("validated operator");
+        let op = registry.get(&inst.operator).expect("validated operator");
         let mut inputs = Vec::new();
         for input in &inst.inputs {
             for &p in &input.providers {
-                let label = match input.arity {
-                    Arity::One => String::new(),
-                    Arity::All => self.instances[p].label.clone(),
+                // Gathered inputs are ordered by label; a merge's parts by their items, so
+                // neither the stage's name nor the number of digits enters the key.
+                let label = match (input.arity, &self.instances[p].shard) {
+                    (Arity::One, _) => String::new(),
+                    (Arity::All, Some(items)) => format!("{:020}..{:020}", items.start, items.end),
+                    (Arity::All, None) => self.instances[p].label.clone(),
                 };
                 inputs.push(InputDigest { slot: input.slot.to_owned(), label, digest: outputs[p]? });
             }
@@ -170,7 +201,7 @@ impl Plan<'_> {
             }
         }
         let seed = inst.assignment.get(SEED_DIMENSION).map_or(self.pipeline.seed, |s| s.parse().expect("seeds are integers"));
-        Some(Preimage { operator: stage.operator.clone(), operator_version: op.spec().version, config, seed, inputs })
+        Some(Preimage { operator: inst.operator.clone(), operator_version: op.spec().version, config, seed, inputs })
     }
 }
 
@@ -271,7 +302,7 @@ pub fn describe(stage: &str, change: &Change) -> String {
 mod tests {
     use std::path::Path;
 
-    use rlmflow_stages::{Catalog, Context, Operator, OperatorSpec, Outcome, Registry, Settings, Slot, StageKind};
+    use rlmflow_stages::{Catalog, Context, Operator, OperatorSpec, Outcome, Registry, Settings, Sharding, Slot, StageKind};
     use serde::{Deserialize, Serialize};
 
     use super::*;
@@ -302,8 +333,29 @@ mod tests {
         }
     }
 
+    /// Makes `k` items; a part makes `k` items from `nested.a` on. It merges with `oj`.
+    struct ShardedOp;
+    impl Operator for ShardedOp {
+        type Settings = Knob;
+        fn spec(&self) -> OperatorSpec {
+            OperatorSpec { name: "sa", kind: "a", version: 1, inputs: None, summary: "" }
+        }
+        fn sharding(&self) -> Option<Sharding<Knob>> {
+            Some(Sharding {
+                unit: "items",
+                items: |s| s.k as u64,
+                part: |s, r| Knob { k: (r.end - r.start) as i64, nested: Nested { a: s.nested.a + r.start as i64, b: s.nested.b } },
+                merge: "oj",
+            })
+        }
+        fn run(&self, _: &Knob, _: &mut Context) -> anyhow::Result<Outcome> {
+            Ok(Outcome::default())
+        }
+    }
+
     const KINDS: &[StageKind] = &[
         StageKind { name: "a", produces: "A", inputs: &[], per_seed: false },
+        StageKind { name: "join", produces: "A", inputs: &[Slot::gather("parts", "A")], per_seed: false },
         StageKind { name: "b", produces: "B", inputs: &[], per_seed: false },
         StageKind { name: "c", produces: "C", inputs: &[Slot::one("a", "A"), Slot::one("b", "B")], per_seed: false },
         StageKind { name: "d", produces: "D", inputs: &[Slot::gather("c", "C")], per_seed: false },
@@ -311,7 +363,7 @@ mod tests {
 
     fn registry() -> Registry {
         let mut r = Registry::new(Catalog { kinds: KINDS.to_vec() });
-        r.add(Op("oa", "a")).add(Op("ob", "b")).add(Op("oc", "c")).add(Op("od", "d"));
+        r.add(Op("oa", "a")).add(Op("ob", "b")).add(Op("oc", "c")).add(Op("od", "d")).add(ShardedOp).add(Op("oj", "join"));
         r
     }
 
@@ -410,5 +462,82 @@ operator = "od"
         let d = plan.preimage(8, &r, &outputs).unwrap();
         let labels: Vec<&str> = d.inputs.iter().map(|i| i.label.as_str()).collect();
         assert_eq!(labels, ["c[a=x,b=p]", "c[a=x,b=q]", "c[a=y,b=p]", "c[a=y,b=q]"]);
+    }
+
+    const SHARDED: &str = r#"
+[stages.a]
+operator = "sa"
+k = 10
+shards = 3
+variants = { x = {}, y = { k = 4 } }
+[stages.b]
+operator = "ob"
+[stages.c]
+operator = "oc"
+[stages.d]
+operator = "od"
+"#;
+
+    fn keys(plan: &Plan, r: &Registry) -> Vec<Digest> {
+        let outputs: Vec<Option<Digest>> = (0..plan.instances.len()).map(|i| Some(Digest::of(plan.instances[i].label.as_bytes()))).collect();
+        (0..plan.instances.len()).map(|i| plan.preimage(i, r, &outputs).unwrap().key()).collect()
+    }
+
+    #[test]
+    fn a_sharded_stage_runs_as_parts_of_its_items_and_a_merge_that_consumers_read() {
+        let r = registry();
+        let p = parse(Path::new("t.toml"), SHARDED, &r).unwrap();
+        let plan = plan(&p);
+        let labels: Vec<&str> = plan.instances.iter().map(|i| i.label.as_str()).collect();
+        assert_eq!(labels, ["a[x]#0", "a[x]#1", "a[x]#2", "a[x]", "a[y]#0", "a[y]#1", "a[y]#2", "a[y]", "b", "c[x]", "c[y]", "d"]);
+        let parts: Vec<(i64, i64)> = plan.instances[..3].iter().map(|i| (i.settings["nested"]["a"].as_i64().unwrap(), i.settings["k"].as_i64().unwrap())).collect();
+        assert_eq!(parts, [(0, 3), (3, 3), (6, 4)], "10 items in three parts");
+        assert_eq!(plan.instances[6].shard, Some(2..4), "variant y has 4 items");
+        let merge = &plan.instances[3];
+        assert_eq!((merge.operator.as_str(), merge.inputs[0].slot, &merge.inputs[0].providers[..]), ("oj", "parts", &[0, 1, 2][..]));
+        assert_eq!(plan.instances[9].inputs[0].providers, [3], "c[x] reads the merged a[x]");
+        assert_eq!(plan.instances[11].inputs[0].providers, [9, 10], "a gathering stage reads no part");
+        let preimage = plan.preimage(3, &r, &keys(&plan, &r).iter().map(|k| Some(*k)).collect::<Vec<_>>()).unwrap();
+        let order: Vec<&str> = preimage.inputs.iter().map(|i| i.label.as_str()).collect();
+        assert_eq!(order, ["00000000000000000000..00000000000000000003", "00000000000000000003..00000000000000000006", "00000000000000000006..00000000000000000010"]);
+    }
+
+    #[test]
+    fn parts_and_merge_keys_do_not_depend_on_the_stage_name_and_shard_size_keeps_parts_when_items_grow() {
+        let r = registry();
+        let sized = SHARDED.replace("shards = 3", "shard_size = 4");
+        let before = plan(&parse(Path::new("t.toml"), &sized, &r).unwrap()).instances.iter().map(|i| i.settings.clone()).collect::<Vec<_>>();
+        let grown = parse(Path::new("t.toml"), &sized.replace("k = 10", "k = 13"), &r).unwrap();
+        let grown = plan(&grown);
+        let labels: Vec<&str> = grown.instances[..5].iter().map(|i| i.label.as_str()).collect();
+        assert_eq!(labels, ["a[x]#0", "a[x]#1", "a[x]#2", "a[x]#3", "a[x]"]);
+        assert_eq!(&grown.instances[0].settings, &before[0], "items 0..4 keep their settings");
+        assert_eq!(&grown.instances[1].settings, &before[1], "items 4..8 keep their settings");
+        assert_ne!(&grown.instances[2].settings, &before[2], "items 8..10 became 8..12");
+
+        let p = parse(Path::new("t.toml"), SHARDED, &r).unwrap();
+        let renamed = SHARDED.replace("[stages.a]", "[stages.z]\nkind = \"a\"");
+        let q = parse(Path::new("t.toml"), &renamed, &r).unwrap();
+        let (a, z) = (plan(&p), plan(&q));
+        // Each part's output stands for its settings, which the rename does not touch.
+        let outputs = |plan: &Plan| -> Vec<Option<Digest>> { plan.instances.iter().map(|i| Some(Digest::of(i.settings.to_string().as_bytes()))).collect() };
+        let z_merge = z.instances.iter().position(|i| i.label == "z[x]").unwrap();
+        assert_eq!(a.preimage(3, &r, &outputs(&a)).unwrap().key(), z.preimage(z_merge, &r, &outputs(&z)).unwrap().key());
+    }
+
+    #[test]
+    fn bad_shard_settings_are_config_errors() {
+        let r = registry();
+        for (from, to, expected) in [
+            ("shards = 3", "shards = 0", "stages.a.shards: must be an integer in 1..=4096, not 0"),
+            ("shards = 3", "shards = 5", "stages.a.shards: 5 shards, but `sa` makes only 4 items in variant `y`"),
+            ("shards = 3", "shards = 3\nshard_size = 2", "stages.a.shard_size: set `shards` or `shard_size`, not both"),
+            ("[stages.b]\noperator = \"ob\"", "[stages.b]\noperator = \"ob\"\nshards = 2", "stages.b.shards: operator `ob` cannot run as shards"),
+        ] {
+            let e = parse(Path::new("t.toml"), &SHARDED.replace(from, to), &r).unwrap_err().to_string();
+            assert!(e.contains(expected), "{to}: {e}");
+        }
+        let e = parse(Path::new("t.toml"), &SHARDED.replace("[stages.b]\noperator = \"ob\"", "[stages.b]\noperator = \"ob\"\nshards = 2"), &r).unwrap_err();
+        assert!(e.to_string().contains("operators that can: sa"), "{e}");
     }
 }

@@ -182,7 +182,7 @@ impl Executor<'_> {
             // Start what fits in the budget, in plan order.
             for i in 0..self.states.len() {
                 let State::Ready { key } = self.states[i] else { continue };
-                let op = self.registry.get(&self.plan.pipeline.stages[self.plan.instances[i].stage].operator).unwrap();
+                let op = self.registry.get(&self.plan.instances[i].operator).unwrap();
                 let wants = op.resources(&self.plan.instances[i].settings);
                 let threads = wants.threads.clamp(1, self.opts.jobs).min(self.dispatch.max_threads().unwrap_or(usize::MAX));
                 let fits = threads_in_use + threads <= self.opts.jobs && !(wants.gpu && gpu_in_use && self.dispatch.serialises_gpu());

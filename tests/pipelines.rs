@@ -103,7 +103,7 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
         .collect();
     assert_eq!(ran, ["pixels", "report"], "{third}");
     let scenes = artifacts(&objects, "scenes.mcap");
-    assert_eq!(scenes.len(), 4, "one per scenes stage, and the mix: {scenes:?}");
+    assert_eq!(scenes.len(), 6, "one per scenes stage and shard, and the mix: {scenes:?}");
     for artifact in scenes {
         a_stock_mcap_reader_agrees(&artifact);
     }
@@ -354,6 +354,20 @@ fn scratch(name: &str, pipeline: &str) -> PathBuf {
 fn output_digest(dir: &Path, pipeline: &str, label: &str) -> rlmflow_cache::Digest {
     let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
     store.record(&store.last_keys(pipeline).unwrap()[label]).unwrap().unwrap().output
+}
+
+/// The same placed frames as one action and as shards of several sizes: the same bytes.
+#[test]
+fn a_sharded_procedural_stage_gives_the_bytes_of_the_unsharded_one() {
+    let stage = |name: &str, split: &str| format!("\n[stages.{name}]\nkind = \"scenes\"\noperator = \"procedural\"\nframes = 30\nradar = {{ image = 32 }}\n{split}\n");
+    let pipeline = format!("[pipeline]\nname = \"shards\"\nseed = 3\n{}{}{}", stage("whole", ""), stage("four", "shards = 4"), stage("sized", "shard_size = 7"));
+    let dir = scratch("procedural-shards", &pipeline);
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
+    assert!(ok, "{out}");
+    let whole = output_digest(&dir, "shards", "whole");
+    assert_eq!(output_digest(&dir, "shards", "four"), whole);
+    assert_eq!(output_digest(&dir, "shards", "sized"), whole);
+    assert_ne!(output_digest(&dir, "shards", "four#0"), whole, "a part holds only its own frames");
 }
 
 /// Every scenario, each attempt a fresh process (fresh hash seeds, allocator addresses and

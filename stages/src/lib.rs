@@ -28,7 +28,7 @@ pub mod tokens;
 
 pub use context::{Context, Device, Input, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};
-pub use operator::{DynOperator, InWorker, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings};
+pub use operator::{DynOperator, InWorker, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding};
 
 /// Reads an artifact's summary (`dir/file`, JSON with a `format` field) and checks that this
 /// build reads its format; `artifact` names the type (`Scenes`) and `stage` what to rerun.

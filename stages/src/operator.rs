@@ -1,6 +1,7 @@
 //! The Operator contract: one implementation of a stage kind, configured by a plain settings struct.
 
 use std::fmt;
+use std::ops::Range;
 
 use serde::Serialize;
 use serde::de::DeserializeOwned;
@@ -135,7 +136,26 @@ pub trait Operator: Send + Sync + 'static {
         None
     }
 
+    /// Whether a stage of this operator can run as shards (`shards = N` in `pipeline.toml`).
+    fn sharding(&self) -> Option<Sharding<Self::Settings>> {
+        None
+    }
+
     fn run(&self, settings: &Self::Settings, ctx: &mut Context) -> anyhow::Result<Outcome>;
+}
+
+/// How an operator splits one action into independent parts. Its output is a sequence of
+/// `items` (frames, say), each computed from its own index alone; `part` gives the settings that
+/// compute items `range` only, and the `merge` operator, gathering the parts' outputs in order,
+/// writes exactly the output the unsplit action would have: so the number of shards is a
+/// scheduling choice that changes no byte downstream.
+pub struct Sharding<S> {
+    /// What an item is, for messages: `frames`.
+    pub unit: &'static str,
+    pub items: fn(&S) -> u64,
+    pub part: fn(&S, Range<u64>) -> S,
+    /// An operator of a kind that gathers this one's artifacts into one of the same type.
+    pub merge: &'static str,
 }
 
 /// An operator that runs in a worker binary: the planning binary knows its spec, settings and
@@ -176,6 +196,13 @@ pub trait DynOperator: Send + Sync {
     fn non_result_keys(&self) -> &'static [&'static str];
     fn resources(&self, settings: &Value) -> Resources;
     fn worker(&self) -> Option<&'static str>;
+    /// The operator that merges this one's shards, when it can be sharded.
+    fn merge(&self) -> Option<&'static str>;
+    /// How many items these settings produce and what an item is (`frames`), when the operator
+    /// can be sharded.
+    fn items(&self, settings: &Value) -> Option<(u64, &'static str)>;
+    /// The settings of the shard computing items `range`, when the operator can be sharded.
+    fn part(&self, settings: &Value, range: Range<u64>) -> Option<Value>;
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome>;
 }
 
@@ -202,6 +229,21 @@ impl<O: Operator> DynOperator for O {
 
     fn worker(&self) -> Option<&'static str> {
         Operator::worker(self)
+    }
+
+    fn merge(&self) -> Option<&'static str> {
+        Operator::sharding(self).map(|s| s.merge)
+    }
+
+    fn items(&self, settings: &Value) -> Option<(u64, &'static str)> {
+        let sharding = Operator::sharding(self)?;
+        Some(((sharding.items)(&parse_settings::<O::Settings>(settings.clone()).ok()?), sharding.unit))
+    }
+
+    fn part(&self, settings: &Value, range: Range<u64>) -> Option<Value> {
+        let sharding = Operator::sharding(self)?;
+        let part = (sharding.part)(&parse_settings::<O::Settings>(settings.clone()).ok()?, range);
+        Some(serde_json::to_value(&part).expect("settings serialise to JSON"))
     }
 
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome> {

@@ -68,6 +68,20 @@ fn two_workers_run_independent_stages_at_the_same_time() {
 }
 
 #[test]
+fn shards_spread_over_workers_and_give_the_bytes_of_a_local_run() {
+    let slow = CHAIN.replace(r#"text = "radar""#, "text = \"radar\"\nsteps = 6\nstep_ms = 100\nshards = 2");
+    let local = Scratch::new("hq-shards-local");
+    local.pipeline(&slow).run();
+    let hq = Scratch::new("hq-shards");
+    hq.pipeline(&hyperqueue(&slow, "workers = 2\ncores = 1"));
+    let events = hq.run();
+    assert_eq!(keys_and_outputs(&hq), keys_and_outputs(&local));
+    let at = |event: &str, stage: &str| events.of(event).iter().find(|e| e["stage"] == stage).unwrap()["t"].as_f64().unwrap();
+    let (a0, a1, b0, b1) = (at("stage_started", "source#0"), at("stage_finished", "source#0"), at("stage_started", "source#1"), at("stage_finished", "source#1"));
+    assert!(a0 < b1 && b0 < a1, "the parts ran on both workers at once: {a0}..{a1} and {b0}..{b1}");
+}
+
+#[test]
 fn a_killed_task_is_submitted_again_and_resumes_from_its_checkpoint() {
     let (s, code, events) = run_killing_the_source_task("hq-kill-retry", 1);
     assert_eq!(code, Some(0), "{:?}", events.0);

@@ -5,4 +5,5 @@ mod config_errors;
 mod engine;
 mod harness;
 mod hyperqueue;
+mod shards;
 mod store_repair;

@@ -1,6 +1,7 @@
 //! Small operators for testing the engine end to end, on kinds of their own:
 //! `source` (-> Text) -> `map` (Text -> Mapped) -> `measure` (Mapped -> Measure) -> `collect`
-//! (gathers every Measure and Mapped); `remap` (Mapped -> Mapped) makes cycles possible.
+//! (gathers every Measure and Mapped); `remap` (Mapped -> Mapped) makes cycles possible;
+//! `join` (gathers Texts into one) merges the shards of a sharded `write-text`.
 //!
 //! Each operator appends a line to the file named by `RLMFLOW_TEST_TRACE` when it starts and
 //! at each step, so tests can see what ran, in which process, from which checkpoint.
@@ -10,12 +11,12 @@ use std::io::Write;
 use std::time::Duration;
 
 use anyhow::bail;
-use rlmflow_stages::{Catalog, Context, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Slot, StageKind};
+use rlmflow_stages::{Catalog, Context, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding, Slot, StageKind};
 use serde::{Deserialize, Serialize};
 
 pub fn registry() -> Registry {
     let mut r = Registry::new(Catalog { kinds: TEST_KINDS.to_vec() });
-    r.add(WriteText).add(Shout).add(Count).add(Sample).add(Collect).add(Echo);
+    r.add(WriteText).add(Shout).add(Count).add(Sample).add(Collect).add(Echo).add(JoinText);
     r
 }
 
@@ -24,6 +25,7 @@ const TEST_KINDS: &[StageKind] = &[
     StageKind { name: "map", produces: "Mapped", inputs: &[Slot::one("text", "Text")], per_seed: false },
     StageKind { name: "measure", produces: "Measure", inputs: &[Slot::one("mapped", "Mapped")], per_seed: true },
     StageKind { name: "remap", produces: "Mapped", inputs: &[Slot::one("mapped", "Mapped")], per_seed: false },
+    StageKind { name: "join", produces: "Text", inputs: &[Slot::gather("parts", "Text")], per_seed: false },
     StageKind {
         name: "collect",
         produces: "Collection",
@@ -42,7 +44,7 @@ fn trace(line: String) {
 /// Writes `text` after `steps` steps of `step_ms`, checkpointing each step.
 pub struct WriteText;
 
-#[derive(Serialize, Deserialize)]
+#[derive(Clone, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct WriteTextSettings {
     pub text: String,
@@ -80,6 +82,18 @@ impl Operator for WriteText {
     }
     fn resources(&self, s: &WriteTextSettings) -> Resources {
         Resources { threads: s.threads, gpu: false }
+    }
+    /// A shard writes a range of the text's characters (each with every step).
+    fn sharding(&self) -> Option<Sharding<WriteTextSettings>> {
+        Some(Sharding {
+            unit: "characters",
+            items: |s| s.text.chars().count() as u64,
+            part: |s, r| WriteTextSettings {
+                text: s.text.chars().skip(r.start as usize).take((r.end - r.start) as usize).collect(),
+                ..s.clone()
+            },
+            merge: "join-text",
+        })
     }
     fn run(&self, s: &WriteTextSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         let done_file = ctx.checkpoint_dir.join("steps-done");
@@ -204,6 +218,25 @@ impl Operator for Echo {
     }
     fn run(&self, _: &NoSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         fs::copy(ctx.input("mapped")?.join("mapped.txt"), ctx.output_dir.join("mapped.txt"))?;
+        Ok(Outcome::default())
+    }
+}
+
+/// Joins gathered texts in order: the merge of a sharded `write-text`.
+pub struct JoinText;
+
+impl Operator for JoinText {
+    type Settings = NoSettings;
+    fn spec(&self) -> OperatorSpec {
+        OperatorSpec { name: "join-text", kind: "join", version: 1, inputs: None, summary: "joins texts" }
+    }
+    fn run(&self, _: &NoSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        trace(format!("start join-text {}", ctx.stage));
+        let mut text = String::new();
+        for input in ctx.gathered("parts") {
+            text.push_str(&fs::read_to_string(input.path.join("text.txt"))?);
+        }
+        fs::write(ctx.output_dir.join("text.txt"), text)?;
         Ok(Outcome::default())
     }
 }

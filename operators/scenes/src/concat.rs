@@ -5,11 +5,17 @@
 //! The inputs must agree on the images (views and sizes) and the radar range, since every
 //! reader takes them from one summary. The summary's `generator` lists each input's generator
 //! and frame count; stage names stay out of the bytes, as they are not part of the key.
+//!
+//! Consecutive ranges of one generator's frames (the same settings but `first_frame` and
+//! `frames`, each range starting where the last ended) join into that generator's whole range:
+//! the summary records the whole's settings, so the bytes are those of one action writing every
+//! frame. This is how the engine merges the shards of a sharded scenes stage.
 
 use anyhow::{Context as _, bail};
 use rlmflow_stages::scenes::Scenes;
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, SettingError, Settings};
 use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
 
 use crate::render::Rendered;
 use crate::writer::SceneWriter;
@@ -96,14 +102,42 @@ impl Operator for Concat {
         }
         progress.finish();
 
-        let parts: Vec<serde_json::Value> =
-            sources.iter().map(|(_, s)| serde_json::json!({"frames": s.len(), "generator": s.summary.generator})).collect();
-        let summary = writer.finish(&ctx.output_dir, range_max_m, serde_json::json!({"operator": "concat", "inputs": parts}))?;
+        let generators: Vec<&Value> = sources.iter().map(|(_, s)| &s.summary.generator).collect();
+        let generator = whole_range(&generators).unwrap_or_else(|| {
+            let parts: Vec<Value> = sources.iter().map(|(_, s)| json!({"frames": s.len(), "generator": s.summary.generator})).collect();
+            json!({"operator": "concat", "inputs": parts})
+        });
+        let summary = writer.finish(&ctx.output_dir, range_max_m, generator)?;
         Ok(Outcome {
-            metrics: serde_json::json!({"frames": summary.frames, "inputs": sources.len(), "frames_per_scenario": summary.frames_per_scenario}),
+            metrics: json!({"frames": summary.frames, "inputs": sources.len(), "frames_per_scenario": summary.frames_per_scenario}),
             summary: format!("{} frames from {} inputs, {}/48 cells covered", summary.frames, sources.len(), summary.cells_covered()),
         })
     }
+}
+
+/// The generator of the whole range when `parts` are consecutive ranges of one generator's
+/// frames (see the module doc).
+fn whole_range(parts: &[&Value]) -> Option<Value> {
+    let range = |g: &Value| Some((g.get("first_frame")?.as_u64()?, g.get("frames")?.as_u64()?));
+    let without_range = |g: &Value| {
+        let mut g = g.as_object()?.clone();
+        g.remove("first_frame");
+        g.remove("frames");
+        Some(g)
+    };
+    let (first, _) = range(parts[0])?;
+    let settings = without_range(parts[0])?;
+    let mut next = first;
+    for part in parts {
+        let (start, frames) = range(part)?;
+        if start != next || without_range(part)? != settings {
+            return None;
+        }
+        next += frames;
+    }
+    let mut whole = parts[0].clone();
+    whole["frames"] = json!(next - first);
+    Some(whole)
 }
 
 /// Frame `index` of the concatenation, renumbered.
@@ -142,10 +176,19 @@ mod tests {
     }
 
     fn procedural(name: &str, frames: u64, image: usize, seed: u64) -> PathBuf {
-        let (out, ckpt) = (dir(&format!("{name}-out")), dir(&format!("{name}-ckpt")));
         let s = ProceduralSettings { frames, radar: RadarConfig { image, ..RadarConfig::default() }, ..ProceduralSettings::default() };
-        Operator::run(&Procedural, &s, &mut Context::standalone("scenes", &[], &out, &ckpt, seed, 2)).unwrap();
+        run_procedural(name, &s, seed)
+    }
+
+    fn run_procedural(name: &str, s: &ProceduralSettings, seed: u64) -> PathBuf {
+        let (out, ckpt) = (dir(&format!("{name}-out")), dir(&format!("{name}-ckpt")));
+        Operator::run(&Procedural, s, &mut Context::standalone("scenes", &[], &out, &ckpt, seed, 2)).unwrap();
         out
+    }
+
+    /// Every file of an artifact directory, by name.
+    fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+        std::fs::read_dir(dir).unwrap().map(|e| e.unwrap()).map(|e| (e.file_name().into_string().unwrap(), std::fs::read(e.path()).unwrap())).collect()
     }
 
     fn concat(name: &str, inputs: &[&Path], s: &ConcatSettings) -> anyhow::Result<PathBuf> {
@@ -182,6 +225,24 @@ mod tests {
         let one = read(concat("cd1", &[&a, &b], &ConcatSettings { batch: 1 }).unwrap());
         assert_eq!(one, read(concat("cd4", &[&a, &b], &ConcatSettings { batch: 4 }).unwrap()));
         assert_ne!(one, read(concat("dc", &[&b, &a], &ConcatSettings { batch: 4 }).unwrap()), "the order is the gathered order");
+    }
+
+    #[test]
+    fn consecutive_ranges_of_one_generator_join_into_the_whole_run_byte_for_byte() {
+        let whole = ProceduralSettings { frames: 11, radar: RadarConfig { image: 32, ..RadarConfig::default() }, ..ProceduralSettings::default() };
+        let range = |first_frame, frames| ProceduralSettings { first_frame, frames, ..whole.clone() };
+        let expected = files(&run_procedural("whole", &whole, 9));
+        let parts = [run_procedural("r0", &range(0, 4), 9), run_procedural("r1", &range(4, 1), 9), run_procedural("r2", &range(5, 6), 9)];
+        let joined = concat("ranges", &[&parts[0], &parts[1], &parts[2]], &ConcatSettings { batch: 2 }).unwrap();
+        assert_eq!(files(&joined).keys().collect::<Vec<_>>(), expected.keys().collect::<Vec<_>>());
+        for (name, bytes) in files(&joined) {
+            assert!(bytes == expected[&name], "{name} differs from the whole run's");
+        }
+        // A gap is no longer one range: the summary lists the parts.
+        let gapped = concat("gap", &[&parts[0], &parts[2]], &ConcatSettings::default()).unwrap();
+        let gapped = Scenes::open(&gapped).unwrap();
+        assert_eq!(gapped.summary.generator["operator"], "concat");
+        assert_eq!(gapped.summary.generator["inputs"][1]["generator"]["first_frame"], 5);
     }
 
     #[test]

@@ -8,7 +8,7 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rlmflow_radar::{RadarConfig, VehicleBox};
 use rlmflow_stages::grid::{CELLS, Cell, GridRule, SECTORS};
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, SettingError, Settings};
+use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, SettingError, Settings, Sharding};
 use serde::{Deserialize, Serialize};
 
 use crate::layout::{LAYOUTS, Layout};
@@ -22,6 +22,10 @@ pub struct Procedural;
 pub struct ProceduralSettings {
     /// Frames written, 1..=10,000,000.
     pub frames: u64,
+    /// Where in the endless sequence of frames this seed defines the first written one lies:
+    /// frame `k` of the output is frame `first_frame + k` of the sequence (frames are numbered
+    /// from 0 in the output). A shard of a sharded stage is a range of the whole stage's frames.
+    pub first_frame: u64,
     /// Road layouts to draw from, uniformly: straight, two-way, junction.
     pub layouts: Vec<String>,
     pub min_vehicles: usize,
@@ -46,6 +50,7 @@ impl Default for ProceduralSettings {
     fn default() -> Self {
         ProceduralSettings {
             frames: 200,
+            first_frame: 0,
             layouts: LAYOUTS.iter().map(|s| s.to_string()).collect(),
             min_vehicles: 2,
             max_vehicles: 12,
@@ -66,6 +71,7 @@ impl Settings for ProceduralSettings {
     fn check(&self) -> Result<(), SettingError> {
         let err = |k: &str, m: String| Err(SettingError::new(k, m));
         SettingError::check_range("frames", self.frames, 1..=MAX_FRAMES)?;
+        SettingError::check_range("first_frame", self.first_frame, 0..=MAX_FRAMES)?;
         if self.layouts.is_empty() {
             return err("layouts", format!("must name at least one of {}", LAYOUTS.join(", ")));
         }
@@ -127,7 +133,7 @@ impl Operator for Procedural {
         OperatorSpec {
             name: "procedural",
             kind: "scenes",
-            version: 3,
+            version: 4,
             inputs: None,
             summary: "vehicles placed on sampled road layouts to cover every grid cell, rendered by the radar model",
         }
@@ -135,6 +141,16 @@ impl Operator for Procedural {
 
     fn resources(&self, _: &ProceduralSettings) -> Resources {
         Resources { threads: usize::MAX, gpu: false }
+    }
+
+    /// A shard is a range of frames; `concat` joins consecutive ranges into the whole's bytes.
+    fn sharding(&self) -> Option<Sharding<ProceduralSettings>> {
+        Some(Sharding {
+            unit: "frames",
+            items: |s| s.frames,
+            part: |s, range| ProceduralSettings { first_frame: s.first_frame + range.start, frames: range.end - range.start, ..s.clone() },
+            merge: "concat",
+        })
     }
 
     fn run(&self, s: &ProceduralSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
@@ -153,7 +169,7 @@ impl Operator for Procedural {
             progress.set_position(writer.done());
         }
         progress.finish();
-        let summary = writer.finish(&ctx.output_dir, s.radar.range_max_m, serde_json::to_value(s)?)?;
+        let summary = writer.finish(&ctx.output_dir, s.radar.range_max_m, generator(s)?)?;
         let (covered, vehicles) = (summary.cells_covered(), summary.vehicles());
         Ok(Outcome {
             metrics: serde_json::json!({"frames": summary.frames, "vehicles": vehicles, "cells_covered": covered, "frames_per_scenario": summary.frames_per_scenario}),
@@ -162,9 +178,21 @@ impl Operator for Procedural {
     }
 }
 
-/// Frame `index`: deterministic in (seed, index) whatever the batch or thread split.
+/// The settings as the summary records them: without those that cannot change the result, so
+/// the bytes stay a function of the key.
+fn generator(s: &ProceduralSettings) -> anyhow::Result<serde_json::Value> {
+    let mut value = serde_json::to_value(s)?;
+    for key in ProceduralSettings::NON_RESULT {
+        value.as_object_mut().expect("settings are a table").remove(*key);
+    }
+    Ok(value)
+}
+
+/// Output frame `index`: deterministic in (seed, `first_frame + index`) whatever the batch,
+/// thread or shard split.
 fn frame(s: &ProceduralSettings, renderer: &Renderer, weights: &[f64], seed: u64, index: u64) -> Rendered {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let global = s.first_frame + index;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ global.wrapping_mul(0x9E37_79B9_7F4A_7C15));
     let chosen = &s.layouts[rng.random_range(0..s.layouts.len())];
     let kind = LAYOUTS.iter().find(|l| *l == chosen).expect("layouts were checked against LAYOUTS");
     let layout = Layout::sample(kind, &mut rng);
