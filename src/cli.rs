@@ -270,6 +270,9 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                     let spec = op.spec();
                     let defaults = op.settings(serde_json::json!({})).map(|v| canonical_json(&v)).unwrap_or_default();
                     println!("  {} v{}: {}\n    defaults: {defaults}", spec.name, spec.version, spec.summary);
+                    if let Some(merge) = op.merge() {
+                        println!("    shardable: `shards` or `shard_size` split it into parts, merged by `{merge}`");
+                    }
                 }
             }
             Ok(ExitCode::SUCCESS)

@@ -86,7 +86,8 @@ struct Executor<'a> {
     plan_dirty: bool,
     events: EventLog,
     ui: Ui,
-    /// How each finished instance ended, and the compute time its reuse saved.
+    /// How each finished instance ended, and its compute time: this run's when it ran, the
+    /// original computation's (which reuse saved) when reused.
     results: Vec<Option<(Outcome, f64)>>,
     recoveries: Vec<u32>,
     last: BTreeMap<String, Digest>,
@@ -238,7 +239,7 @@ impl Executor<'_> {
         }
         self.write_plan_if_dirty()?;
         let s = self.summary();
-        let saved: f64 = self.results.iter().flatten().map(|r| r.1).sum();
+        let saved: f64 = self.results.iter().flatten().filter(|r| r.0 == Outcome::Reused).map(|r| r.1).sum();
         let wall = clock.elapsed().as_secs_f64();
         self.events.write(
             "run_finished",
@@ -251,10 +252,39 @@ impl Executor<'_> {
         if s.failed > 0 {
             self.ui.say(format!("logs: {}", self.store.run_dir(&self.run).join("logs").display()));
         }
+        self.ui.say(format!("  provenance  {}", self.write_provenance(wall, &executor)?.display()));
         for (label, dir) in self.final_outputs() {
             self.ui.say(format!("  output  {label}  {}", dir.display()));
         }
         Ok(())
+    }
+
+    /// `runs/<id>/provenance.md`: what this run did with each instance, with its key, output and
+    /// time. A report cannot hold this (its bytes depend only on its inputs, and a reused input
+    /// is the same bytes as a recomputed one), so it lives in the run's record.
+    fn write_provenance(&self, wall: f64, executor: &str) -> anyhow::Result<PathBuf> {
+        let p = self.plan.pipeline;
+        let mut md = format!(
+            "# Run {}\n\n`{}` (pipeline `{}`), {executor}, {wall:.1} s. Seconds are this run's for an instance that ran, the original computation's for one reused.\n\n| instance | status | seconds | key | output |\n|---|---|---|---|---|\n",
+            self.run,
+            p.file.display(),
+            p.name
+        );
+        for (i, inst) in self.plan.instances.iter().enumerate() {
+            let Some((outcome, secs)) = self.results[i] else { continue };
+            let status = match outcome {
+                Outcome::Ran => "ran",
+                Outcome::Reused => "reused",
+                Outcome::Failed => "failed",
+                Outcome::Skipped => "skipped",
+            };
+            let key = self.keys[i].map_or("-".to_owned(), |k| k.to_string());
+            let output = if let State::Done { output } = &self.states[i] { output.to_string() } else { "-".to_owned() };
+            md += &format!("| {} | {status} | {secs:.1} | {key} | {output} |\n", inst.label);
+        }
+        let path = self.store.run_dir(&self.run).join("provenance.md");
+        std::fs::write(&path, md).with_context(|| format!("writing {}", path.display()))?;
+        Ok(path)
     }
 
     /// Where the outputs of the instances nothing consumes are (the report, say).
@@ -410,7 +440,7 @@ impl Executor<'_> {
                 let reused = matches!(outcome, Some(Message::Reused));
                 self.states[i] = State::Done { output: record.output };
                 let status = if reused { "reused" } else { "ran" };
-                self.results[i] = Some(if reused { (Outcome::Reused, record.duration_s) } else { (Outcome::Ran, 0.0) });
+                self.results[i] = Some(if reused { (Outcome::Reused, record.duration_s) } else { (Outcome::Ran, secs) });
                 self.events.write("stage_finished", json!({"stage": label, "status": status, "key": key, "output": record.output, "duration_s": secs, "summary": record.summary, "metrics": record.metrics}))?;
                 let note = if reused { "computed by another run".to_owned() } else { record.summary.clone() };
                 self.ui.say(format!("  {status:<8} {label}  {secs:.1}s  {note}"));
@@ -440,7 +470,7 @@ impl Executor<'_> {
                     _ => exit.describe(),
                 };
                 self.states[i] = State::Failed;
-                self.results[i] = Some((Outcome::Failed, 0.0));
+                self.results[i] = Some((Outcome::Failed, secs));
                 let log = self.log_path(&label);
                 self.events.write(
                     "stage_finished",

@@ -6,6 +6,9 @@
 //! * planning 10,000 stage instances: parse, validate, fan out, compute every action key;
 //!   target <= 1 s
 //! * hashing throughput on one core, in memory and from a file; target >= 1 GB/s
+//! * dispatch through HyperQueue (a local cluster: one worker, two cores) against the local
+//!   executor on the same 20-action pipeline, fresh stores: the cold run's extra time per
+//!   action, target <= 100 ms; the warm no-op run (nothing submitted), target <= 1.25x local
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -97,11 +100,47 @@ fn hashing(dir: &Path) {
     report("hash_file, one core (256 MiB, page cache)", size as f64 / median(times) / 1e9, "GB/s", 1.0, true);
 }
 
+/// Milliseconds of one `rlmflow-test run` in `dir`, which must report `expect`.
+fn timed_run(dir: &Path, extra: &[&str], expect: &str) -> f64 {
+    let t0 = Instant::now();
+    let out = Command::new(env!("CARGO_BIN_EXE_rlmflow-test")).current_dir(dir).args(["run", "p.toml", "--json"]).args(extra).output().unwrap();
+    let ms = t0.elapsed().as_secs_f64() * 1e3;
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success() && stdout.contains(expect), "{stdout}{}", String::from_utf8_lossy(&out.stderr));
+    ms
+}
+
+fn dispatch(dir: &Path) {
+    let mut text = String::from("[pipeline]\nname = \"dispatch\"\n\n[pipeline.hyperqueue]\nworkers = 1\ncores = 2\n");
+    for i in 0..10 {
+        write!(text, "[stages.s{i}]\nkind = \"source\"\noperator = \"write-text\"\ntext = \"t{i}\"\n").unwrap();
+        write!(text, "[stages.m{i}]\nkind = \"map\"\noperator = \"shout\"\ninputs = {{ text = \"s{i}\" }}\n").unwrap();
+    }
+    let mut cold = [Vec::new(), Vec::new()];
+    let mut warm = [Vec::new(), Vec::new()];
+    for round in 0..3 {
+        for (e, executor) in ["local", "hyperqueue"].into_iter().enumerate() {
+            let run_dir = dir.join(format!("dispatch-{executor}-{round}"));
+            std::fs::create_dir_all(&run_dir).unwrap();
+            std::fs::write(run_dir.join("p.toml"), &text).unwrap();
+            cold[e].push(timed_run(&run_dir, &["--executor", executor], r#""ran":20"#));
+            warm[e].extend((0..5).map(|_| timed_run(&run_dir, &["--executor", executor], r#""reused":20"#)));
+        }
+    }
+    let (local, hq) = (median(cold[0].clone()), median(cold[1].clone()));
+    println!("cold, 20 actions: local {local:.0} ms, HyperQueue {hq:.0} ms (medians of 3; HyperQueue's includes starting its cluster)");
+    report("HyperQueue extra time per action, cold", (hq - local) / 20.0, "ms", 100.0, false);
+    let (local, hq) = (median(warm[0].clone()), median(warm[1].clone()));
+    println!("warm no-op, 20 actions: local {local:.1} ms, HyperQueue {hq:.1} ms (medians of 15)");
+    report("warm no-op, HyperQueue / local", hq / local, "x", 1.25, false);
+}
+
 fn main() {
     let dir = std::env::temp_dir().join(format!("rlmflow-bench-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     warm_noop(&dir);
     planning();
     hashing(&dir);
+    dispatch(&dir);
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -319,3 +319,22 @@ fn operators_lists_kinds_and_defaults() {
     assert!(out.contains("map (text: Text) -> Mapped"), "{out}");
     assert!(out.contains(r#"shout v1: upper-cases"#) && out.contains(r#"{"suffix":"!"}"#), "{out}");
 }
+
+#[test]
+fn each_run_records_what_it_ran_and_reused_with_keys_outputs_and_times() {
+    let s = Scratch::new("provenance");
+    s.pipeline(CHAIN);
+    let first = s.run();
+    s.pipeline(&CHAIN.replace("suffix = \"!\"", "suffix = \"?\""));
+    let second = s.run();
+    let run = second.of("run_started")[0]["run"].as_str().unwrap().to_owned();
+    let md = fs::read_to_string(s.store().join("runs").join(run).join("provenance.md")).unwrap();
+    let row = |label: &str| md.lines().find(|l| l.starts_with(&format!("| {label} |"))).unwrap_or_else(|| panic!("no {label} in\n{md}")).to_owned();
+    let source = first.of("stage_finished").into_iter().find(|e| e["stage"] == "source").unwrap();
+    let (key, output) = (source["key"].as_str().unwrap(), source["output"].as_str().unwrap());
+    let reused = row("source");
+    assert!(reused.starts_with("| source | reused |") && reused.contains(key) && reused.contains(output), "{reused}");
+    let map = second.of("stage_finished").into_iter().find(|e| e["stage"] == "map").unwrap();
+    assert!(row("map").starts_with("| map | ran |") && row("map").contains(map["key"].as_str().unwrap()), "{md}");
+    assert_eq!(md.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| instance")).count(), 5, "{md}");
+}

@@ -39,8 +39,8 @@ impl Report {
     pub fn inputs(&mut self, study: &Study) {
         self.blocks.push(Block::Heading(1, "Configuration".into()));
         self.blocks.push(Block::Paragraph(
-            "The stage instances this report read and their settings. Which stages ran or were reused in a run, with their keys \
-             and times, is in the run's record (`rlmflow status`, `rlmflow show`)."
+            "The stage instances this report read and their settings. Which stages ran or were reused in a run, with their keys, \
+             outputs and times, is in that run's record: `runs/<id>/provenance.md` in the store (also `rlmflow status`)."
                 .into(),
         ));
         let mut lines = Vec::new();
