@@ -80,7 +80,7 @@ fn unknown_pipeline_key_and_executor() {
 #[test]
 fn unknown_kind() {
     let err = error_for("[stages.src]\noperator = \"write-text\"\n");
-    assert_has(&err, &["p.toml:1: stages.src: `src` is not a stage kind", "valid kinds: source, map, measure, remap, collect"]);
+    assert_has(&err, &["p.toml:1: stages.src: `src` is not a stage kind", "valid kinds: source, map, measure, remap, join, collect"]);
     let err = error_for("[stages.x]\nkind = \"mesure\"\noperator = \"count\"\n");
     assert_has(&err, &["p.toml:2: stages.x.kind: unknown stage kind `mesure`", "did you mean `measure`?"]);
 }
