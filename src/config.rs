@@ -10,7 +10,7 @@ use std::fmt;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
-use rlmflow_stages::{Arity, DynOperator, Need, Registry, StageKind};
+use rlmflow_stages::{Arity, DynOperator, ItemCount, Need, Part, Registry, Share, StageKind};
 
 use crate::dispatch::HyperQueueSettings;
 use serde_json::{Map, Value};
@@ -111,7 +111,7 @@ pub struct Variant {
     /// Every setting, defaults filled in.
     pub settings: Value,
     /// A sharded stage's parts: the items each computes and its settings, in order.
-    pub shards: Vec<(Range<u64>, Value)>,
+    pub shards: Vec<(Part, Value)>,
 }
 
 /// The action that joins a sharded stage's parts: an operator gathering them, in order, into one
@@ -133,9 +133,8 @@ enum Split {
 
 impl Split {
     fn ranges(self, items: u64) -> Vec<Range<u64>> {
-        let at = |j: u64, n: u64| (j as u128 * items as u128 / n as u128) as u64;
         match self {
-            Split::Count(n) => (0..n).map(|j| at(j, n)..at(j + 1, n)).collect(),
+            Split::Count(n) => (0..n).map(|index| Share { index, of: n }.range(items)).collect(),
             Split::Size(k) => (0..items.div_ceil(k)).map(|j| j * k..(j * k).saturating_add(k).min(items)).collect(),
         }
     }
@@ -659,21 +658,32 @@ impl Checker {
             return None;
         };
         for variant in variants.iter_mut() {
-            let (items, unit) = op.items(&variant.settings).expect("a shardable operator counts the items of valid settings");
-            let ranges = split.ranges(items);
             let at = variant.name.as_ref().map_or(String::new(), |v| format!(" in variant `{v}`"));
-            if let Split::Count(n) = split
-                && n > items
-            {
-                self.error(self.line(key), key, format!("{n} shards, but `{name}` makes only {items} {unit}{at}"), Some("at most one shard per item".into()));
-                return None;
-            }
-            if ranges.len() as u64 > MAX_SHARDS {
-                let msg = format!("{} shards of `{name}`'s {items} {unit}{at}; at most {MAX_SHARDS}", ranges.len());
-                self.error(self.line(key), key, msg, Some("raise shard_size".into()));
-                return None;
-            }
-            variant.shards = ranges.into_iter().map(|r| (r.clone(), op.part(&variant.settings, r).expect("a shardable operator splits valid settings"))).collect();
+            let parts: Vec<Part> = match (op.items(&variant.settings).expect("a shardable operator counts the items of valid settings"), split) {
+                ((ItemCount::OfInput(_), _), Split::Count(n)) => (0..n).map(|index| Part::Share(Share { index, of: n })).collect(),
+                ((ItemCount::OfInput(slot), unit), Split::Size(_)) => {
+                    let msg = format!("`{name}` splits the {unit} of its `{slot}` input, which are counted only when it runs");
+                    self.error(self.line(key), key, msg, Some("use `shards = N` (N near-equal parts)".into()));
+                    return None;
+                }
+                ((ItemCount::Known(items), unit), _) => {
+                    let ranges = split.ranges(items);
+                    if let Split::Count(n) = split
+                        && n > items
+                    {
+                        let msg = format!("{n} shards, but `{name}` makes only {items} {unit}{at}");
+                        self.error(self.line(key), key, msg, Some("at most one shard per item".into()));
+                        return None;
+                    }
+                    if ranges.len() as u64 > MAX_SHARDS {
+                        let msg = format!("{} shards of `{name}`'s {items} {unit}{at}; at most {MAX_SHARDS}", ranges.len());
+                        self.error(self.line(key), key, msg, Some("raise shard_size".into()));
+                        return None;
+                    }
+                    ranges.into_iter().map(Part::Items).collect()
+                }
+            };
+            variant.shards = parts.into_iter().map(|p| (p.clone(), op.part(&variant.settings, &p).expect("a shardable operator splits valid settings"))).collect();
         }
         let settings = merger.settings(Value::Object(Map::new())).expect("an operator's default settings are valid");
         Some(Merge { operator: merge.to_owned(), slot, settings })

@@ -10,6 +10,7 @@ fn registry() -> Registry {
     registry.add(rlmflow_labels::EgoGrid);
     registry.add(rlmflow_captions::Template);
     registry.add(rlmflow_captions::Llm);
+    registry.add(rlmflow_captions::ConcatCaptions);
     registry.add(rlmflow_tokens::Bpe);
     // Planned here, run by the rlmflow-torch worker.
     registry.add(rlmflow_pretrain::operator());

@@ -2,11 +2,10 @@
 //! whether each is cached, will run (and why), or waits for an upstream that will run.
 
 use std::collections::{BTreeMap, HashMap};
-use std::ops::Range;
 
 use anyhow::bail;
 use rlmflow_cache::{ActionRecord, Change, Digest, InputDigest, Preimage, Store};
-use rlmflow_stages::{Arity, Registry};
+use rlmflow_stages::{Arity, Part, Registry};
 use serde_json::Value;
 
 use crate::config::{Pipeline, SEED_DIMENSION, suggest};
@@ -26,7 +25,7 @@ pub struct Instance {
     pub settings: Value,
     pub inputs: Vec<InstanceInput>,
     /// The items a shard computes (`None`: not a shard).
-    pub shard: Option<Range<u64>>,
+    pub shard: Option<Part>,
 }
 
 #[derive(Clone, Debug)]
@@ -109,7 +108,7 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                 None => Instance { stage: s, label, assignment: assignment.clone(), operator: stage.operator.clone(), settings: variant.settings.clone(), inputs, shard: None },
                 Some(merge) => {
                     let mut parts = Vec::new();
-                    for (j, (range, settings)) in variant.shards.iter().enumerate() {
+                    for (j, (part, settings)) in variant.shards.iter().enumerate() {
                         parts.push(instances.len());
                         instances.push(Instance {
                             stage: s,
@@ -118,7 +117,7 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                             operator: stage.operator.clone(),
                             settings: settings.clone(),
                             inputs: inputs.clone(),
-                            shard: Some(range.clone()),
+                            shard: Some(part.clone()),
                         });
                     }
                     let inputs = vec![InstanceInput { slot: merge.slot, arity: Arity::All, providers: parts }];
@@ -187,7 +186,8 @@ impl Plan<'_> {
                 // neither the stage's name nor the number of digits enters the key.
                 let label = match (input.arity, &self.instances[p].shard) {
                     (Arity::One, _) => String::new(),
-                    (Arity::All, Some(items)) => format!("{:020}..{:020}", items.start, items.end),
+                    (Arity::All, Some(Part::Items(items))) => format!("{:020}..{:020}", items.start, items.end),
+                    (Arity::All, Some(Part::Share(share))) => format!("{:020}/{:020}", share.index, share.of),
                     (Arity::All, None) => self.instances[p].label.clone(),
                 };
                 inputs.push(InputDigest { slot: input.slot.to_owned(), label, digest: outputs[p]? });
@@ -302,7 +302,7 @@ pub fn describe(stage: &str, change: &Change) -> String {
 mod tests {
     use std::path::Path;
 
-    use rlmflow_stages::{Catalog, Context, Operator, OperatorSpec, Outcome, Registry, Settings, Sharding, Slot, StageKind};
+    use rlmflow_stages::{Catalog, Context, Items, Operator, OperatorSpec, Outcome, Registry, Settings, Sharding, Slot, StageKind};
     use serde::{Deserialize, Serialize};
 
     use super::*;
@@ -343,8 +343,10 @@ mod tests {
         fn sharding(&self) -> Option<Sharding<Knob>> {
             Some(Sharding {
                 unit: "items",
-                items: |s| s.k as u64,
-                part: |s, r| Knob { k: (r.end - r.start) as i64, nested: Nested { a: s.nested.a + r.start as i64, b: s.nested.b } },
+                items: Items::Counted {
+                    count: |s| s.k as u64,
+                    part: |s, r| Knob { k: (r.end - r.start) as i64, nested: Nested { a: s.nested.a + r.start as i64, b: s.nested.b } },
+                },
                 merge: "oj",
             })
         }
@@ -493,7 +495,7 @@ operator = "od"
         assert_eq!(labels, ["a[x]#0", "a[x]#1", "a[x]#2", "a[x]", "a[y]#0", "a[y]#1", "a[y]#2", "a[y]", "b", "c[x]", "c[y]", "d"]);
         let parts: Vec<(i64, i64)> = plan.instances[..3].iter().map(|i| (i.settings["nested"]["a"].as_i64().unwrap(), i.settings["k"].as_i64().unwrap())).collect();
         assert_eq!(parts, [(0, 3), (3, 3), (6, 4)], "10 items in three parts");
-        assert_eq!(plan.instances[6].shard, Some(2..4), "variant y has 4 items");
+        assert_eq!(plan.instances[6].shard, Some(Part::Items(2..4)), "variant y has 4 items");
         let merge = &plan.instances[3];
         assert_eq!((merge.operator.as_str(), merge.inputs[0].slot, &merge.inputs[0].providers[..]), ("oj", "parts", &[0, 1, 2][..]));
         assert_eq!(plan.instances[9].inputs[0].providers, [3], "c[x] reads the merged a[x]");

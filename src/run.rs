@@ -134,7 +134,8 @@ fn dispatcher(plan: &Plan, store: &Store, run: &str, ui: &Ui) -> anyhow::Result<
         #[cfg(feature = "python")]
         ExecutorKind::HyperQueue => {
             let dir = store.run_dir(run).join("hyperqueue");
-            let hq = crate::dispatch::HyperQueue::connect(plan.pipeline.hyperqueue.clone(), &dir, &mut |note| ui.say(note.to_owned()))?;
+            let ui = ui.clone();
+            let hq = crate::dispatch::HyperQueue::connect(plan.pipeline.hyperqueue.clone(), &dir, Box::new(move |note| ui.say(note.to_owned())))?;
             Ok(Box::new(hq))
         }
         #[cfg(not(feature = "python"))]
@@ -514,6 +515,7 @@ impl EventLog {
 }
 
 /// Progress bars on a terminal; plain lines otherwise.
+#[derive(Clone)]
 struct Ui {
     multi: MultiProgress,
     quiet: bool,

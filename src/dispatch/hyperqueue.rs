@@ -31,7 +31,11 @@ const HELPER: &str = include_str!("hyperqueue.py");
 
 pub struct HyperQueue {
     settings: HyperQueueSettings,
-    helper: Py<PyModule>,
+    /// Hears what setting up the Python environment does (a fresh machine creates it).
+    note: Box<dyn FnMut(&str) + Send>,
+    /// The helper module, loaded with the interpreter when first needed, so a run that submits
+    /// nothing to a local cluster never starts Python.
+    helper: Option<Py<PyModule>>,
     /// The client, once connected (to the given server, or to the local cluster once started).
     /// The client must not be entered by two threads at once: every call goes through this lock.
     client: Option<Arc<Mutex<Client>>>,
@@ -83,18 +87,29 @@ impl Client {
 }
 
 impl HyperQueue {
-    /// Loads the client and, for an existing server, connects, so an unreachable one stops the
-    /// run before anything runs. A local cluster starts with the first task.
-    pub fn connect(settings: HyperQueueSettings, dir: &Path, note: &mut dyn FnMut(&str)) -> anyhow::Result<HyperQueue> {
-        let env = rlmflow_python::ensure(note)?;
-        embed::start(&env)?;
-        let helper = Python::attach(|py| embed::module(py, "rlmflow_hyperqueue", HELPER).map(|m| m.unbind()))?;
-        let client = match &settings.server_dir {
-            Some(server) => Some(Arc::new(Mutex::new(Client::connect(&helper, server)?))),
-            None => None,
-        };
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        Ok(HyperQueue { settings, helper, client, cluster: None, dir: dir.to_path_buf() })
+    /// For an existing server, connects now, so an unreachable one stops the run before anything
+    /// runs. For a local cluster nothing happens until the first task: the Python environment,
+    /// the interpreter, the client and the cluster start then, so a run with nothing to do
+    /// costs what a local one does.
+    pub fn connect(settings: HyperQueueSettings, dir: &Path, note: Box<dyn FnMut(&str) + Send>) -> anyhow::Result<HyperQueue> {
+        let mut hq = HyperQueue { settings, note, helper: None, client: None, cluster: None, dir: dir.to_path_buf() };
+        if let Some(server) = hq.settings.server_dir.clone() {
+            let helper = hq.helper()?;
+            hq.client = Some(Arc::new(Mutex::new(Client::connect(&helper, &server)?)));
+        }
+        Ok(hq)
+    }
+
+    /// The helper module, starting the interpreter the first time.
+    fn helper(&mut self) -> anyhow::Result<Py<PyModule>> {
+        if self.helper.is_none() {
+            let env = rlmflow_python::ensure(&mut *self.note)?;
+            embed::start(&env)?;
+            let helper = Python::attach(|py| embed::module(py, "rlmflow_hyperqueue", HELPER).map(|m| m.unbind()))?;
+            std::fs::create_dir_all(&self.dir).with_context(|| format!("creating {}", self.dir.display()))?;
+            self.helper = Some(helper);
+        }
+        Ok(Python::attach(|py| self.helper.as_ref().expect("loaded above").clone_ref(py)))
     }
 
     /// The client, starting the local cluster first if there is no server.
@@ -102,19 +117,20 @@ impl HyperQueue {
         if let Some(client) = &self.client {
             return Ok(client.clone());
         }
+        let helper = self.helper()?;
         let (workers, cores) = (self.settings.workers, self.settings.cores());
         let local = self.dir.join("server");
         // The cluster prints its server's details to stdout, where `--json` writes events.
         let _quiet = StdoutTo::file(&self.dir.join("cluster.log"))?;
         let (cluster, server) = Python::attach(|py| -> anyhow::Result<(Py<PyAny>, PathBuf)> {
-            let helper = self.helper.bind(py);
+            let helper = helper.bind(py);
             let err = |e: PyErr| anyhow::anyhow!("starting a local HyperQueue cluster: {}", embed::traceback(py, &e));
             let cluster = helper.getattr("start_cluster").and_then(|f| f.call1((local.to_string_lossy().as_ref(), workers, cores))).map_err(err)?;
             let server: String = helper.getattr("server_dir").and_then(|f| f.call1((&cluster,))).and_then(|d| d.extract()).map_err(err)?;
             Ok((cluster.unbind(), PathBuf::from(server)))
         })?;
         self.cluster = Some(cluster);
-        let client = Arc::new(Mutex::new(Client::connect(&self.helper, &server)?));
+        let client = Arc::new(Mutex::new(Client::connect(&helper, &server)?));
         self.client = Some(client.clone());
         Ok(client)
     }
@@ -122,9 +138,9 @@ impl HyperQueue {
 
 impl Drop for HyperQueue {
     fn drop(&mut self) {
-        if let Some(cluster) = self.cluster.take() {
+        if let (Some(cluster), Some(helper)) = (self.cluster.take(), &self.helper) {
             Python::attach(|py| {
-                let _ = self.helper.bind(py).getattr("stop_cluster").and_then(|f| f.call1((cluster,)));
+                let _ = helper.bind(py).getattr("stop_cluster").and_then(|f| f.call1((cluster,)));
             });
         }
     }

@@ -88,6 +88,8 @@ const PAPER_KINDS: &[StageKind] = &[
     StageKind { name: "mix", produces: SCENES, inputs: &[Slot::gather_some("scenes", SCENES)], per_seed: false },
     StageKind { name: "labels", produces: LABELS, inputs: &[Slot::one("scenes", SCENES)], per_seed: false },
     StageKind { name: "captions", produces: CAPTIONS, inputs: &[Slot::one("labels", LABELS)], per_seed: false },
+    // Several Captions artifacts of disjoint frames as one (the shares of a sharded llm stage).
+    StageKind { name: "mix-captions", produces: CAPTIONS, inputs: &[Slot::gather_some("captions", CAPTIONS)], per_seed: false },
     StageKind { name: "tokens", produces: TOKENS, inputs: &[Slot::one("captions", CAPTIONS)], per_seed: false },
     StageKind {
         name: "pretrain",

@@ -28,7 +28,9 @@ pub mod tokens;
 
 pub use context::{Context, Device, Input, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};
-pub use operator::{DynOperator, InWorker, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding};
+pub use operator::{
+    DynOperator, InWorker, ItemCount, Items, Operator, OperatorSpec, Outcome, Part, Registry, Resources, SettingError, Settings, Share, Sharding,
+};
 
 /// Reads an artifact's summary (`dir/file`, JSON with a `format` field) and checks that this
 /// build reads its format; `artifact` names the type (`Scenes`) and `stage` what to rerun.

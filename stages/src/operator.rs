@@ -3,8 +3,8 @@
 use std::fmt;
 use std::ops::Range;
 
-use serde::Serialize;
 use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::context::Context;
@@ -144,18 +144,59 @@ pub trait Operator: Send + Sync + 'static {
     fn run(&self, settings: &Self::Settings, ctx: &mut Context) -> anyhow::Result<Outcome>;
 }
 
-/// How an operator splits one action into independent parts. Its output is a sequence of
-/// `items` (frames, say), each computed from its own index alone; `part` gives the settings that
-/// compute items `range` only, and the `merge` operator, gathering the parts' outputs in order,
-/// writes exactly the output the unsplit action would have: so the number of shards is a
-/// scheduling choice that changes no byte downstream.
+/// How an operator splits one action into independent parts. Its output is a sequence of items
+/// (frames, say), each computed from its own index alone; a part's settings compute some of them,
+/// and the `merge` operator, gathering the parts' outputs in order, writes exactly the output the
+/// unsplit action would have: so the number of shards is a scheduling choice that changes no byte
+/// downstream.
 pub struct Sharding<S> {
     /// What an item is, for messages: `frames`.
     pub unit: &'static str,
-    pub items: fn(&S) -> u64,
-    pub part: fn(&S, Range<u64>) -> S,
+    pub items: Items<S>,
     /// An operator of a kind that gathers this one's artifacts into one of the same type.
     pub merge: &'static str,
+}
+
+/// Where a shardable operator's items come from, and the settings of a part of them.
+pub enum Items<S> {
+    /// Counted from the settings when the pipeline is planned (`procedural`'s frames); `part`
+    /// gives the settings that compute items `range` only.
+    Counted { count: fn(&S) -> u64, part: fn(&S, Range<u64>) -> S },
+    /// The items of input `slot` (`llm`'s labelled frames), counted only when a part runs; `part`
+    /// gives the settings that compute one [`Share`] of them.
+    OfInput { slot: &'static str, part: fn(&S, Share) -> S },
+}
+
+/// Part `index` of `of` near-equal consecutive parts of a sequence of items.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Share {
+    pub index: u64,
+    pub of: u64,
+}
+
+impl Share {
+    /// The items this share takes of `items`: the shares of one sequence are consecutive and
+    /// cover it.
+    pub fn range(self, items: u64) -> Range<u64> {
+        let at = |j: u64| (j as u128 * items as u128 / self.of as u128) as u64;
+        at(self.index)..at(self.index + 1)
+    }
+}
+
+/// The items a shard computes, as the planner knows them.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Part {
+    Items(Range<u64>),
+    Share(Share),
+}
+
+/// How many items a shardable operator's settings make, as the planner can know it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ItemCount {
+    Known(u64),
+    /// As many as input `slot` holds, known only when a part runs.
+    OfInput(&'static str),
 }
 
 /// An operator that runs in a worker binary: the planning binary knows its spec, settings and
@@ -200,9 +241,9 @@ pub trait DynOperator: Send + Sync {
     fn merge(&self) -> Option<&'static str>;
     /// How many items these settings produce and what an item is (`frames`), when the operator
     /// can be sharded.
-    fn items(&self, settings: &Value) -> Option<(u64, &'static str)>;
-    /// The settings of the shard computing items `range`, when the operator can be sharded.
-    fn part(&self, settings: &Value, range: Range<u64>) -> Option<Value>;
+    fn items(&self, settings: &Value) -> Option<(ItemCount, &'static str)>;
+    /// The settings of the shard computing `part`, when the operator can be sharded that way.
+    fn part(&self, settings: &Value, part: &Part) -> Option<Value>;
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome>;
 }
 
@@ -235,15 +276,23 @@ impl<O: Operator> DynOperator for O {
         Operator::sharding(self).map(|s| s.merge)
     }
 
-    fn items(&self, settings: &Value) -> Option<(u64, &'static str)> {
+    fn items(&self, settings: &Value) -> Option<(ItemCount, &'static str)> {
         let sharding = Operator::sharding(self)?;
-        Some(((sharding.items)(&parse_settings::<O::Settings>(settings.clone()).ok()?), sharding.unit))
+        let count = match sharding.items {
+            Items::Counted { count, .. } => ItemCount::Known(count(&parse_settings::<O::Settings>(settings.clone()).ok()?)),
+            Items::OfInput { slot, .. } => ItemCount::OfInput(slot),
+        };
+        Some((count, sharding.unit))
     }
 
-    fn part(&self, settings: &Value, range: Range<u64>) -> Option<Value> {
-        let sharding = Operator::sharding(self)?;
-        let part = (sharding.part)(&parse_settings::<O::Settings>(settings.clone()).ok()?, range);
-        Some(serde_json::to_value(&part).expect("settings serialise to JSON"))
+    fn part(&self, settings: &Value, part: &Part) -> Option<Value> {
+        let typed = parse_settings::<O::Settings>(settings.clone()).ok()?;
+        let settings = match (Operator::sharding(self)?.items, part) {
+            (Items::Counted { part, .. }, Part::Items(range)) => part(&typed, range.clone()),
+            (Items::OfInput { part, .. }, Part::Share(share)) => part(&typed, *share),
+            _ => return None,
+        };
+        Some(serde_json::to_value(&settings).expect("settings serialise to JSON"))
     }
 
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome> {

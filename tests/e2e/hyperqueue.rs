@@ -48,7 +48,8 @@ fn a_local_cluster_gives_the_keys_and_bytes_of_the_local_executor_and_reuses_eve
     let again = hq.run();
     assert_eq!(again.with_status("reused").len(), 5);
     let run = again.of("run_started")[0]["run"].as_str().unwrap().to_owned();
-    assert!(!hq.store().join("runs").join(&run).join("hyperqueue").join("server").exists(), "a warm run starts no cluster");
+    // The helper makes that directory when it loads: a warm run starts neither a cluster nor Python.
+    assert!(!hq.store().join("runs").join(&run).join("hyperqueue").exists(), "a warm run starts no cluster and no interpreter");
 }
 
 #[test]

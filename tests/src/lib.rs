@@ -11,7 +11,7 @@ use std::io::Write;
 use std::time::Duration;
 
 use anyhow::bail;
-use rlmflow_stages::{Catalog, Context, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding, Slot, StageKind};
+use rlmflow_stages::{Catalog, Context, Items, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding, Slot, StageKind};
 use serde::{Deserialize, Serialize};
 
 pub fn registry() -> Registry {
@@ -87,10 +87,12 @@ impl Operator for WriteText {
     fn sharding(&self) -> Option<Sharding<WriteTextSettings>> {
         Some(Sharding {
             unit: "characters",
-            items: |s| s.text.chars().count() as u64,
-            part: |s, r| WriteTextSettings {
-                text: s.text.chars().skip(r.start as usize).take((r.end - r.start) as usize).collect(),
-                ..s.clone()
+            items: Items::Counted {
+                count: |s| s.text.chars().count() as u64,
+                part: |s, r| WriteTextSettings {
+                    text: s.text.chars().skip(r.start as usize).take((r.end - r.start) as usize).collect(),
+                    ..s.clone()
+                },
             },
             merge: "join-text",
         })

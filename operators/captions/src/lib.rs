@@ -1,7 +1,10 @@
 //! The `captions` stage kind's operators: `template` composes captions from the grid; `llm` asks
 //! any OpenAI-compatible chat-completions endpoint with the paper's prompts and checks every
-//! answer with the LLM-free parser. Both write the same Captions artifact.
+//! answer with the LLM-free parser. Both write the same Captions artifact. `concat-captions`
+//! (kind `mix-captions`) joins Captions artifacts of disjoint frames: the shares of a sharded
+//! `llm` stage.
 
+mod concat;
 mod llm;
 mod template;
 
@@ -9,6 +12,7 @@ use std::path::Path;
 
 use rlmflow_stages::captions::{self, Caption};
 
+pub use concat::{ConcatCaptions, ConcatCaptionsSettings};
 pub use llm::{Llm, LlmSettings, NO_NUMBERS, OnMismatch, SYSTEM_PROMPT, user_prompt};
 pub use template::{Template, TemplateSettings, VARIANTS, caption, caption_variant};
 

@@ -30,7 +30,7 @@ use rlmflow_parser::{number_word, parse};
 use rlmflow_stages::captions::Caption;
 use rlmflow_stages::grid::{DISTANCE_BINS, Grid, SECTORS};
 use rlmflow_stages::labels::{FrameLabel, Labels};
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, SettingError, Settings};
+use rlmflow_stages::{Context, Items, Operator, OperatorSpec, Outcome, SettingError, Settings, Share, Sharding};
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
@@ -76,6 +76,9 @@ pub struct LlmSettings {
     /// Where answers are kept by request digest; empty: `$XDG_CACHE_HOME/rlmflow/llm`
     /// (`~/.cache/rlmflow/llm`).
     pub response_cache: String,
+    /// Captions only this share of the labelled frames (set by `shards = N` on the stage).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub shard: Option<Share>,
 }
 
 impl Default for LlmSettings {
@@ -96,6 +99,7 @@ impl Default for LlmSettings {
             retries: 6,
             backoff_s: 1.0,
             response_cache: String::new(),
+            shard: None,
         }
     }
 }
@@ -131,6 +135,11 @@ impl Settings for LlmSettings {
             return err("timeout_s", format!("must be in (0, 3600], not {}", self.timeout_s));
         }
         SettingError::check_range("backoff_s", self.backoff_s, 0.0..=60.0)?;
+        if let Some(Share { index, of }) = self.shard
+            && (of == 0 || index >= of)
+        {
+            return err("shard", format!("index must be below of (>= 1), not {{ index = {index}, of = {of} }}"));
+        }
         Ok(())
     }
 }
@@ -206,16 +215,33 @@ impl Operator for Llm {
         OperatorSpec {
             name: "llm",
             kind: "captions",
-            version: 1,
+            version: 2,
             inputs: None,
             summary: "captions from an OpenAI-compatible endpoint with the paper's prompts, checked by the parser",
         }
     }
 
+    /// A shard captions a share of the labelled frames; `concat-captions` joins the shares into
+    /// the whole's bytes.
+    fn sharding(&self) -> Option<Sharding<LlmSettings>> {
+        Some(Sharding {
+            unit: "frames",
+            items: Items::OfInput { slot: "labels", part: |s, share| LlmSettings { shard: Some(share), ..s.clone() } },
+            merge: "concat-captions",
+        })
+    }
+
     fn run(&self, s: &LlmSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         let labels = Labels::open(ctx.input("labels")?)?;
         let client = Client::new(s, &ctx.stage)?;
-        let (frames, seed) = (&labels.frames, ctx.seed);
+        let frames = match s.shard {
+            Some(share) => {
+                let range = share.range(labels.frames.len() as u64);
+                &labels.frames[range.start as usize..range.end as usize]
+            }
+            None => &labels.frames[..],
+        };
+        let seed = ctx.seed;
         let progress = ctx.progress(frames.len() as u64, "frames");
         let results: Mutex<Vec<Option<FrameCaptions>>> = Mutex::new(vec![None; frames.len()]);
         let next = AtomicUsize::new(0);
@@ -249,32 +275,24 @@ impl Operator for Llm {
 
         let results: Vec<FrameCaptions> = results.into_inner().unwrap().into_iter().map(|r| r.expect("every frame ran")).collect();
         let mut captions = Vec::new();
-        let mut tally = Fidelity::default();
+        let mut statistics = Statistics::default();
         for (label, r) in frames.iter().zip(&results) {
             captions.extend(r.captions.iter().map(|c| Caption { frame: label.frame, split: label.split, caption: c.clone() }));
-            tally.add(&r.fidelity);
+            statistics.add(&r.statistics);
         }
-        let empty_frames = results.iter().filter(|r| r.captions.is_empty()).count();
-        let stats = client.stats.json();
-        let metrics = json!({
-            "captions": captions.len(),
-            "first_answer_fidelity": tally.first_ok as f64 / tally.first_total.max(1) as f64,
-            "regenerated": tally.regenerated,
-            "dropped": tally.dropped,
-            "kept_mismatched": tally.kept_mismatched,
-            "frames_without_captions": empty_frames,
-            "requests": stats,
-        });
-        write_captions(&ctx.output_dir, frames.len() as u64, &captions, json!({"settings": s, "statistics": metrics}))?;
+        let statistics = statistics.finish();
+        let mut metrics = serde_json::to_value(&statistics).expect("statistics serialise");
+        metrics["requests"] = client.stats.json();
+        write_captions(&ctx.output_dir, frames.len() as u64, &captions, generator(s, &statistics))?;
         Ok(Outcome {
             summary: format!(
                 "{} captions for {} frames; {:.1}% faithful on first answer, {} regenerated, {} dropped, {} kept unfaithful; {}",
                 captions.len(),
                 frames.len(),
-                100.0 * metrics["first_answer_fidelity"].as_f64().unwrap_or(0.0),
-                tally.regenerated,
-                tally.dropped,
-                tally.kept_mismatched,
+                100.0 * statistics.first_answer_fidelity,
+                statistics.regenerated,
+                statistics.dropped,
+                statistics.kept_mismatched,
                 client.stats.line()
             ),
             metrics,
@@ -282,32 +300,78 @@ impl Operator for Llm {
     }
 }
 
+/// The Captions summary's `generator`: the settings and what the captions cost and how faithful
+/// they were. How many requests this run sent or found cached is not in it (that depends on the
+/// response cache, not on the captions): it is in the action's metrics.
+fn generator(s: &LlmSettings, statistics: &Statistics) -> Value {
+    json!({"settings": s, "statistics": statistics})
+}
+
+/// The `generator` of the whole when `parts` are the generators of every share of one `llm`
+/// stage, in order: the settings without the share and the statistics summed. `None` otherwise.
+pub fn join_shares(parts: &[&Value]) -> Option<Value> {
+    let mut settings: Option<LlmSettings> = None;
+    let mut total = Statistics::default();
+    for (j, part) in parts.iter().enumerate() {
+        let mut s: LlmSettings = serde_json::from_value(part.get("settings")?.clone()).ok()?;
+        if s.shard != Some(Share { index: j as u64, of: parts.len() as u64 }) {
+            return None;
+        }
+        s.shard = None;
+        match &settings {
+            None => settings = Some(s),
+            Some(first) if serde_json::to_value(first).ok()? == serde_json::to_value(&s).ok()? => {}
+            Some(_) => return None,
+        }
+        total.add(&serde_json::from_value(part.get("statistics")?.clone()).ok()?);
+    }
+    Some(generator(&settings?, &total.finish()))
+}
+
 /// One frame's outcome.
 #[derive(Clone, Debug, Default)]
 struct FrameCaptions {
     captions: Vec<String>,
-    fidelity: Fidelity,
+    statistics: Statistics,
 }
 
-/// How captions fared against the parser: per frame, and summed over frames.
-#[derive(Clone, Debug, Default)]
-struct Fidelity {
+/// How captions fared against the parser and what their answers cost: per frame, and summed
+/// over frames (or over the shares of a stage).
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Statistics {
+    captions: u64,
+    frames_without_captions: u64,
+    /// `first_answers_faithful / first_answers`.
+    first_answer_fidelity: f64,
     /// Captions in the first answer, and how many of them matched the grid.
-    first_total: u64,
-    first_ok: u64,
+    first_answers: u64,
+    first_answers_faithful: u64,
     /// Captions asked for again.
     regenerated: u64,
     dropped: u64,
     kept_mismatched: u64,
+    /// The tokens of every answer used, whether asked now or read from the response cache.
+    prompt_tokens: u64,
+    completion_tokens: u64,
 }
 
-impl Fidelity {
-    fn add(&mut self, other: &Fidelity) {
-        self.first_total += other.first_total;
-        self.first_ok += other.first_ok;
+impl Statistics {
+    fn add(&mut self, other: &Statistics) {
+        self.captions += other.captions;
+        self.frames_without_captions += other.frames_without_captions;
+        self.first_answers += other.first_answers;
+        self.first_answers_faithful += other.first_answers_faithful;
         self.regenerated += other.regenerated;
         self.dropped += other.dropped;
         self.kept_mismatched += other.kept_mismatched;
+        self.prompt_tokens += other.prompt_tokens;
+        self.completion_tokens += other.completion_tokens;
+    }
+
+    fn finish(mut self) -> Statistics {
+        self.first_answer_fidelity = self.first_answers_faithful as f64 / self.first_answers.max(1) as f64;
+        self
     }
 }
 
@@ -317,7 +381,7 @@ fn caption_frame(s: &LlmSettings, label: &FrameLabel, seed: u64, client: &Client
     let no_numbers = rng.random_bool(s.no_distance_numbers);
     let prompt = user_prompt(&label.grid, no_numbers, &mut rng);
     let mut out = FrameCaptions::default();
-    let f = &mut out.fidelity;
+    let f = &mut out.statistics;
     let mut mismatched = Vec::new();
     for attempt in 0..=s.regenerate {
         let needed = s.n - out.captions.len();
@@ -327,12 +391,14 @@ fn caption_frame(s: &LlmSettings, label: &FrameLabel, seed: u64, client: &Client
         if attempt > 0 {
             f.regenerated += needed as u64;
         }
-        let answers = client.complete(&request_body(s, &prompt, needed), attempt)?;
-        for caption in answers.into_iter().take(needed) {
+        let answer = client.complete(&request_body(s, &prompt, needed), attempt)?;
+        f.prompt_tokens += answer.prompt_tokens;
+        f.completion_tokens += answer.completion_tokens;
+        for caption in answer.captions.into_iter().take(needed) {
             let ok = parse(&caption).grid == label.grid;
             if attempt == 0 {
-                f.first_total += 1;
-                f.first_ok += u64::from(ok);
+                f.first_answers += 1;
+                f.first_answers_faithful += u64::from(ok);
             }
             if ok { out.captions.push(caption) } else { mismatched.push(caption) }
         }
@@ -347,6 +413,8 @@ fn caption_frame(s: &LlmSettings, label: &FrameLabel, seed: u64, client: &Client
         }
         OnMismatch::Drop => f.dropped = mismatched.len() as u64,
     }
+    f.captions = out.captions.len() as u64;
+    f.frames_without_captions = u64::from(out.captions.is_empty());
     Ok(out)
 }
 
@@ -438,13 +506,13 @@ impl Client {
         })
     }
 
-    /// The captions in the answer to `body` (the `attempt`-th time this body is asked).
-    fn complete(&self, body: &str, attempt: u32) -> anyhow::Result<Vec<String>> {
+    /// The answer to `body` (the `attempt`-th time this body is asked).
+    fn complete(&self, body: &str, attempt: u32) -> anyhow::Result<Answer> {
         let digest = blake3::hash(format!("{}\n{attempt}\n{body}", self.identity).as_bytes()).to_hex();
         let path = self.cache.join(format!("{digest}.json"));
         if let Some(answer) = std::fs::read_to_string(&path).ok().and_then(|text| Answer::parse(&text).ok()) {
             self.stats.cached.fetch_add(1, Ordering::Relaxed);
-            return Ok(answer.captions);
+            return Ok(answer);
         }
         let mut tries = 0;
         loop {
@@ -510,20 +578,19 @@ impl Client {
     }
 }
 
-/// Stores an answer under `path` unless one is there already, and returns the stored one's
-/// captions: when two frames send the same request at once, both get the answer that a rerun
-/// will read. The answer is written to a file of its own and linked into place, so a reader
+/// Stores an answer under `path` unless one is there already, and returns the stored one: when
+/// two frames send the same request at once, both get the answer that a rerun will read. The answer is written to a file of its own and linked into place, so a reader
 /// never sees half of it.
-fn store(path: &Path, text: &str, answer: Answer) -> anyhow::Result<Vec<String>> {
+fn store(path: &Path, text: &str, answer: Answer) -> anyhow::Result<Answer> {
     static WRITES: AtomicU64 = AtomicU64::new(0);
     let tmp = path.with_extension(format!("tmp-{}-{}", std::process::id(), WRITES.fetch_add(1, Ordering::Relaxed)));
     let stored = std::fs::write(&tmp, text).and_then(|()| std::fs::hard_link(&tmp, path));
     let _ = std::fs::remove_file(&tmp);
     match stored {
-        Ok(()) => Ok(answer.captions),
+        Ok(()) => Ok(answer),
         Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
             let text = std::fs::read_to_string(path).with_context(|| format!("reading the stored answer {}", path.display()))?;
-            Ok(Answer::parse(&text).with_context(|| format!("the stored answer {} is damaged", path.display()))?.captions)
+            Answer::parse(&text).with_context(|| format!("the stored answer {} is damaged", path.display()))
         }
         Err(e) => Err(e).with_context(|| format!("storing the answer in {}", path.display())),
     }
@@ -577,8 +644,12 @@ mod tests {
     use std::net::{TcpListener, TcpStream};
     use std::sync::Arc;
 
-    use rlmflow_stages::captions::Captions;
+    use rlmflow_stages::captions::{self, Captions};
     use rlmflow_stages::grid::CELLS;
+    use rlmflow_stages::context::Silent;
+    use rlmflow_stages::{Device, Input};
+
+    use crate::ConcatCaptions;
     use rlmflow_stages::labels::{self, MaskGeometry, Split};
     use rlmflow_stages::npy::{Dtype, NpyWriter};
 
@@ -814,12 +885,69 @@ mod tests {
         }
         assert_eq!((m["requests"]["sent"].as_u64(), m["requests"]["prompt_tokens"].as_u64()), (Some(24), Some(700 * 24)), "{m}");
 
-        // The same run again asks nothing: every answer comes from the response cache.
+        assert_eq!((m["prompt_tokens"].as_u64(), m["first_answers"].as_u64()), (Some(700 * 24), Some(36)), "{m}");
+        let summary = std::fs::read(root.join("out/captions.json")).unwrap();
+
+        // The same run again asks nothing: every answer comes from the response cache, and the
+        // artifact, which records what the answers cost rather than what this run sent, is
+        // the same bytes.
         let sent = server.requests.load(Ordering::SeqCst);
         let again = run(&root, &s).unwrap();
         assert_eq!(server.requests.load(Ordering::SeqCst), sent);
         assert_eq!(again.metrics["requests"]["from_cache"], 24);
         assert_eq!(std::fs::read(root.join("out/captions.jsonl")).unwrap(), captions_bytes(&captions));
+        assert_eq!(std::fs::read(root.join("out/captions.json")).unwrap(), summary);
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    /// Runs `llm` into `root/<dir>`; returns its two files.
+    fn run_into(root: &Path, s: &LlmSettings, dir: &str) -> (Vec<u8>, Vec<u8>) {
+        run(root, s).unwrap();
+        std::fs::rename(root.join("out"), root.join(dir)).unwrap();
+        let read = |f: &str| std::fs::read(root.join(dir).join(f)).unwrap();
+        (read(captions::SUMMARY), read(captions::LINES))
+    }
+
+    #[test]
+    fn shares_joined_by_concat_captions_are_the_bytes_of_the_unsharded_stage() {
+        let root = scratch("shares");
+        write_labels(&root, 10);
+        let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::FirstAnswer);
+        let s = settings(&server, &root);
+        // Shares first, so they ask the endpoint and the whole reads every answer from the cache.
+        let mut inputs = Vec::new();
+        for index in 0..3 {
+            let share = LlmSettings { shard: Some(Share { index, of: 3 }), ..s.clone() };
+            let dir = format!("share{index}");
+            let (summary, _) = run_into(&root, &share, &dir);
+            let frames = serde_json::from_slice::<Value>(&summary).unwrap()["frames"].as_u64().unwrap();
+            assert_eq!(frames, Share { index, of: 3 }.range(10).count() as u64);
+            inputs.push(Input { label: format!("{index:020}"), path: root.join(dir) });
+        }
+        let sent = server.requests.load(Ordering::SeqCst);
+        let whole = run_into(&root, &s, "whole");
+        assert_eq!(server.requests.load(Ordering::SeqCst), sent, "the shares asked every question the whole asks");
+
+        let ckpt = root.join("ckpt");
+        let mut ctx = Context::new("captions".into(), [("captions".to_owned(), inputs.clone())].into(), root.join("out"), ckpt.clone(), 5, 1, Device::Cpu, Arc::new(Silent));
+        std::fs::create_dir_all(root.join("out")).unwrap();
+        let outcome = Operator::run(&ConcatCaptions, &Default::default(), &mut ctx).unwrap();
+        assert!(outcome.summary.contains("joined"), "{}", outcome.summary);
+        let read = |f: &str| std::fs::read(root.join("out").join(f)).unwrap();
+        assert!(read(captions::SUMMARY) == whole.0, "{}", String::from_utf8_lossy(&read(captions::SUMMARY)));
+        assert!(read(captions::LINES) == whole.1);
+
+        // Out of order, the shares are refused; one share alone is listed, not passed off as the whole.
+        std::fs::remove_dir_all(root.join("out")).unwrap();
+        std::fs::create_dir_all(root.join("out")).unwrap();
+        let swapped = vec![inputs[1].clone(), inputs[0].clone()];
+        let mut ctx = Context::new("captions".into(), [("captions".to_owned(), swapped)].into(), root.join("out"), ckpt.clone(), 5, 1, Device::Cpu, Arc::new(Silent));
+        let err = Operator::run(&ConcatCaptions, &Default::default(), &mut ctx).unwrap_err().to_string();
+        assert!(err.contains("must caption disjoint frames, each after the last"), "{err}");
+        let mut ctx = Context::new("captions".into(), [("captions".to_owned(), inputs[1..2].to_vec())].into(), root.join("out"), ckpt, 5, 1, Device::Cpu, Arc::new(Silent));
+        Operator::run(&ConcatCaptions, &Default::default(), &mut ctx).unwrap();
+        let summary: Value = serde_json::from_slice(&read(captions::SUMMARY)).unwrap();
+        assert_eq!(summary["generator"]["parts"][0]["generator"]["settings"]["shard"], json!({"index": 1, "of": 3}), "{summary}");
         std::fs::remove_dir_all(&root).unwrap();
     }
 
@@ -833,11 +961,11 @@ mod tests {
         let path = root.join("cache").join("digest.json");
         let text = |caption: &str| json!({"choices": [{"message": {"content": caption}}]}).to_string();
         let first = text("From zero to ten meters,   there are no vehicles.");
-        assert_eq!(store(&path, &first, Answer::parse(&first).unwrap()).unwrap(), ["From zero to ten meters, there are no vehicles."]);
+        assert_eq!(store(&path, &first, Answer::parse(&first).unwrap()).unwrap().captions, ["From zero to ten meters, there are no vehicles."]);
         // A second answer to the same request (sent at the same time by another frame) yields
         // the stored one, so both frames agree with what a rerun reads.
         let second = text("Close by, a single car is right in front of us.");
-        assert_eq!(store(&path, &second, Answer::parse(&second).unwrap()).unwrap(), ["From zero to ten meters, there are no vehicles."]);
+        assert_eq!(store(&path, &second, Answer::parse(&second).unwrap()).unwrap().captions, ["From zero to ten meters, there are no vehicles."]);
         assert_eq!(std::fs::read_to_string(&path).unwrap(), first);
         assert_eq!(std::fs::read_dir(root.join("cache")).unwrap().count(), 1, "no scratch files left");
         std::fs::remove_dir_all(&root).unwrap();

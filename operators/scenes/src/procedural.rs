@@ -8,7 +8,7 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rlmflow_radar::{RadarConfig, VehicleBox};
 use rlmflow_stages::grid::{CELLS, Cell, GridRule, SECTORS};
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, SettingError, Settings, Sharding};
+use rlmflow_stages::{Context, Items, Operator, OperatorSpec, Outcome, Resources, SettingError, Settings, Sharding};
 use serde::{Deserialize, Serialize};
 
 use crate::layout::{LAYOUTS, Layout};
@@ -147,8 +147,10 @@ impl Operator for Procedural {
     fn sharding(&self) -> Option<Sharding<ProceduralSettings>> {
         Some(Sharding {
             unit: "frames",
-            items: |s| s.frames,
-            part: |s, range| ProceduralSettings { first_frame: s.first_frame + range.start, frames: range.end - range.start, ..s.clone() },
+            items: Items::Counted {
+                count: |s| s.frames,
+                part: |s, range| ProceduralSettings { first_frame: s.first_frame + range.start, frames: range.end - range.start, ..s.clone() },
+            },
             merge: "concat",
         })
     }
