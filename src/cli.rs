@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use anyhow::{Context as _, bail};
 use clap::{Parser, Subcommand};
 use rlmflow_cache::{Digest, Store, canonical_json};
-use rlmflow_stages::{Device, Registry};
+use rlmflow_stages::{Device, ItemCount, Registry};
 
 use crate::config::{self, ConfigError, Pipeline};
 use crate::plan::{Freshness, assess, plan};
@@ -268,10 +268,16 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 println!("{} ({}) -> {}", kind.name, inputs.join(", "), kind.produces);
                 for op in registry.operators_of(kind.name) {
                     let spec = op.spec();
-                    let defaults = op.settings(serde_json::json!({})).map(|v| canonical_json(&v)).unwrap_or_default();
-                    println!("  {} v{}: {}\n    defaults: {defaults}", spec.name, spec.version, spec.summary);
-                    if let Some(merge) = op.merge() {
-                        println!("    shardable: `shards` or `shard_size` split it into parts, merged by `{merge}`");
+                    let defaults = op.settings(serde_json::json!({})).unwrap_or_default();
+                    println!("  {} v{}: {}\n    defaults: {}", spec.name, spec.version, spec.summary, canonical_json(&defaults));
+                    match (op.merge(), op.items(&defaults)) {
+                        (Some(merge), Some((ItemCount::Known(_), unit))) => {
+                            println!("    shardable: `shards` or `shard_size` split its {unit} into parts, merged by `{merge}`")
+                        }
+                        (Some(merge), Some((ItemCount::OfInput(slot), unit))) => {
+                            println!("    shardable: `shards = N` splits the {unit} of its `{slot}` input into N parts, merged by `{merge}`")
+                        }
+                        _ => {}
                     }
                 }
             }

@@ -302,7 +302,7 @@ pub fn describe(stage: &str, change: &Change) -> String {
 mod tests {
     use std::path::Path;
 
-    use rlmflow_stages::{Catalog, Context, Items, Operator, OperatorSpec, Outcome, Registry, Settings, Sharding, Slot, StageKind};
+    use rlmflow_stages::{Catalog, Context, Items, Operator, OperatorSpec, Outcome, Registry, Settings, Share, Sharding, Slot, StageKind};
     use serde::{Deserialize, Serialize};
 
     use super::*;
@@ -355,9 +355,30 @@ mod tests {
         }
     }
 
+    /// Reads `a` and `b`; a part takes a share of `a`'s items, counted when it runs (as `llm`
+    /// takes its labels'). It merges with `ojc`.
+    struct SharedInputOp;
+    impl Operator for SharedInputOp {
+        type Settings = Knob;
+        fn spec(&self) -> OperatorSpec {
+            OperatorSpec { name: "sc", kind: "c", version: 1, inputs: None, summary: "" }
+        }
+        fn sharding(&self) -> Option<Sharding<Knob>> {
+            Some(Sharding {
+                unit: "items",
+                items: Items::OfInput { slot: "a", part: |s, share| Knob { k: share.index as i64, nested: Nested { a: share.of as i64, b: s.nested.b } } },
+                merge: "ojc",
+            })
+        }
+        fn run(&self, _: &Knob, _: &mut Context) -> anyhow::Result<Outcome> {
+            Ok(Outcome::default())
+        }
+    }
+
     const KINDS: &[StageKind] = &[
         StageKind { name: "a", produces: "A", inputs: &[], per_seed: false },
         StageKind { name: "join", produces: "A", inputs: &[Slot::gather("parts", "A")], per_seed: false },
+        StageKind { name: "joinc", produces: "C", inputs: &[Slot::gather("parts", "C")], per_seed: false },
         StageKind { name: "b", produces: "B", inputs: &[], per_seed: false },
         StageKind { name: "c", produces: "C", inputs: &[Slot::one("a", "A"), Slot::one("b", "B")], per_seed: false },
         StageKind { name: "d", produces: "D", inputs: &[Slot::gather("c", "C")], per_seed: false },
@@ -366,6 +387,7 @@ mod tests {
     fn registry() -> Registry {
         let mut r = Registry::new(Catalog { kinds: KINDS.to_vec() });
         r.add(Op("oa", "a")).add(Op("ob", "b")).add(Op("oc", "c")).add(Op("od", "d")).add(ShardedOp).add(Op("oj", "join"));
+        r.add(SharedInputOp).add(Op("ojc", "joinc"));
         r
     }
 
@@ -539,6 +561,39 @@ operator = "od"
             assert!(e.contains(expected), "{to}: {e}");
         }
         let e = parse(Path::new("t.toml"), &SHARDED.replace("[stages.b]\noperator = \"ob\"", "[stages.b]\noperator = \"ob\"\nshards = 2"), &r).unwrap_err();
-        assert!(e.to_string().contains("operators that can: sa"), "{e}");
+        assert!(e.to_string().contains("operators that can: sa, sc"), "{e}");
+    }
+
+    const SHARED_INPUT: &str = r#"
+[stages.a]
+operator = "oa"
+[stages.b]
+operator = "ob"
+[stages.c]
+operator = "sc"
+shards = 2
+[stages.d]
+operator = "od"
+"#;
+
+    #[test]
+    fn an_operator_splitting_its_input_runs_as_shares_of_it() {
+        let r = registry();
+        let p = parse(Path::new("t.toml"), SHARED_INPUT, &r).unwrap();
+        let plan = plan(&p);
+        let labels: Vec<&str> = plan.instances.iter().map(|i| i.label.as_str()).collect();
+        assert_eq!(labels, ["a", "b", "c#0", "c#1", "c", "d"]);
+        assert_eq!(plan.instances[3].shard, Some(Part::Share(Share { index: 1, of: 2 })));
+        assert_eq!((plan.instances[3].settings["k"].as_i64(), plan.instances[3].settings["nested"]["a"].as_i64()), (Some(1), Some(2)));
+        let read: Vec<&[usize]> = plan.instances[2].inputs.iter().map(|i| &i.providers[..]).collect();
+        assert_eq!(read, [&[0][..], &[1][..]], "each share reads the whole input");
+        assert_eq!(plan.instances[5].inputs[0].providers, [4], "d reads the merge only");
+        let preimage = plan.preimage(4, &r, &outputs_by_settings(&plan)).unwrap();
+        let order: Vec<&str> = preimage.inputs.iter().map(|i| i.label.as_str()).collect();
+        assert_eq!(order, ["00000000000000000000/00000000000000000002", "00000000000000000001/00000000000000000002"]);
+
+        let e = parse(Path::new("t.toml"), &SHARED_INPUT.replace("shards = 2", "shard_size = 2"), &r).unwrap_err().to_string();
+        assert!(e.contains("stages.c.shard_size: `sc` splits the items of its `a` input, which are counted only when it runs"), "{e}");
+        assert!(e.contains("use `shards = N`"), "{e}");
     }
 }

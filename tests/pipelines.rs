@@ -370,6 +370,78 @@ fn a_sharded_procedural_stage_gives_the_bytes_of_the_unsharded_one() {
     assert_ne!(output_digest(&dir, "shards", "four#0"), whole, "a part holds only its own frames");
 }
 
+/// An OpenAI-compatible endpoint on loopback answering every request with `n` copies of one
+/// caption per frame prompt (the grid's first number word, so answers differ between frames).
+fn fake_llm() -> String {
+    use std::io::{BufRead, BufReader, Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("http://{}/v1", listener.local_addr().unwrap());
+    std::thread::spawn(move || {
+        for stream in listener.incoming().flatten() {
+            std::thread::spawn(move || {
+                let mut reader = BufReader::new(stream.try_clone().unwrap());
+                let mut stream = stream;
+                loop {
+                    let mut length = 0;
+                    let mut line = String::new();
+                    loop {
+                        line.clear();
+                        if reader.read_line(&mut line).unwrap_or(0) == 0 {
+                            return;
+                        }
+                        if let Some(v) = line.to_ascii_lowercase().strip_prefix("content-length:") {
+                            length = v.trim().parse().unwrap();
+                        }
+                        if line == "\r\n" {
+                            break;
+                        }
+                    }
+                    let mut body = vec![0; length];
+                    reader.read_exact(&mut body).unwrap();
+                    let request: serde_json::Value = serde_json::from_slice(&body).unwrap();
+                    let prompt = request["messages"][1]["content"].as_str().unwrap();
+                    let words: Vec<&str> = prompt.split('"').filter(|w| w.chars().all(|c| c.is_ascii_lowercase()) && !w.is_empty()).take(6).collect();
+                    let caption = format!("The scene holds {}.", words.join(" "));
+                    let choices: Vec<_> = (0..request["n"].as_u64().unwrap()).map(|_| serde_json::json!({"message": {"content": caption}})).collect();
+                    let answer = serde_json::json!({"choices": choices, "usage": {"prompt_tokens": 9, "completion_tokens": 4}}).to_string();
+                    let head = format!("HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n", answer.len());
+                    if stream.write_all(head.as_bytes()).and_then(|()| stream.write_all(answer.as_bytes())).is_err() {
+                        return;
+                    }
+                }
+            });
+        }
+    });
+    url
+}
+
+/// The same captions from one `llm` action and from three shares of its labelled frames joined
+/// by `concat-captions`: the same bytes, so a consumer of either would be reused.
+#[test]
+fn a_sharded_llm_stage_gives_the_bytes_of_the_unsharded_one() {
+    let url = fake_llm();
+    let dir = std::env::temp_dir().join(format!("rlmflow-llm-shards-{}", std::process::id()));
+    let stage = |name: &str, split: &str| {
+        format!(
+            "\n[stages.{name}]\nkind = \"captions\"\noperator = \"llm\"\nbase_url = \"{url}\"\nmodel = \"fake\"\napi_key_env = \"\"\nn = 2\nregenerate = 0\non_mismatch = \"keep\"\nresponse_cache = \"{}\"\n{split}\n",
+            dir.join("answers").display()
+        )
+    };
+    let pipeline = format!(
+        "[pipeline]\nname = \"llm-shards\"\nseed = 3\n[stages.scenes]\noperator = \"procedural\"\nframes = 10\nradar = {{ image = 32 }}\n[stages.labels]\noperator = \"ego-grid\"\ntest_fraction = 0.2\n{}{}",
+        stage("whole", ""),
+        stage("three", "shards = 3")
+    );
+    let dir = scratch("llm-shards", &pipeline);
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
+    assert!(ok, "{out}");
+    let whole = output_digest(&dir, "llm-shards", "whole");
+    assert_eq!(output_digest(&dir, "llm-shards", "three"), whole);
+    assert_ne!(output_digest(&dir, "llm-shards", "three#1"), whole, "a share holds only its own frames");
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--dry-run"]);
+    assert!(ok && out.contains("three#2"), "{out}");
+}
+
 /// Every scenario, each attempt a fresh process (fresh hash seeds, allocator addresses and
 /// Python interpreter) with a different thread count: the same bytes.
 #[test]
