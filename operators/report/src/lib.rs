@@ -70,7 +70,7 @@ impl Operator for Paper {
         OperatorSpec {
             name: "paper",
             kind: "report",
-            version: 3,
+            version: 4,
             inputs: None,
             summary: "the paper's tables and figures for this run: Markdown, self-contained HTML, metrics.json and a Rerun recording",
         }

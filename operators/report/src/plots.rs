@@ -2,6 +2,7 @@
 //! metric-versus-threshold sweeps), bar charts (histograms) and the 4 x 12 cell grid.
 
 use plotters::prelude::*;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
 use rlmflow_stages::grid::{DISTANCE_BINS, SECTORS};
 
 const SIZE: (u32, u32) = (640, 360);
@@ -128,11 +129,18 @@ pub fn cells(title: &str, values: &[f64], max: f64, label: &dyn Fn(f64) -> Strin
             .disable_mesh()
             .x_labels(SECTORS.len())
             .y_labels(DISTANCE_BINS.len())
-            .x_label_formatter(&|v| name(&SECTORS, v))
+            .x_label_formatter(&|_| String::new())
             .y_label_formatter(&|v| name(&DISTANCE_BINS, v))
-            .x_label_style((FONT, 10).into_font().transform(FontTransform::Rotate90))
             .draw()
             .map_err(draw_error)?;
+        // The mesh centres every axis label on its tick, so a rotated sector name would run up
+        // into the grid; these hang down from the axis instead.
+        let (_, axis) = chart.backend_coord(&(SegmentValue::Exact(0), SegmentValue::Exact(0)));
+        for (i, sector) in SECTORS.iter().enumerate() {
+            let (x, _) = chart.backend_coord(&(SegmentValue::CenterOf(i as i32), SegmentValue::Exact(0)));
+            let style = (FONT, 10).into_font().transform(FontTransform::Rotate90).color(&BLACK).pos(Pos::new(HPos::Left, VPos::Center));
+            root.draw(&Text::new(sector.replace('_', " "), (x, axis + 8), style)).map_err(draw_error)?;
+        }
         let max = if max > 0.0 { max } else { 1.0 };
         let corner = |c: usize, dx: i32, dy: i32| {
             let (bin, sector) = ((c / SECTORS.len()) as i32, (c % SECTORS.len()) as i32);
@@ -155,8 +163,7 @@ pub fn cells(title: &str, values: &[f64], max: f64, label: &dyn Fn(f64) -> Strin
 }
 
 /// Cell labels hang from the cell's top-left corner, inset a little.
-fn text_anchor() -> plotters::style::text_anchor::Pos {
-    use plotters::style::text_anchor::{HPos, Pos, VPos};
+fn text_anchor() -> Pos {
     Pos::new(HPos::Left, VPos::Top)
 }
 
