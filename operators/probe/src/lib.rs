@@ -157,7 +157,7 @@ pub fn clipcap_spec() -> OperatorSpec {
     OperatorSpec {
         name: "clipcap",
         kind: "probe",
-        version: 1,
+        version: 2,
         inputs: None,
         summary: "ClipCap caption probe: mapper and GPT decoder on the frozen CLS embedding, captions parsed and scored per cell",
     }

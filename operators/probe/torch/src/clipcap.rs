@@ -27,6 +27,8 @@ use tokenizers::Tokenizer;
 
 /// Frames per forward pass when embedding, scoring or generating.
 const CHUNK: usize = 64;
+/// Groups of similar caption length a batch's loss is computed in (see `caption_loss`).
+const LENGTH_GROUPS: usize = 4;
 /// The captioner's weights in the artifact.
 pub const WEIGHTS: &str = "clipcap.safetensors";
 
@@ -86,13 +88,6 @@ impl Data {
         let index: Vec<i64> = frames.iter().map(|&f| f as i64).collect();
         self.embeddings.index_select(0, &Tensor::from_slice(&index).to_device(self.embeddings.device()))
     }
-}
-
-/// Trims trailing padding columns shared by every row.
-fn trim(ids: &Tensor, pad: i64) -> Tensor {
-    let used = ids.ne(pad).any_dims([0].as_slice(), false);
-    let length = Vec::<bool>::try_from(used.to_device(tch::Device::Cpu)).expect("flags").iter().rposition(|&u| u).map_or(1, |p| p + 1);
-    ids.narrow(1, 0, length.max(2) as i64)
 }
 
 fn load(ctx: &Context, device: tch::Device) -> anyhow::Result<(Data, Tokens, rlmflow_stages::encoder::ModelConfig)> {
@@ -178,8 +173,7 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
             let global = epoch * steps_per_epoch + step as u64;
             let lr = warmup_cosine(global, total, warmup, s.warmup_lr, s.lr, s.min_lr);
             let rows: Vec<usize> = frames.iter().map(|&f| data.captions[f][rng.random_range(0..data.captions[f].len())]).collect();
-            let ids = trim(&data.batch(&rows, device), pad);
-            let loss = caption_loss(&gpt, &mapper.forward(&data.embedding(frames)), &ids, pad);
+            let loss = caption_loss(&gpt, &mapper.forward(&data.embedding(frames)), &data.batch(&rows, device), pad, LENGTH_GROUPS);
             losses.push(finite(loss.double_value(&[]), global + 1, epoch + 1)?);
             let grads = opt.gradients(&loss);
             AdamW::clip_grad_norm(&grads, s.clip_norm);
@@ -191,8 +185,8 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
             let mut sum = 0.0;
             for frames in data.test.chunks(CHUNK) {
                 let rows: Vec<usize> = frames.iter().map(|&f| data.captions[f][0]).collect();
-                let ids = trim(&data.batch(&rows, device), pad);
-                sum += caption_loss(&gpt, &mapper.forward(&data.embedding(frames)), &ids, pad).double_value(&[]) * frames.len() as f64;
+                let loss = caption_loss(&gpt, &mapper.forward(&data.embedding(frames)), &data.batch(&rows, device), pad, LENGTH_GROUPS);
+                sum += loss.double_value(&[]) * frames.len() as f64;
             }
             sum / data.test.len() as f64
         });
