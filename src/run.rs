@@ -105,7 +105,7 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
     let states = selected.iter().map(|&s| if s { State::Waiting } else { State::Excluded }).collect();
     let n = plan.instances.len();
     let ui = Ui::new(opts.json);
-    let dispatch = dispatcher(plan, store, &run, &ui)?;
+    let dispatch = dispatcher(plan, store, &run, opts.device, &ui)?;
     let mut ex = Executor {
         plan,
         registry,
@@ -128,9 +128,9 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
 }
 
 /// The pipeline's dispatcher. An existing HyperQueue server is checked here, before anything runs.
-fn dispatcher(plan: &Plan, store: &Store, run: &str, ui: &Ui) -> anyhow::Result<Box<dyn Dispatch>> {
+fn dispatcher(plan: &Plan, store: &Store, run: &str, device: Device, ui: &Ui) -> anyhow::Result<Box<dyn Dispatch>> {
     match plan.pipeline.executor {
-        ExecutorKind::Local => Ok(Box::new(Local)),
+        ExecutorKind::Local => Ok(Box::new(Local::new(device))),
         #[cfg(feature = "python")]
         ExecutorKind::HyperQueue => {
             let dir = store.run_dir(run).join("hyperqueue");
@@ -140,7 +140,7 @@ fn dispatcher(plan: &Plan, store: &Store, run: &str, ui: &Ui) -> anyhow::Result<
         }
         #[cfg(not(feature = "python"))]
         ExecutorKind::HyperQueue => {
-            let _ = (store, run, ui);
+            let _ = (store, run, device, ui);
             anyhow::bail!("executor = \"hyperqueue\" needs the embedded Python (build rlmflow with its default `python` feature)")
         }
     }

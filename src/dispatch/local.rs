@@ -2,15 +2,34 @@
 
 use std::fs::File;
 use std::io::{BufRead, BufReader, Write};
+use std::path::Path;
 use std::process::{Command, Stdio};
 use std::sync::mpsc::Sender;
 use std::sync::{Arc, Mutex};
 
 use anyhow::Context as _;
+use rlmflow_stages::Device;
 
 use super::{Dispatch, Exit, Launch, Report, forward_lines};
 
-pub struct Local;
+pub struct Local {
+    /// Whether a stage that can use a GPU may get one here, so such stages run one at a time.
+    gpu: bool,
+}
+
+impl Local {
+    /// A stage that can use a GPU gets one when the run names a CUDA device, or (`device =
+    /// "auto"`) when libtorch sees one, which needs the CUDA driver's device nodes. On a machine
+    /// without them such stages share the CPUs like any other.
+    pub fn new(device: Device) -> Local {
+        Local { gpu: device != Device::Cpu || cuda_device_nodes(Path::new("/dev")) }
+    }
+}
+
+/// Whether `dev` holds a node the CUDA driver creates: `nvidiactl`, or `dxg` under WSL 2.
+fn cuda_device_nodes(dev: &Path) -> bool {
+    ["nvidiactl", "dxg"].iter().any(|node| dev.join(node).exists())
+}
 
 impl Dispatch for Local {
     fn start(&mut self, id: usize, launch: Launch, tx: Sender<(usize, Report)>) -> anyhow::Result<()> {
@@ -38,6 +57,10 @@ impl Dispatch for Local {
         Ok(())
     }
 
+    fn serialises_gpu(&self) -> bool {
+        self.gpu
+    }
+
     fn describe(&self) -> String {
         "local".into()
     }
@@ -63,5 +86,22 @@ fn die_with_parent(cmd: &mut Command) {
             }
             Ok(())
         });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gpu_stages_run_one_at_a_time_only_where_a_gpu_can_be() {
+        let dev = std::env::temp_dir().join(format!("rlmflow-dev-{}", std::process::id()));
+        std::fs::create_dir_all(&dev).unwrap();
+        assert!(!cuda_device_nodes(&dev), "an empty /dev has no CUDA device");
+        std::fs::write(dev.join("nvidiactl"), "").unwrap();
+        assert!(cuda_device_nodes(&dev));
+        std::fs::remove_dir_all(&dev).unwrap();
+        assert!(Local::new(Device::Cuda(0)).serialises_gpu(), "a run that names CUDA shares one GPU");
+        assert_eq!(Local::new(Device::Cpu).serialises_gpu(), cuda_device_nodes(Path::new("/dev")));
     }
 }

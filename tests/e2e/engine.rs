@@ -196,6 +196,11 @@ fn independent_stages_share_the_thread_budget() {
     let serial = s.run_expecting(0, &["--jobs", "2"]);
     assert_eq!(order(&serial), ["start", "finish", "start", "finish"]);
     assert!(s.trace().iter().any(|l| l.contains("threads=2")));
+
+    // Two stages that can use a GPU, in a run that names one: one GPU, one stage at a time.
+    s.pipeline(&two_slow.replace("step_ms = 50", "step_ms = 50\ngpu = true").replace("\"a\"", "\"a3\"").replace("\"b\"", "\"b3\""));
+    let gpu = s.run_expecting(0, &["--jobs", "2", "--device", "cuda"]);
+    assert_eq!(order(&gpu), ["start", "finish", "start", "finish"]);
 }
 
 /// Waits until the trace has a line containing `needle`.

@@ -200,6 +200,33 @@ mod tests {
         assert!(svg.contains("\n47\n") && svg.contains("\n30-40m\n"), "cell labels and bins are text");
     }
 
+    /// The value of `name="..."` in one SVG element's text.
+    fn attribute(element: &str, name: &str) -> f64 {
+        let start = element.find(&format!(" {name}=\"")).unwrap_or_else(|| panic!("no {name} in {element}")) + name.len() + 3;
+        element[start..].split('"').next().unwrap().parse().unwrap()
+    }
+
+    #[test]
+    fn sector_names_hang_below_the_cell_grid_inside_the_figure() {
+        let values: Vec<f64> = (0..48).map(|c| c as f64).collect();
+        let svg = cells("F1", &values, 47.0, &|v| format!("{v:.0}")).unwrap();
+        let cells: Vec<&str> = svg.split("<rect").skip(2).collect();
+        assert_eq!(cells.len(), 48, "one rectangle per cell after the background");
+        let bottom = cells.iter().map(|r| attribute(r, "y") + attribute(r, "height")).fold(0.0, f64::max);
+        for (i, sector) in SECTORS.iter().enumerate() {
+            let name = sector.replace('_', " ");
+            let element = svg.split("<text").find(|t| t.contains(&format!(">\n{name}\n<"))).unwrap_or_else(|| panic!("no `{name}`"));
+            let (x, y, size) = (attribute(element, "x"), attribute(element, "y"), attribute(element, "font-size"));
+            assert!(element.contains(&format!("rotate(90, {x}, {y})")), "`{name}` reads downwards: {element}");
+            assert!(y > bottom, "`{name}` starts at y {y}, inside the grid (bottom {bottom})");
+            // Its column: the bottom row's i-th cell.
+            let column = cells[i];
+            assert!((attribute(column, "x")..attribute(column, "x") + attribute(column, "width")).contains(&x), "`{name}` under its column");
+            // Glyphs are narrower than 0.6 em in any sans-serif font.
+            assert!(y + 0.6 * size * name.len() as f64 <= 340.0, "`{name}` runs off the figure");
+        }
+    }
+
     #[test]
     fn the_same_data_draws_the_same_bytes() {
         let series = [Series { name: "a".into(), points: vec![(0.0, 0.1), (1.0, 0.9)] }];
