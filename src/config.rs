@@ -638,7 +638,15 @@ impl Checker {
     }
 
     /// Splits every variant of a sharded stage into its parts; returns how the parts merge.
-    fn shard(&mut self, key: &str, op: &dyn DynOperator, kind: StageKind, variants: &mut [Variant], split: Split, registry: &Registry) -> Option<Merge> {
+    fn shard(
+        &mut self,
+        key: &str,
+        op: &dyn DynOperator,
+        kind: StageKind,
+        variants: &mut [Variant],
+        split: Split,
+        registry: &Registry,
+    ) -> Option<Merge> {
         let name = op.spec().name;
         let Some(merge) = op.merge() else {
             let can: Vec<&str> = registry.operators().filter(|o| o.merge().is_some()).map(|o| o.spec().name).collect();
@@ -683,7 +691,8 @@ impl Checker {
                     ranges.into_iter().map(Part::Items).collect()
                 }
             };
-            variant.shards = parts.into_iter().map(|p| (p.clone(), op.part(&variant.settings, &p).expect("a shardable operator splits valid settings"))).collect();
+            variant.shards =
+                parts.into_iter().map(|p| (p.clone(), op.part(&variant.settings, &p).expect("a shardable operator splits valid settings"))).collect();
         }
         let settings = merger.settings(Value::Object(Map::new())).expect("an operator's default settings are valid");
         Some(Merge { operator: merge.to_owned(), slot, settings })

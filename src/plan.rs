@@ -93,9 +93,8 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                             vec![by_assignment[&(p, key)]]
                         }
                         Arity::All => {
-                            let mut all: Vec<usize> = (0..instances.len())
-                                .filter(|&i| b.providers.contains(&instances[i].stage) && instances[i].shard.is_none())
-                                .collect();
+                            let mut all: Vec<usize> =
+                                (0..instances.len()).filter(|&i| b.providers.contains(&instances[i].stage) && instances[i].shard.is_none()).collect();
                             all.sort_by(|&x, &y| instances[x].label.cmp(&instances[y].label));
                             all
                         }
@@ -105,7 +104,15 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                 .collect();
             let label = label(&stage.name, &assignment);
             let whole = match &stage.merge {
-                None => Instance { stage: s, label, assignment: assignment.clone(), operator: stage.operator.clone(), settings: variant.settings.clone(), inputs, shard: None },
+                None => Instance {
+                    stage: s,
+                    label,
+                    assignment: assignment.clone(),
+                    operator: stage.operator.clone(),
+                    settings: variant.settings.clone(),
+                    inputs,
+                    shard: None,
+                },
                 Some(merge) => {
                     let mut parts = Vec::new();
                     for (j, (part, settings)) in variant.shards.iter().enumerate() {
@@ -121,7 +128,15 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                         });
                     }
                     let inputs = vec![InstanceInput { slot: merge.slot, arity: Arity::All, providers: parts }];
-                    Instance { stage: s, label, assignment: assignment.clone(), operator: merge.operator.clone(), settings: merge.settings.clone(), inputs, shard: None }
+                    Instance {
+                        stage: s,
+                        label,
+                        assignment: assignment.clone(),
+                        operator: merge.operator.clone(),
+                        settings: merge.settings.clone(),
+                        inputs,
+                        shard: None,
+                    }
                 }
             };
             by_assignment.insert((s, assignment_key(&assignment)), instances.len());
@@ -302,7 +317,7 @@ pub fn describe(stage: &str, change: &Change) -> String {
 mod tests {
     use std::path::Path;
 
-    use rlmflow_stages::{Catalog, Context, Items, Operator, OperatorSpec, Outcome, Registry, Settings, Share, Sharding, Slot, StageKind};
+    use rlmflow_stages::{Catalog, Context, Items, Operator, OperatorSpec, Outcome, Registry, Settings, Sharding, Share, Slot, StageKind};
     use serde::{Deserialize, Serialize};
 
     use super::*;
@@ -366,7 +381,10 @@ mod tests {
         fn sharding(&self) -> Option<Sharding<Knob>> {
             Some(Sharding {
                 unit: "items",
-                items: Items::OfInput { slot: "a", part: |s, share| Knob { k: share.index as i64, nested: Nested { a: share.of as i64, b: s.nested.b } } },
+                items: Items::OfInput {
+                    slot: "a",
+                    part: |s, share| Knob { k: share.index as i64, nested: Nested { a: share.of as i64, b: s.nested.b } },
+                },
                 merge: "ojc",
             })
         }
@@ -515,7 +533,8 @@ operator = "od"
         let plan = plan(&p);
         let labels: Vec<&str> = plan.instances.iter().map(|i| i.label.as_str()).collect();
         assert_eq!(labels, ["a[x]#0", "a[x]#1", "a[x]#2", "a[x]", "a[y]#0", "a[y]#1", "a[y]#2", "a[y]", "b", "c[x]", "c[y]", "d"]);
-        let parts: Vec<(i64, i64)> = plan.instances[..3].iter().map(|i| (i.settings["nested"]["a"].as_i64().unwrap(), i.settings["k"].as_i64().unwrap())).collect();
+        let parts: Vec<(i64, i64)> =
+            plan.instances[..3].iter().map(|i| (i.settings["nested"]["a"].as_i64().unwrap(), i.settings["k"].as_i64().unwrap())).collect();
         assert_eq!(parts, [(0, 3), (3, 3), (6, 4)], "10 items in three parts");
         assert_eq!(plan.instances[6].shard, Some(Part::Items(2..4)), "variant y has 4 items");
         let merge = &plan.instances[3];
@@ -524,7 +543,14 @@ operator = "od"
         assert_eq!(plan.instances[11].inputs[0].providers, [9, 10], "a gathering stage reads no part");
         let preimage = plan.preimage(3, &r, &outputs_by_settings(&plan)).unwrap();
         let order: Vec<&str> = preimage.inputs.iter().map(|i| i.label.as_str()).collect();
-        assert_eq!(order, ["00000000000000000000..00000000000000000003", "00000000000000000003..00000000000000000006", "00000000000000000006..00000000000000000010"]);
+        assert_eq!(
+            order,
+            [
+                "00000000000000000000..00000000000000000003",
+                "00000000000000000003..00000000000000000006",
+                "00000000000000000006..00000000000000000010"
+            ]
+        );
     }
 
     #[test]
@@ -560,7 +586,8 @@ operator = "od"
             let e = parse(Path::new("t.toml"), &SHARDED.replace(from, to), &r).unwrap_err().to_string();
             assert!(e.contains(expected), "{to}: {e}");
         }
-        let e = parse(Path::new("t.toml"), &SHARDED.replace("[stages.b]\noperator = \"ob\"", "[stages.b]\noperator = \"ob\"\nshards = 2"), &r).unwrap_err();
+        let e = parse(Path::new("t.toml"), &SHARDED.replace("[stages.b]\noperator = \"ob\"", "[stages.b]\noperator = \"ob\"\nshards = 2"), &r)
+            .unwrap_err();
         assert!(e.to_string().contains("operators that can: sa, sc"), "{e}");
     }
 

@@ -359,8 +359,11 @@ fn output_digest(dir: &Path, pipeline: &str, label: &str) -> rlmflow_cache::Dige
 /// The same placed frames as one action and as shards of several sizes: the same bytes.
 #[test]
 fn a_sharded_procedural_stage_gives_the_bytes_of_the_unsharded_one() {
-    let stage = |name: &str, split: &str| format!("\n[stages.{name}]\nkind = \"scenes\"\noperator = \"procedural\"\nframes = 30\nradar = {{ image = 32 }}\n{split}\n");
-    let pipeline = format!("[pipeline]\nname = \"shards\"\nseed = 3\n{}{}{}", stage("whole", ""), stage("four", "shards = 4"), stage("sized", "shard_size = 7"));
+    let stage = |name: &str, split: &str| {
+        format!("\n[stages.{name}]\nkind = \"scenes\"\noperator = \"procedural\"\nframes = 30\nradar = {{ image = 32 }}\n{split}\n")
+    };
+    let pipeline =
+        format!("[pipeline]\nname = \"shards\"\nseed = 3\n{}{}{}", stage("whole", ""), stage("four", "shards = 4"), stage("sized", "shard_size = 7"));
     let dir = scratch("procedural-shards", &pipeline);
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");

@@ -29,7 +29,7 @@ pub mod tokens;
 pub use context::{Context, Device, Input, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};
 pub use operator::{
-    DynOperator, InWorker, ItemCount, Items, Operator, OperatorSpec, Outcome, Part, Registry, Resources, SettingError, Settings, Share, Sharding,
+    DynOperator, InWorker, ItemCount, Items, Operator, OperatorSpec, Outcome, Part, Registry, Resources, SettingError, Settings, Sharding, Share,
 };
 
 /// Reads an artifact's summary (`dir/file`, JSON with a `format` field) and checks that this

@@ -78,7 +78,8 @@ fn shards_spread_over_workers_and_give_the_bytes_of_a_local_run() {
     let events = hq.run();
     assert_eq!(keys_and_outputs(&hq), keys_and_outputs(&local));
     let at = |event: &str, stage: &str| events.of(event).iter().find(|e| e["stage"] == stage).unwrap()["t"].as_f64().unwrap();
-    let (a0, a1, b0, b1) = (at("stage_started", "source#0"), at("stage_finished", "source#0"), at("stage_started", "source#1"), at("stage_finished", "source#1"));
+    let (a0, a1, b0, b1) =
+        (at("stage_started", "source#0"), at("stage_finished", "source#0"), at("stage_started", "source#1"), at("stage_finished", "source#1"));
     assert!(a0 < b1 && b0 < a1, "the parts ran on both workers at once: {a0}..{a1} and {b0}..{b1}");
 }
 

@@ -27,7 +27,8 @@ fn sharding_a_stage_changes_no_byte_so_its_consumers_are_reused() {
     assert_eq!(events.with_status("ran"), ["source", "source#0", "source#1", "source#2"], "{:?}", events.finished());
     assert_eq!(events.status_of("map"), "reused", "the merged text has the unsharded bytes");
     assert_eq!(output_dir(&s.store(), "chain", "source"), whole);
-    let parts: Vec<String> = (0..3).map(|j| fs::read_to_string(output_dir(&s.store(), "chain", &format!("source#{j}")).join("text.txt")).unwrap()).collect();
+    let parts: Vec<String> =
+        (0..3).map(|j| fs::read_to_string(output_dir(&s.store(), "chain", &format!("source#{j}")).join("text.txt")).unwrap()).collect();
     assert_eq!(parts, ["r", "ad", "ar"], "part j holds items j*5/3 up to (j+1)*5/3");
 
     // Another split runs its new parts and a new merge, and still reuses everything downstream.
@@ -87,7 +88,10 @@ fn shards_of_a_stage_whose_operator_cannot_split_are_a_config_error() {
     let s = Scratch::new("shards-config");
     s.pipeline(&CHAIN.replace("suffix = \"!\"", "suffix = \"!\"\nshards = 2"));
     let err = text(&s.cli(&["run", "p.toml", "--dry-run"]).stderr);
-    assert!(err.contains("p.toml:14: stages.map.shards: operator `shout` cannot run as shards") && err.contains("operators that can: write-text"), "{err}");
+    assert!(
+        err.contains("p.toml:14: stages.map.shards: operator `shout` cannot run as shards") && err.contains("operators that can: write-text"),
+        "{err}"
+    );
     s.pipeline(&sharded(CHAIN, "shards = 9"));
     let err = text(&s.cli(&["run", "p.toml", "--dry-run"]).stderr);
     assert!(err.contains("stages.source.shards: 9 shards, but `write-text` makes only 5 characters"), "{err}");

@@ -11,7 +11,9 @@ use std::io::Write;
 use std::time::Duration;
 
 use anyhow::bail;
-use rlmflow_stages::{Catalog, Context, Items, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding, Slot, StageKind};
+use rlmflow_stages::{
+    Catalog, Context, Items, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding, Slot, StageKind,
+};
 use serde::{Deserialize, Serialize};
 
 pub fn registry() -> Registry {

@@ -30,7 +30,7 @@ use rlmflow_parser::{number_word, parse};
 use rlmflow_stages::captions::Caption;
 use rlmflow_stages::grid::{DISTANCE_BINS, Grid, SECTORS};
 use rlmflow_stages::labels::{FrameLabel, Labels};
-use rlmflow_stages::{Context, Items, Operator, OperatorSpec, Outcome, SettingError, Settings, Share, Sharding};
+use rlmflow_stages::{Context, Items, Operator, OperatorSpec, Outcome, SettingError, Settings, Sharding, Share};
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
@@ -645,8 +645,8 @@ mod tests {
     use std::sync::Arc;
 
     use rlmflow_stages::captions::{self, Captions};
-    use rlmflow_stages::grid::CELLS;
     use rlmflow_stages::context::Silent;
+    use rlmflow_stages::grid::CELLS;
     use rlmflow_stages::{Device, Input};
 
     use crate::ConcatCaptions;
@@ -929,7 +929,16 @@ mod tests {
         assert_eq!(server.requests.load(Ordering::SeqCst), sent, "the shares asked every question the whole asks");
 
         let ckpt = root.join("ckpt");
-        let mut ctx = Context::new("captions".into(), [("captions".to_owned(), inputs.clone())].into(), root.join("out"), ckpt.clone(), 5, 1, Device::Cpu, Arc::new(Silent));
+        let mut ctx = Context::new(
+            "captions".into(),
+            [("captions".to_owned(), inputs.clone())].into(),
+            root.join("out"),
+            ckpt.clone(),
+            5,
+            1,
+            Device::Cpu,
+            Arc::new(Silent),
+        );
         std::fs::create_dir_all(root.join("out")).unwrap();
         let outcome = Operator::run(&ConcatCaptions, &Default::default(), &mut ctx).unwrap();
         assert!(outcome.summary.contains("joined"), "{}", outcome.summary);
@@ -941,10 +950,28 @@ mod tests {
         std::fs::remove_dir_all(root.join("out")).unwrap();
         std::fs::create_dir_all(root.join("out")).unwrap();
         let swapped = vec![inputs[1].clone(), inputs[0].clone()];
-        let mut ctx = Context::new("captions".into(), [("captions".to_owned(), swapped)].into(), root.join("out"), ckpt.clone(), 5, 1, Device::Cpu, Arc::new(Silent));
+        let mut ctx = Context::new(
+            "captions".into(),
+            [("captions".to_owned(), swapped)].into(),
+            root.join("out"),
+            ckpt.clone(),
+            5,
+            1,
+            Device::Cpu,
+            Arc::new(Silent),
+        );
         let err = Operator::run(&ConcatCaptions, &Default::default(), &mut ctx).unwrap_err().to_string();
         assert!(err.contains("must caption disjoint frames, each after the last"), "{err}");
-        let mut ctx = Context::new("captions".into(), [("captions".to_owned(), inputs[1..2].to_vec())].into(), root.join("out"), ckpt, 5, 1, Device::Cpu, Arc::new(Silent));
+        let mut ctx = Context::new(
+            "captions".into(),
+            [("captions".to_owned(), inputs[1..2].to_vec())].into(),
+            root.join("out"),
+            ckpt,
+            5,
+            1,
+            Device::Cpu,
+            Arc::new(Silent),
+        );
         Operator::run(&ConcatCaptions, &Default::default(), &mut ctx).unwrap();
         let summary: Value = serde_json::from_slice(&read(captions::SUMMARY)).unwrap();
         assert_eq!(summary["generator"]["parts"][0]["generator"]["settings"]["shard"], json!({"index": 1, "of": 3}), "{summary}");

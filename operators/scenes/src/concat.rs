@@ -188,7 +188,11 @@ mod tests {
 
     /// Every file of an artifact directory, by name.
     fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
-        std::fs::read_dir(dir).unwrap().map(|e| e.unwrap()).map(|e| (e.file_name().into_string().unwrap(), std::fs::read(e.path()).unwrap())).collect()
+        std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap())
+            .map(|e| (e.file_name().into_string().unwrap(), std::fs::read(e.path()).unwrap()))
+            .collect()
     }
 
     fn concat(name: &str, inputs: &[&Path], s: &ConcatSettings) -> anyhow::Result<PathBuf> {
