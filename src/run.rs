@@ -240,7 +240,8 @@ impl Executor<'_> {
         }
         self.write_plan_if_dirty()?;
         let s = self.summary();
-        let saved: f64 = self.results.iter().flatten().filter(|r| r.0 == Outcome::Reused).map(|r| r.1).sum();
+        // A fold from +0.0: an empty f64 `sum()` is -0.0, printed as "-0.0s".
+        let saved = self.results.iter().flatten().filter(|r| r.0 == Outcome::Reused).fold(0.0, |total, r| total + r.1);
         let wall = clock.elapsed().as_secs_f64();
         self.events.write(
             "run_finished",

@@ -11,6 +11,7 @@ fn a_second_run_reuses_every_stage() {
     s.pipeline(CHAIN);
     let first = s.run();
     assert_eq!(first.with_status("ran").len(), 5);
+    assert_eq!(first.of("run_finished")[0]["saved_s"].to_string(), "0.0", "a run that reuses nothing saves 0 s, not -0");
     let second = s.run();
     assert_eq!(second.with_status("reused").len(), 5);
     assert!(second.with_status("ran").is_empty());
