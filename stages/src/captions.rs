@@ -3,7 +3,7 @@
 //! ```text
 //! captions.json   summary: format, frames, captions, the generator's settings and statistics
 //! captions.jsonl  one line per caption, grouped by frame in frame order:
-//!                 {"frame": 0, "split": "train", "caption": "..."}
+//!                 {"frame": 0, "id": "<the frame's identity>", "split": "train", "caption": "..."}
 //! ```
 //!
 //! The lines are what `rlmflow parse` reads, so a Captions artifact can be checked against its
@@ -18,7 +18,7 @@ use crate::labels::Split;
 
 pub const SUMMARY: &str = "captions.json";
 pub const LINES: &str = "captions.jsonl";
-pub const FORMAT: u32 = 1;
+pub const FORMAT: u32 = 2;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Summary {
@@ -33,6 +33,8 @@ pub struct Summary {
 #[serde(deny_unknown_fields)]
 pub struct Caption {
     pub frame: u64,
+    /// The frame's identity (see `crate::identity`).
+    pub id: String,
     pub split: Split,
     pub caption: String,
 }

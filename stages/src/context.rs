@@ -109,6 +109,11 @@ impl Context {
         self.optional_input(slot).with_context(|| format!("stage {} has no `{slot}` input", self.stage))
     }
 
+    /// The producing instance of the single artifact bound to `slot` (e.g. `pretrain[alpha4]`).
+    pub fn input_label(&self, slot: &str) -> Option<&str> {
+        self.inputs.get(slot).and_then(|v| v.first()).map(|i| i.label.as_str())
+    }
+
     pub fn optional_input(&self, slot: &str) -> Option<&Path> {
         self.inputs.get(slot).and_then(|v| v.first()).map(|i| i.path.as_path())
     }

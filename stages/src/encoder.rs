@@ -9,6 +9,10 @@
 //!                    test-split radar->text retrieval top-1 / top-5, and per batch the loss
 //!                    and the off-diagonal mass (`batch_loss`, `batch_off_diagonal`)
 //! encoder.json       summary: objective, steps, samples, final metrics, chance levels
+//! trained_frames.txt the identities of the frames the radar tower trained on (none for an
+//!                    untrained encoder), one per line, sorted
+//! tokenizer_frames.txt  with a text tower: the identities of the frames whose captions its
+//!                    tokenizer learnt from (the tokens artifact's `learnt_frames.txt`)
 //! ```
 //!
 //! The model shapes are plain structs here, so light crates (settings, the report) read them
@@ -20,7 +24,9 @@ pub const WEIGHTS: &str = "model.safetensors";
 pub const CONFIG: &str = "config.json";
 pub const LOG: &str = "train.jsonl";
 pub const SUMMARY: &str = "encoder.json";
-pub const FORMAT: u32 = 1;
+pub const TRAINED: &str = "trained_frames.txt";
+pub const TOKENIZER_FRAMES: &str = "tokenizer_frames.txt";
+pub const FORMAT: u32 = 2;
 
 /// How the radar image becomes a sequence of tokens.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

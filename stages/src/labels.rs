@@ -2,10 +2,13 @@
 //! the segmentation target.
 //!
 //! ```text
-//! labels.json   summary: format, frames, train/test counts, the rule and mask settings,
-//!               vehicles per cell and per frame
+//! labels.json   summary: format, frames, train/test counts, the split rule and the test share
+//!               it achieved per vehicle count, the grid rule and mask settings, vehicles per
+//!               cell and per frame, and for sequences the nearest-neighbour pixel similarity
+//!               from test to train against train to train
 //! labels.jsonl  one line per frame, in frame order:
-//!               {"frame": 0, "split": "train", "counts": [48 numbers], "grid": {the paper's JSON}}
+//!               {"frame": 0, "id": "...", "episode": "..." (sequences only), "split": "train",
+//!                "counts": [48 numbers], "grid": {the paper's JSON}}
 //!               counts[bin * 12 + sector], bins and sectors in the paper's order
 //! masks.npy     uint8, (frames, size, size), the primary image's geometry; value / 255 is the
 //!               target in [0, 1]
@@ -22,9 +25,9 @@ use crate::npy::Npy;
 pub const SUMMARY: &str = "labels.json";
 pub const LINES: &str = "labels.jsonl";
 pub const MASKS: &str = "masks.npy";
-pub const FORMAT: u32 = 1;
+pub const FORMAT: u32 = 2;
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Split {
     Train,
@@ -48,12 +51,50 @@ pub struct MaskGeometry {
     pub sigma_px: f64,
 }
 
+/// Frames with one vehicle count, and how many of them the split holds out.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Stratum {
+    pub vehicles: u32,
+    pub frames: u64,
+    pub test: u64,
+}
+
+/// How a Labels artifact split its frames (the rule is [`crate::identity`]'s).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SplitSummary {
+    /// The rule, in words.
+    pub rule: String,
+    /// `episode` (a sequence's frames share a split) or `frame`.
+    pub by: String,
+    pub test_fraction: f64,
+    pub seed: u64,
+    /// Split groups (episodes, and frames without one) and those held out.
+    pub groups: u64,
+    pub test_groups: u64,
+    /// Per vehicle count in the grid: frames and test frames (the achieved stratification).
+    pub strata: Vec<Stratum>,
+}
+
+/// How alike test frames are to their nearest training frame, against training frames to their
+/// nearest other training frame: the Pearson correlation of primary-image pixels, averaged, over
+/// an evenly spaced sample of the frames that belong to a sequence.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NearestNeighbour {
+    pub sample_train: u64,
+    pub sample_test: u64,
+    pub test_to_train: f64,
+    pub train_to_train: f64,
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Summary {
     pub format: u32,
     pub frames: u64,
     pub train: u64,
     pub test: u64,
+    pub split: SplitSummary,
+    /// For artifacts with sequences (and a sample size above 0).
+    pub nearest_neighbour: Option<NearestNeighbour>,
     pub rule: GridRule,
     pub mask: MaskGeometry,
     /// Vehicles per cell over all frames, keyed `bin/sector`.
@@ -66,6 +107,9 @@ pub struct Summary {
 #[derive(Clone, Debug, PartialEq)]
 pub struct FrameLabel {
     pub frame: u64,
+    /// The frame's identity and episode, as its Scenes artifact has them.
+    pub id: String,
+    pub episode: Option<String>,
     pub split: Split,
     pub grid: Grid,
 }
@@ -73,9 +117,11 @@ pub struct FrameLabel {
 impl FrameLabel {
     /// The line `labels.jsonl` holds for this frame.
     pub fn to_line(&self) -> String {
+        let episode = self.episode.as_ref().map_or(String::new(), |e| format!(",\"episode\":\"{e}\""));
         format!(
-            "{{\"frame\":{},\"split\":\"{}\",\"counts\":{},\"grid\":{}}}",
+            "{{\"frame\":{},\"id\":\"{}\"{episode},\"split\":\"{}\",\"counts\":{},\"grid\":{}}}",
             self.frame,
+            self.id,
             self.split.name(),
             serde_json::to_string(&self.grid.counts.as_slice()).expect("numbers"),
             self.grid.to_json()
@@ -87,6 +133,9 @@ impl FrameLabel {
         #[serde(deny_unknown_fields)]
         struct Line {
             frame: u64,
+            id: String,
+            #[serde(default)]
+            episode: Option<String>,
             split: Split,
             counts: Vec<u32>,
             grid: serde_json::Value,
@@ -96,7 +145,7 @@ impl FrameLabel {
         if line.counts.len() != CELLS || line.counts != grid.counts {
             return Err("`counts` does not match `grid`".into());
         }
-        Ok(FrameLabel { frame: line.frame, split: line.split, grid })
+        Ok(FrameLabel { frame: line.frame, id: line.id, episode: line.episode, split: line.split, grid })
     }
 }
 
@@ -140,5 +189,17 @@ impl Labels {
 
     pub fn split(&self, split: Split) -> impl Iterator<Item = &FrameLabel> {
         self.frames.iter().filter(move |f| f.split == split)
+    }
+
+    /// The identities of the frames in `split`.
+    pub fn ids(&self, split: Split) -> crate::identity::FrameSet {
+        self.split(split).map(|f| f.id.clone()).collect()
+    }
+
+    /// Whether frame `frame` (a training frame) lies in the validation slice of the training
+    /// split that takes `share` of it: decided by the frame's split group, like the split.
+    pub fn in_validation(&self, frame: &FrameLabel, share: f64) -> bool {
+        let group = if self.summary.split.by == "episode" { frame.episode.as_deref().unwrap_or(&frame.id) } else { &frame.id };
+        frame.split == Split::Train && crate::identity::in_validation(group, self.summary.split.test_fraction, self.summary.split.seed, share)
     }
 }

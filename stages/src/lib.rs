@@ -7,7 +7,8 @@
 //! * [`context`]: what an operator is given when it runs: input paths, an output directory, a
 //!   checkpoint directory that survives a crash, the seed, a thread budget and a progress handle.
 //!
-//! * [`grid`]: the paper's ego grid and its JSON; [`segment`]: the segmentation metrics.
+//! * [`grid`]: the paper's ego grid and its JSON; [`segment`]: the segmentation metrics;
+//!   [`identity`]: frame identities, the split rule and the train/test overlap check.
 //! * [`scenes`], [`labels`], [`captions`], [`tokens`], [`encoder`], [`probe`]: each artifact's directory layout, its
 //!   writer-side line formats and its reader; [`npy`] for their dense arrays.
 //!
@@ -17,6 +18,7 @@ pub mod captions;
 pub mod context;
 pub mod encoder;
 pub mod grid;
+pub mod identity;
 pub mod kind;
 pub mod labels;
 pub mod npy;
@@ -31,6 +33,16 @@ pub use kind::{Arity, Catalog, Need, Slot, StageKind};
 pub use operator::{
     DynOperator, InWorker, ItemCount, Items, Operator, OperatorSpec, Outcome, Part, Registry, Resources, SettingError, Settings, Sharding, Share,
 };
+
+/// `f` over `items` on up to `threads` scoped threads, results in order.
+pub fn parallel_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> R + Sync) -> Vec<R> {
+    let chunk = items.len().div_ceil(threads.max(1)).max(1);
+    std::thread::scope(|scope| {
+        let f = &f;
+        let handles: Vec<_> = items.chunks(chunk).map(|part| scope.spawn(move || part.iter().map(f).collect::<Vec<R>>())).collect();
+        handles.into_iter().flat_map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect()
+    })
+}
 
 /// Reads an artifact's summary (`dir/file`, JSON with a `format` field) and checks that this
 /// build reads its format; `artifact` names the type (`Scenes`) and `stage` what to rerun.
@@ -68,11 +80,11 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         std::fs::write(dir.join("labels.json"), r#"{"format": 0, "frames": 1}"#).unwrap();
         let e = crate::labels::Labels::open(&dir).err().unwrap().to_string();
-        assert!(e.ends_with("labels.json: Labels format 0 (this build reads 1); rerun the labels stage"), "{e}");
-        std::fs::write(dir.join("captions.json"), r#"{"format": 1, "frames": 1, "captions": 2, "generator": null}"#).unwrap();
+        assert!(e.ends_with("labels.json: Labels format 0 (this build reads 2); rerun the labels stage"), "{e}");
+        std::fs::write(dir.join("captions.json"), r#"{"format": 2, "frames": 1, "captions": 2, "generator": null}"#).unwrap();
         std::fs::write(
             dir.join("captions.jsonl"),
-            "{\"frame\": 0, \"split\": \"train\", \"caption\": \"a\"}\n{\"frame\": 0, \"split\": \"dev\", \"caption\": \"b\"}\n",
+            "{\"frame\": 0, \"id\": \"a\", \"split\": \"train\", \"caption\": \"a\"}\n{\"frame\": 0, \"id\": \"a\", \"split\": \"dev\", \"caption\": \"b\"}\n",
         )
         .unwrap();
         let e = crate::captions::Captions::open(&dir).err().unwrap().to_string();

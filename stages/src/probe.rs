@@ -2,15 +2,22 @@
 //!
 //! ```text
 //! probe.json         summary: the probe, its settings, one scored row per feature set
-//!                    (e.g. `cls` and `mean-patch`, or `pixels`), chance and test sizes
+//!                    (e.g. `cls`, `mean-patch` and `patches`, or `pixels`), split sizes, and
+//!                    the test frames' overlap with what the encoder and tokenizers learnt from
 //! predictions.jsonl  per test frame and row: {"frame", "features", "grid"} (the predicted
 //!                    grid in the paper's JSON; a caption probe adds "caption")
 //! ```
 //!
 //! Scoring (the paper's): per test frame and cell (distance bin, sector), TP = min(pred, true),
 //! FP = max(0, pred - true), FN = max(0, true - pred); summed over the test frames
-//! (micro-averaged), then precision, recall and F1 per cell, per distance bin (its 12 cells)
-//! and overall (all 48).
+//! (micro-averaged), then precision, recall and F1 per cell. A distance bin's scores are, as the
+//! paper's table says, the cells' scores "averaged across angular sectors within each distance
+//! bin": the mean over the bin's cells of each cell's precision, recall and F1. A cell with no
+//! true and no predicted vehicle in any test frame has no score and is left out of its bin's
+//! mean (a bin with no scored cell scores 0 over 0 cells); within a scored cell a ratio with
+//! nothing to divide by is 0 (precision with nothing predicted, recall with nothing there).
+//! Secondary figures: each bin pooled (its 12 cells' counts summed, then the ratios) and
+//! overall pooled (all 48).
 
 use serde::{Deserialize, Serialize};
 
@@ -18,7 +25,7 @@ use crate::grid::{CELLS, DISTANCE_BINS, SECTORS};
 
 pub const SUMMARY: &str = "probe.json";
 pub const PREDICTIONS: &str = "predictions.jsonl";
-pub const FORMAT: u32 = 1;
+pub const FORMAT: u32 = 2;
 
 /// Summed true positives, false positives and false negatives.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -76,12 +83,25 @@ impl From<Counts> for Score {
     }
 }
 
+/// The mean of scored cells' precision, recall and F1 (see the module doc).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CellMean {
+    pub precision: f64,
+    pub recall: f64,
+    pub f1: f64,
+    /// Cells averaged (those with a true or predicted vehicle).
+    pub cells: u64,
+}
+
 /// A probe's scores on the test split.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Scores {
+    /// All 48 cells pooled.
     pub overall: Score,
-    /// By distance bin, keyed as the paper (`0-10m`, ...).
-    pub bins: std::collections::BTreeMap<String, Score>,
+    /// By distance bin, keyed as the paper (`0-10m`, ...): the paper's mean over the bin's cells.
+    pub bins: std::collections::BTreeMap<String, CellMean>,
+    /// By distance bin, the bin's cells pooled.
+    pub bins_pooled: std::collections::BTreeMap<String, Score>,
     /// By cell, keyed `bin/sector`.
     pub cells: std::collections::BTreeMap<String, Score>,
 }
@@ -96,17 +116,29 @@ pub fn score(predicted: &[[u32; CELLS]], truth: &[[u32; CELLS]]) -> Scores {
         }
     }
     let mut overall = Counts::default();
-    let mut bins = std::collections::BTreeMap::new();
+    let (mut bins, mut bins_pooled) = (std::collections::BTreeMap::new(), std::collections::BTreeMap::new());
     for (b, bin) in DISTANCE_BINS.iter().enumerate() {
         let mut sum = Counts::default();
+        let mut mean = CellMean { precision: 0.0, recall: 0.0, f1: 0.0, cells: 0 };
         for c in &cells[b * SECTORS.len()..(b + 1) * SECTORS.len()] {
             sum.merge(c);
+            if c.tp + c.fp + c.fn_ > 0 {
+                mean.precision += c.precision();
+                mean.recall += c.recall();
+                mean.f1 += c.f1();
+                mean.cells += 1;
+            }
+        }
+        if mean.cells > 0 {
+            let n = mean.cells as f64;
+            (mean.precision, mean.recall, mean.f1) = (mean.precision / n, mean.recall / n, mean.f1 / n);
         }
         overall.merge(&sum);
-        bins.insert(bin.to_string(), Score::from(sum));
+        bins.insert(bin.to_string(), mean);
+        bins_pooled.insert(bin.to_string(), Score::from(sum));
     }
     let cells = (0..CELLS).map(|c| (format!("{}/{}", DISTANCE_BINS[c / SECTORS.len()], SECTORS[c % SECTORS.len()]), Score::from(cells[c]))).collect();
-    Scores { overall: Score::from(overall), bins, cells }
+    Scores { overall: Score::from(overall), bins, bins_pooled, cells }
 }
 
 /// One scored row of a probe: which features it read and how it did.
@@ -126,6 +158,8 @@ pub struct Summary {
     pub probe: String,
     pub train_frames: u64,
     pub test_frames: u64,
+    /// The test frames checked against every learnt set upstream.
+    pub hygiene: Vec<crate::identity::Overlap>,
     pub rows: Vec<Row>,
     /// The probe's settings.
     pub generator: serde_json::Value,
@@ -154,16 +188,39 @@ mod tests {
         pred[1][47] = 4;
         let s = score(&pred, &truth);
         assert_eq!(s.cells["0-10m/left_lane_front_side"].counts, Counts { tp: 2, fp: 0, fn_: 2 });
-        assert_eq!(s.bins["0-10m"].precision, 1.0);
-        assert_eq!(s.bins["0-10m"].recall, 0.5);
-        assert!((s.bins["0-10m"].f1 - 2.0 / 3.0).abs() < 1e-12);
-        assert_eq!(s.bins["10-20m"].counts, Counts { tp: 0, fp: 2, fn_: 0 });
-        assert_eq!((s.bins["10-20m"].precision, s.bins["10-20m"].recall, s.bins["10-20m"].f1), (0.0, 0.0, 0.0));
-        assert_eq!(s.bins["30-40m"].f1, 1.0);
+        assert_eq!(s.bins_pooled["0-10m"].precision, 1.0);
+        assert_eq!(s.bins_pooled["0-10m"].recall, 0.5);
+        assert!((s.bins_pooled["0-10m"].f1 - 2.0 / 3.0).abs() < 1e-12);
+        assert_eq!(s.bins_pooled["10-20m"].counts, Counts { tp: 0, fp: 2, fn_: 0 });
+        assert_eq!((s.bins_pooled["10-20m"].precision, s.bins_pooled["10-20m"].recall, s.bins_pooled["10-20m"].f1), (0.0, 0.0, 0.0));
+        assert_eq!(s.bins_pooled["30-40m"].f1, 1.0);
         // Overall: tp 6, fp 2, fn 2.
         assert_eq!(s.overall.counts, Counts { tp: 6, fp: 2, fn_: 2 });
         assert!((s.overall.f1 - 0.75).abs() < 1e-12);
         // Perfect predictions score 1.
         assert_eq!(score(&truth, &truth).overall.f1, 1.0);
+    }
+
+    #[test]
+    fn a_bins_scores_are_the_mean_of_its_scored_cells_leaving_out_empty_ones() {
+        // Bin 0-10m over two frames. Cell 0: true 3 + 1, predicted 1 + 1 (tp 2, fn 2): P 1, R 0.5,
+        // F1 2/3. Cell 1: true 1, predicted 3 (tp 1, fp 2): P 1/3, R 1, F1 1/2. Cell 2: only a
+        // false positive (fp 1): P 0, R 0, F1 0. Cells 3-11: nothing true or predicted, left out.
+        let mut truth = [[0u32; CELLS]; 2];
+        let mut pred = [[0u32; CELLS]; 2];
+        (truth[0][0], pred[0][0], truth[1][0], pred[1][0]) = (3, 1, 1, 1);
+        (truth[0][1], pred[0][1]) = (1, 3);
+        pred[1][2] = 1;
+        let s = score(&pred, &truth);
+        let bin = &s.bins["0-10m"];
+        assert_eq!(bin.cells, 3);
+        assert!((bin.precision - (1.0 + 1.0 / 3.0 + 0.0) / 3.0).abs() < 1e-12, "{bin:?}");
+        assert!((bin.recall - (0.5 + 1.0 + 0.0) / 3.0).abs() < 1e-12, "{bin:?}");
+        assert!((bin.f1 - (2.0 / 3.0 + 0.5 + 0.0) / 3.0).abs() < 1e-12, "{bin:?}");
+        // Pooled, the same bin is tp 3, fp 3, fn 2.
+        assert_eq!(s.bins_pooled["0-10m"].counts, Counts { tp: 3, fp: 3, fn_: 2 });
+        assert!((s.bins_pooled["0-10m"].f1 - 6.0 / 11.0).abs() < 1e-12);
+        // A bin without a true or predicted vehicle scores 0 over 0 cells.
+        assert_eq!(s.bins["30-40m"], CellMean { precision: 0.0, recall: 0.0, f1: 0.0, cells: 0 });
     }
 }

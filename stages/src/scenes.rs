@@ -5,7 +5,8 @@
 //! scenes.mcap   MCAP, unchunked and uncompressed, so that any byte range is readable in place:
 //!               /radar/<view>  foxglove.RawImage (protobuf, mono8), one message per frame per
 //!                              image; value / 255 is the normalised log power
-//!               /actors        the frame's actors, JSON (a Frame), one message per frame
+//!               /actors        the frame's identity, episode and actors, JSON (a Frame),
+//!                              one message per frame
 //! scenes.index  little-endian u64s, per frame: the /actors message's byte offset and length,
 //!               then for each image the byte offset of its pixels, all into scenes.mcap
 //! scenes.json   summary: format, frames, images (the first is the primary), radar range, the
@@ -29,7 +30,7 @@ use serde::{Deserialize, Serialize};
 pub const SUMMARY: &str = "scenes.json";
 pub const MCAP: &str = "scenes.mcap";
 pub const INDEX: &str = "scenes.index";
-pub const FORMAT: u32 = 2;
+pub const FORMAT: u32 = 3;
 pub const ACTORS_TOPIC: &str = "/actors";
 
 /// One actor in one frame.
@@ -67,9 +68,30 @@ impl Actor {
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Frame {
+    /// The frame's position in its artifact, from 0.
     pub index: u64,
+    /// The frame's identity ([`crate::identity`]): the digest of its content, set where it is
+    /// born and kept by every mix, shard and import.
+    pub id: String,
+    /// The sequence the frame belongs to (a simulated episode, a recording); frames of one
+    /// episode share a split. Absent: the frame is its own group.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub episode: Option<String>,
     pub scenario: String,
     pub actors: Vec<Actor>,
+}
+
+impl Frame {
+    /// A newly born frame with these images: its identity is the digest of its content.
+    pub fn new(index: u64, scenario: String, actors: Vec<Actor>, images: &[Vec<u8>]) -> Frame {
+        let id = crate::identity::frame_id(&scenario, &serde_json::to_string(&actors).expect("actors serialise"), images);
+        Frame { index, id, episode: None, scenario, actors }
+    }
+
+    /// What the split is decided on: the episode, else the frame itself.
+    pub fn group(&self) -> &str {
+        self.episode.as_deref().unwrap_or(&self.id)
+    }
 }
 
 /// One image channel.

@@ -1,7 +1,8 @@
 //! The SegReport artifact, and the segmentation metrics every segment operator scores with.
 //!
 //! ```text
-//! segment.json      summary: operator, split sizes, metrics on the test split, the per-epoch
+//! segment.json      summary: operator, split sizes, the test frames' overlap with what the
+//!                   encoder trained on, metrics on the test split, the per-epoch
 //!                   log (loss, test loss, IoU and AP at 0.5), the sample frames, the rollout's
 //!                   blocks (pup), the settings
 //! samples.npy       uint8 (samples, side, side): predicted probability x 255 on the sample frames
@@ -25,7 +26,7 @@ pub const SUMMARY: &str = "segment.json";
 pub const SAMPLES: &str = "samples.npy";
 pub const ROLLOUT: &str = "rollout.npy";
 pub const WEIGHTS: &str = "head.safetensors";
-pub const FORMAT: u32 = 1;
+pub const FORMAT: u32 = 2;
 
 /// `segment.json`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -35,6 +36,8 @@ pub struct Summary {
     pub operator: String,
     pub train_frames: u64,
     pub test_frames: u64,
+    /// The test frames checked against every learnt set upstream (none for the U-Net).
+    pub hygiene: Vec<crate::identity::Overlap>,
     pub epochs: u64,
     pub steps: u64,
     pub metrics: SegMetrics,

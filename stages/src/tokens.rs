@@ -5,6 +5,8 @@
 //! tokens.npy      uint32, (captions, context): start, the caption's tokens, end, then pad;
 //!                 rows in the Captions artifact's order
 //! frames.npy      uint32, (captions,): the frame each row describes
+//! learnt_frames.txt  the identities of the frames whose captions the vocabulary was learnt
+//!                 from (the training split), one per line, sorted
 //! tokens.json     summary: vocabulary size, context, special token ids, counts
 //! ```
 
@@ -19,7 +21,8 @@ pub const SUMMARY: &str = "tokens.json";
 pub const TOKENIZER: &str = "tokenizer.json";
 pub const IDS: &str = "tokens.npy";
 pub const FRAMES: &str = "frames.npy";
-pub const FORMAT: u32 = 1;
+pub const LEARNT: &str = "learnt_frames.txt";
+pub const FORMAT: u32 = 2;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Special {

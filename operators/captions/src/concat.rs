@@ -31,7 +31,7 @@ impl Operator for ConcatCaptions {
         OperatorSpec {
             name: "concat-captions",
             kind: "mix-captions",
-            version: 1,
+            version: 2,
             inputs: None,
             summary: "the captions of several Captions artifacts of disjoint frames, one after another, as one",
         }

@@ -215,7 +215,7 @@ impl Operator for Llm {
         OperatorSpec {
             name: "llm",
             kind: "captions",
-            version: 2,
+            version: 3,
             inputs: None,
             summary: "captions from an OpenAI-compatible endpoint with the paper's prompts, checked by the parser",
         }
@@ -277,7 +277,7 @@ impl Operator for Llm {
         let mut captions = Vec::new();
         let mut statistics = Statistics::default();
         for (label, r) in frames.iter().zip(&results) {
-            captions.extend(r.captions.iter().map(|c| Caption { frame: label.frame, split: label.split, caption: c.clone() }));
+            captions.extend(r.captions.iter().map(|c| Caption { frame: label.frame, id: label.id.clone(), split: label.split, caption: c.clone() }));
             statistics.add(&r.statistics);
         }
         let statistics = statistics.finish();
@@ -810,8 +810,13 @@ mod tests {
             })
             .collect();
         let dir = root.join("labels");
-        let lines: String =
-            grids.iter().enumerate().map(|(i, g)| FrameLabel { frame: i as u64, split: Split::Train, grid: g.clone() }.to_line() + "\n").collect();
+        let lines: String = grids
+            .iter()
+            .enumerate()
+            .map(|(i, g)| {
+                FrameLabel { frame: i as u64, id: format!("{i:032x}"), episode: None, split: Split::Train, grid: g.clone() }.to_line() + "\n"
+            })
+            .collect();
         std::fs::write(dir.join(labels::LINES), lines).unwrap();
         let mut masks = NpyWriter::create(&dir.join(labels::MASKS), Dtype::U8, frames as usize, &[1, 1]).unwrap();
         for _ in 0..frames {
@@ -823,6 +828,16 @@ mod tests {
             frames,
             train: frames,
             test: 0,
+            split: labels::SplitSummary {
+                rule: String::new(),
+                by: "frame".into(),
+                test_fraction: 0.0,
+                seed: 0,
+                groups: frames,
+                test_groups: 0,
+                strata: vec![],
+            },
+            nearest_neighbour: None,
             rule: Default::default(),
             mask: MaskGeometry { size: 1, radius_px: 1.0, sigma_px: 1.0 },
             cells: Default::default(),

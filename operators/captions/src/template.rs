@@ -50,7 +50,7 @@ impl Operator for Template {
         OperatorSpec {
             name: "template",
             kind: "captions",
-            version: 1,
+            version: 2,
             inputs: None,
             summary: "varied captions composed from the grid, each of which the parser reads back exactly",
         }
@@ -82,7 +82,12 @@ fn frame_captions(s: &TemplateSettings, label: &FrameLabel, seed: u64) -> Vec<Ca
     (0..s.per_frame)
         .map(|_| {
             let numbers = rng.random_bool(s.distance_numbers);
-            Caption { frame: label.frame, split: label.split, caption: compose(&label.grid, numbers, &mut Pick::Random(&mut rng)) }
+            Caption {
+                frame: label.frame,
+                id: label.id.clone(),
+                split: label.split,
+                caption: compose(&label.grid, numbers, &mut Pick::Random(&mut rng)),
+            }
         })
         .collect()
 }
@@ -366,7 +371,8 @@ mod tests {
     #[test]
     fn captions_are_deterministic_per_seed_and_frame() {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let label = FrameLabel { frame: 9, split: rlmflow_stages::labels::Split::Test, grid: random_grid(&mut rng) };
+        let label =
+            FrameLabel { frame: 9, id: "9".repeat(32), episode: None, split: rlmflow_stages::labels::Split::Test, grid: random_grid(&mut rng) };
         let s = TemplateSettings::default();
         let a = frame_captions(&s, &label, 1);
         assert_eq!(a.len(), 5);

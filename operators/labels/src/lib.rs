@@ -3,8 +3,19 @@
 //! target.
 //!
 //! Choices where the paper is silent, each a setting:
-//! * The split is stratified by the grid's vehicle count and seeded by `split_seed`, not the
-//!   pipeline seed, so every variant of every later stage holds out the same frames.
+//! * The split follows the frame, not its place in the artifact: a frame's split group (its
+//!   episode for sequences, else the frame) is held out when its hash with `split_seed` falls
+//!   below `test_fraction` (the rule in [`rlmflow_stages::identity`]). The same frame is therefore
+//!   in the same split in every artifact that holds it, whatever else is mixed in, and no episode
+//!   straddles the split (`split_by = "frame"` splits a sequence's frames one by one, for
+//!   measuring what that leaks). The seed is `split_seed`, not the pipeline seed, so every
+//!   variant of every later stage holds out the same frames. Stratification by vehicle count
+//!   holds in expectation (each stratum's test share is binomial around `test_fraction`); the
+//!   summary lists the achieved share per stratum.
+//! * For sequences the summary measures how alike test frames are to their nearest training
+//!   frame against training frames to theirs (pixel correlation over `similarity_sample`
+//!   evenly spaced frames of the sequences): near-duplicates across the split show as
+//!   test-to-train similarity as high as train-to-train.
 //! * Walkers count within 40 m. A traffic sign (actor class `sign:<name>`) applies when it is
 //!   within 40 m and ahead (x >= 0); names are listed once each, sorted.
 //! * The mask marks every vehicle the primary image shows, also beyond the grid's 40 m, since
@@ -14,10 +25,9 @@
 //!   its maximum, so it spans [0, 1].
 
 use anyhow::Context as _;
-use rand::{RngExt, SeedableRng};
-use rand_chacha::ChaCha8Rng;
 use rlmflow_stages::grid::{CELLS, Cell, Grid, GridRule, MAX_RANGE_M};
-use rlmflow_stages::labels::{self, FrameLabel, MaskGeometry, Split};
+use rlmflow_stages::identity::split_of;
+use rlmflow_stages::labels::{self, FrameLabel, MaskGeometry, NearestNeighbour, Split, SplitSummary, Stratum};
 use rlmflow_stages::npy::{Dtype, NpyWriter};
 use rlmflow_stages::scenes::{Frame, Scenes};
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, SettingError, Settings};
@@ -33,7 +43,29 @@ pub struct EgoGridSettings {
     pub test_fraction: f64,
     /// Fixes the split (any integer); not the pipeline seed, so every variant holds out the same frames.
     pub split_seed: u64,
+    /// `episode`: a sequence's frames share one split; `frame`: each frame is split on its own
+    /// (near-duplicate neighbours then straddle the split; for measuring that only).
+    pub split_by: SplitBy,
+    /// Frames of the sequences sampled for the nearest-neighbour similarity, 0..=20,000 (0: not
+    /// measured).
+    pub similarity_sample: usize,
     pub mask: MaskSettings,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SplitBy {
+    Episode,
+    Frame,
+}
+
+impl SplitBy {
+    fn name(self) -> &'static str {
+        match self {
+            SplitBy::Episode => "episode",
+            SplitBy::Frame => "frame",
+        }
+    }
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -50,7 +82,14 @@ pub struct MaskSettings {
 
 impl Default for EgoGridSettings {
     fn default() -> Self {
-        EgoGridSettings { rule: GridRule::default(), test_fraction: 0.2, split_seed: 0, mask: MaskSettings::default() }
+        EgoGridSettings {
+            rule: GridRule::default(),
+            test_fraction: 0.2,
+            split_seed: 0,
+            split_by: SplitBy::Episode,
+            similarity_sample: 1_000,
+            mask: MaskSettings::default(),
+        }
     }
 }
 
@@ -72,6 +111,7 @@ impl Settings for EgoGridSettings {
         if !(0.0..1.0).contains(&self.test_fraction) {
             return Err(SettingError::new("test_fraction", format!("must be in [0, 1), not {}", self.test_fraction)));
         }
+        SettingError::check_range("similarity_sample", self.similarity_sample, 0..=20_000)?;
         positive("mask.radius_px", self.mask.radius_px)?;
         positive("mask.sigma_px", self.mask.sigma_px)?;
         SettingError::check_range("mask.sigma_px", self.mask.sigma_px, 0.0..=self.mask.reference_size as f64)?;
@@ -96,9 +136,9 @@ impl Operator for EgoGrid {
         OperatorSpec {
             name: "ego-grid",
             kind: "labels",
-            version: 1,
+            version: 2,
             inputs: None,
-            summary: "the paper's 4 x 12 ego grid, a stratified train/test split and Gaussian vehicle masks",
+            summary: "the paper's 4 x 12 ego grid, a train/test split that follows each frame (and episode), and Gaussian vehicle masks",
         }
     }
 
@@ -110,41 +150,78 @@ impl Operator for EgoGrid {
         let progress = ctx.progress(frames, "frames");
         let mut masks = NpyWriter::create(&ctx.output_dir.join(labels::MASKS), Dtype::U8, frames as usize, &[size, size])?;
         let mut grids = Vec::with_capacity(frames as usize);
+        let mut identities = Vec::with_capacity(frames as usize);
         for i in 0..frames {
             let frame = scenes.frame(i)?;
             grids.push(grid(&s.rule, &frame));
             masks.write_u8(&mask(&frame, &geometry))?;
+            identities.push((frame.id, frame.episode));
             progress.inc(1);
         }
         masks.finish()?;
         progress.finish();
 
+        let group = |(id, episode): &(String, Option<String>)| -> String {
+            match s.split_by {
+                SplitBy::Episode => episode.clone().unwrap_or_else(|| id.clone()),
+                SplitBy::Frame => id.clone(),
+            }
+        };
+        let splits: Vec<Split> = identities.iter().map(|f| split_of(&group(f), s.test_fraction, s.split_seed)).collect();
         let vehicles: Vec<u32> = grids.iter().map(Grid::vehicles).collect();
-        let splits = split(&vehicles, s.test_fraction, s.split_seed);
         let mut cells = [0u64; CELLS];
         for grid in &grids {
             for (total, n) in cells.iter_mut().zip(grid.counts) {
                 *total += n as u64;
             }
         }
+        let nearest_neighbour = if identities.iter().any(|(_, e)| e.is_some()) && s.similarity_sample > 0 {
+            let sequences: Vec<u64> = (0..frames).filter(|&i| identities[i as usize].1.is_some()).collect();
+            nearest_neighbour(&scenes, &sequences, &splits, s.similarity_sample, ctx.threads)?
+        } else {
+            None
+        };
         let lines: String = grids
             .into_iter()
             .zip(&splits)
+            .zip(identities.iter().cloned())
             .enumerate()
-            .map(|(i, (grid, &split))| FrameLabel { frame: i as u64, split, grid }.to_line() + "\n")
+            .map(|(i, ((grid, &split), (id, episode)))| FrameLabel { frame: i as u64, id, episode, split, grid }.to_line() + "\n")
             .collect();
         std::fs::write(ctx.output_dir.join(labels::LINES), lines)?;
 
         let mut per_frame = vec![0u64; vehicles.iter().max().map_or(1, |m| *m as usize + 1)];
-        for &v in &vehicles {
+        let mut strata: Vec<Stratum> = (0..per_frame.len() as u32).map(|vehicles| Stratum { vehicles, frames: 0, test: 0 }).collect();
+        for (&v, &split) in vehicles.iter().zip(&splits) {
             per_frame[v as usize] += 1;
+            strata[v as usize].frames += 1;
+            strata[v as usize].test += u64::from(split == Split::Test);
         }
+        strata.retain(|s| s.frames > 0);
         let test = splits.iter().filter(|&&s| s == Split::Test).count() as u64;
+        let mut groups: std::collections::BTreeMap<String, Split> = std::collections::BTreeMap::new();
+        for (f, &split) in identities.iter().zip(&splits) {
+            groups.insert(group(f), split);
+        }
+        let split = SplitSummary {
+            rule: format!(
+                "a frame's {} is held out when BLAKE3(\"rlmflow split v1\", split_seed, its identity) as a number in [0, 1) is below test_fraction; stratification by vehicle count holds in expectation",
+                if s.split_by == SplitBy::Episode { "episode (or the frame, outside sequences)" } else { "frame" }
+            ),
+            by: s.split_by.name().into(),
+            test_fraction: s.test_fraction,
+            seed: s.split_seed,
+            groups: groups.len() as u64,
+            test_groups: groups.values().filter(|&&s| s == Split::Test).count() as u64,
+            strata,
+        };
         let summary = labels::Summary {
             format: labels::FORMAT,
             frames,
             train: frames - test,
             test,
+            split,
+            nearest_neighbour,
             rule: s.rule.clone(),
             mask: geometry,
             cells: cells.iter().enumerate().map(|(i, &n)| (Cell::from_index(i).name(), n)).collect(),
@@ -153,8 +230,15 @@ impl Operator for EgoGrid {
         std::fs::write(ctx.output_dir.join(labels::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
         let covered = summary.cells.values().filter(|&&n| n > 0).count();
         let total: u64 = vehicles.iter().map(|&v| v as u64).sum();
+        let mut metrics = serde_json::json!({
+            "frames": frames, "train": summary.train, "test": test, "vehicles": total, "cells_covered": covered,
+            "groups": summary.split.groups, "test_groups": summary.split.test_groups,
+        });
+        if let Some(nn) = &summary.nearest_neighbour {
+            metrics["nearest_neighbour"] = serde_json::to_value(nn)?;
+        }
         Ok(Outcome {
-            metrics: serde_json::json!({"frames": frames, "train": summary.train, "test": test, "vehicles": total, "cells_covered": covered}),
+            metrics,
             summary: format!("{frames} frames ({} train, {test} test), {total} vehicles in the grid, {covered}/48 cells", summary.train),
         })
     }
@@ -183,22 +267,47 @@ pub fn grid(rule: &GridRule, frame: &Frame) -> Grid {
     grid
 }
 
-/// The split of frames with these vehicle counts: frames are ordered by (count, a seeded random
-/// key) and every frame where the running share of test frames falls below `test_fraction` is
-/// held out, so each count gets its share to within one frame and the total is exact.
-pub fn split(vehicles: &[u32], test_fraction: f64, seed: u64) -> Vec<Split> {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut order: Vec<(u32, u64, usize)> = vehicles.iter().enumerate().map(|(i, &v)| (v, rng.random::<u64>(), i)).collect();
-    order.sort_unstable();
-    let mut out = vec![Split::Train; vehicles.len()];
-    for (k, &(_, _, i)) in order.iter().enumerate() {
-        let before = (k as f64 * test_fraction).floor();
-        let after = ((k + 1) as f64 * test_fraction).floor();
-        if after > before {
-            out[i] = Split::Test;
+/// The mean nearest-neighbour pixel correlation from test frames to training frames and from
+/// training frames to other training frames, over at most `sample` evenly spaced `frames`.
+fn nearest_neighbour(scenes: &Scenes, frames: &[u64], splits: &[Split], sample: usize, threads: usize) -> anyhow::Result<Option<NearestNeighbour>> {
+    let step = frames.len().div_ceil(sample).max(1);
+    let chosen: Vec<u64> = frames.iter().step_by(step).copied().collect();
+    // Each image centred and scaled to unit length: a dot product is then the correlation.
+    let unit = |i: u64| -> anyhow::Result<Vec<f32>> {
+        let pixels = scenes.heatmap(i)?;
+        let mean = pixels.iter().map(|&p| f64::from(p)).sum::<f64>() / pixels.len() as f64;
+        let centred: Vec<f64> = pixels.iter().map(|&p| f64::from(p) - mean).collect();
+        let norm = centred.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-12);
+        Ok(centred.iter().map(|v| (v / norm) as f32).collect())
+    };
+    let (mut train, mut test) = (Vec::new(), Vec::new());
+    for &i in &chosen {
+        match splits[i as usize] {
+            Split::Train => train.push(unit(i)?),
+            Split::Test => test.push(unit(i)?),
         }
     }
-    out
+    if train.len() < 2 || test.is_empty() {
+        return Ok(None);
+    }
+    let best = |queries: &[Vec<f32>], skip_self: bool| -> f64 {
+        let indices: Vec<usize> = (0..queries.len()).collect();
+        let sims = rlmflow_stages::parallel_map(&indices, threads, |&q| {
+            train
+                .iter()
+                .enumerate()
+                .filter(|(t, _)| !(skip_self && *t == q))
+                .map(|(_, t)| queries[q].iter().zip(t).map(|(a, b)| a * b).sum::<f32>())
+                .fold(f32::MIN, f32::max) as f64
+        });
+        sims.iter().sum::<f64>() / sims.len() as f64
+    };
+    Ok(Some(NearestNeighbour {
+        sample_train: train.len() as u64,
+        sample_test: test.len() as u64,
+        test_to_train: best(&test, false),
+        train_to_train: best(&train, true),
+    }))
 }
 
 /// The segmentation target of a frame: `size` x `size` bytes, value / 255 in [0, 1].
@@ -230,7 +339,10 @@ mod tests {
     use std::f64::consts::PI;
     use std::path::{Path, PathBuf};
 
-    use rlmflow_scenes::{Procedural, ProceduralSettings};
+    use std::sync::Arc;
+
+    use rlmflow_scenes::{Concat, ConcatSettings, Procedural, ProceduralSettings};
+    use rlmflow_stages::context::Silent;
     use rlmflow_stages::grid::Heading;
     use rlmflow_stages::labels::Labels;
     use rlmflow_stages::scenes::Actor;
@@ -254,6 +366,8 @@ mod tests {
     fn a_frame_grid_counts_vehicles_walkers_and_applicable_signs() {
         let frame = Frame {
             index: 0,
+            id: String::new(),
+            episode: None,
             scenario: "test".into(),
             actors: vec![
                 actor("car", 5.0, 0.2, 0.0, (0.0, 0.0)),
@@ -278,25 +392,145 @@ mod tests {
     fn lane_headings_keep_a_lane_changing_vehicle_in_its_lanes_direction() {
         let mut changing = actor("car", 12.0, 0.5, 1.2, (0.0, 0.0));
         changing.lane_heading = Some(0.0);
-        let frame = Frame { index: 0, scenario: "t".into(), actors: vec![changing] };
+        let frame = Frame { index: 0, id: String::new(), episode: None, scenario: "t".into(), actors: vec![changing] };
         assert_eq!(grid(&GridRule::default(), &frame).get(1, 10), 1, "by body heading it crosses: other_lane_front");
         let lane = GridRule { heading: Heading::Lane, ..GridRule::default() };
         assert_eq!(grid(&lane, &frame).get(1, 3), 1, "by lane heading it is ahead in our lane");
     }
 
+    fn procedural(root: &Path, name: &str, settings: &ProceduralSettings, seed: u64) -> PathBuf {
+        let (out, ckpt) = (root.join(name), root.join(format!("{name}-ckpt")));
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::create_dir_all(&ckpt).unwrap();
+        let mut ctx = Context::standalone("scenes", &[], &out, &ckpt, seed, 2);
+        Operator::run(&Procedural, settings, &mut ctx).unwrap();
+        out
+    }
+
+    fn concat(root: &Path, name: &str, parts: &[&Path]) -> PathBuf {
+        let (out, ckpt) = (root.join(name), root.join(format!("{name}-ckpt")));
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::create_dir_all(&ckpt).unwrap();
+        let gathered = parts.iter().enumerate().map(|(k, p)| rlmflow_stages::Input { label: format!("in{k}"), path: p.to_path_buf() }).collect();
+        let inputs = std::collections::BTreeMap::from([("scenes".to_string(), gathered)]);
+        let mut ctx = Context::new("mix".into(), inputs, out.clone(), ckpt, 1, 1, rlmflow_stages::Device::Cpu, Arc::new(Silent));
+        Operator::run(&Concat, &ConcatSettings::default(), &mut ctx).unwrap();
+        out
+    }
+
+    /// Labels the scenes in `scenes` and returns each frame's (identity, split) in frame order.
+    fn splits(root: &Path, name: &str, scenes: &Path, settings: &EgoGridSettings) -> (Labels, Vec<(String, Split)>) {
+        let (out, ckpt) = (root.join(name), root.join(format!("{name}-ckpt")));
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::create_dir_all(&ckpt).unwrap();
+        let mut ctx = Context::standalone("labels", &[("scenes", scenes)], &out, &ckpt, 1, 1);
+        Operator::run(&EgoGrid, settings, &mut ctx).unwrap();
+        let labels = Labels::open(&out).unwrap();
+        let pairs = labels.frames.iter().map(|f| (f.id.clone(), f.split)).collect();
+        (labels, pairs)
+    }
+
     #[test]
-    fn the_split_is_stratified_exact_and_fixed_by_its_seed() {
-        let mut rng = ChaCha8Rng::seed_from_u64(5);
-        let vehicles: Vec<u32> = (0..1000).map(|_| rng.random_range(0..8u32)).collect();
-        let a = split(&vehicles, 0.2, 0);
-        assert_eq!(a, split(&vehicles, 0.2, 0));
-        assert_ne!(a, split(&vehicles, 0.2, 1));
-        assert_eq!(a.iter().filter(|s| **s == Split::Test).count(), 200);
-        for n in 0..8 {
-            let group: Vec<Split> = vehicles.iter().zip(&a).filter(|(v, _)| **v == n).map(|(_, s)| *s).collect();
-            let test = group.iter().filter(|s| **s == Split::Test).count() as f64;
-            assert!((test - group.len() as f64 * 0.2).abs() <= 1.0, "{n} vehicles: {test} of {}", group.len());
+    fn a_frames_split_is_the_same_alone_mixed_sharded_and_in_either_order() {
+        let root = scratch("identity");
+        let whole = ProceduralSettings { frames: 60, radar: rlmflow_radar_image(32), ..ProceduralSettings::default() };
+        let a = procedural(&root, "a", &whole, 1);
+        let b = procedural(&root, "b", &ProceduralSettings { frames: 40, ..whole.clone() }, 2);
+        let a0 = procedural(&root, "a0", &ProceduralSettings { frames: 25, ..whole.clone() }, 1);
+        let a1 = procedural(&root, "a1", &ProceduralSettings { first_frame: 25, frames: 35, ..whole.clone() }, 1);
+        let s = EgoGridSettings::default();
+        let (_, alone_a) = splits(&root, "la", &a, &s);
+        let (_, alone_b) = splits(&root, "lb", &b, &s);
+        let reference: std::collections::BTreeMap<String, Split> = alone_a.iter().chain(&alone_b).cloned().collect();
+        assert_eq!(reference.len(), 100, "every frame has its own identity");
+        assert!(alone_a.iter().any(|(_, s)| *s == Split::Test) && alone_a.iter().any(|(_, s)| *s == Split::Train));
+        let pairs: [(&str, [&Path; 2]); 4] = [("ab", [&a, &b]), ("ba", [&b, &a]), ("shards", [&a0, &a1]), ("b-a1", [&b, &a1])];
+        for (name, parts) in pairs {
+            let mixed = concat(&root, name, &parts);
+            let (_, got) = splits(&root, &format!("l-{name}"), &mixed, &s);
+            for (id, split) in &got {
+                assert_eq!(reference[id], *split, "{name}: frame {id}");
+            }
         }
+        // Another seed is another split; a smaller test fraction holds out a subset.
+        let (_, reseeded) = splits(&root, "seed", &a, &EgoGridSettings { split_seed: 7, ..EgoGridSettings::default() });
+        assert_ne!(reseeded, alone_a);
+        let (_, fewer) = splits(&root, "fewer", &a, &EgoGridSettings { test_fraction: 0.1, ..EgoGridSettings::default() });
+        assert!(fewer.iter().all(|(id, s)| *s == Split::Train || reference[id] == Split::Test));
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn the_stratification_by_vehicle_count_stays_within_three_binomial_deviations() {
+        let root = scratch("strata");
+        let scenes =
+            procedural(&root, "s", &ProceduralSettings { frames: 600, min_vehicles: 0, radar: rlmflow_radar_image(32), ..Default::default() }, 4);
+        let (labels, _) = splits(&root, "l", &scenes, &EgoGridSettings::default());
+        let strata = &labels.summary.split.strata;
+        assert_eq!(strata.iter().map(|s| s.frames).sum::<u64>(), 600);
+        assert_eq!(strata.iter().map(|s| s.test).sum::<u64>(), labels.summary.test);
+        assert!(strata.len() > 5, "{strata:?}");
+        for s in strata {
+            let (n, f) = (s.frames as f64, 0.2);
+            let tolerance = 3.0 * (n * f * (1.0 - f)).sqrt() + 1.0;
+            assert!((s.test as f64 - n * f).abs() <= tolerance, "{} vehicles: {} of {} held out", s.vehicles, s.test, s.frames);
+        }
+        assert!(labels.summary.split.rule.contains("BLAKE3"));
+        assert_eq!(labels.summary.nearest_neighbour, None, "placed frames are not sequences");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    /// A Scenes artifact of `episodes` sequences of `length` frames each: within an episode each
+    /// frame is the previous one with a little noise (near-duplicates), across episodes unrelated.
+    fn sequences(root: &Path, episodes: u64, length: u64) -> PathBuf {
+        use rand::{RngExt, SeedableRng};
+        let (out, ckpt) = (root.join("seq"), root.join("seq-ckpt"));
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::create_dir_all(&ckpt).unwrap();
+        let images = vec![rlmflow_stages::scenes::Image { view: "range-azimuth".into(), topic: "/radar/range-azimuth".into(), size: 16 }];
+        let mut writer = rlmflow_scenes::SceneWriter::resume(&ckpt, images).unwrap();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        for e in 0..episodes {
+            let mut pixels: Vec<u8> = (0..256).map(|_| rng.random_range(0..200u8)).collect();
+            let mut batch = Vec::new();
+            for k in 0..length {
+                for p in pixels.iter_mut() {
+                    *p = p.saturating_add(rng.random_range(0..4u8));
+                }
+                let car = actor("car", 5.0 + k as f64, 0.0, 0.0, (4.5, 8.5));
+                let mut frame = Frame::new(e * length + k, "drive".into(), vec![car], std::slice::from_ref(&pixels));
+                frame.episode = Some(format!("episode-{e}"));
+                batch.push((frame, vec![pixels.clone()]));
+            }
+            writer.append(&batch).unwrap();
+        }
+        writer.finish(&out, 50.0, serde_json::json!({"operator": "test"})).unwrap();
+        out
+    }
+
+    #[test]
+    fn no_episode_straddles_the_split_and_the_nearest_neighbour_shows_the_difference() {
+        let root = scratch("episodes");
+        let scenes = sequences(&root, 40, 10);
+        let straddling = |labels: &Labels| {
+            let mut by_episode: std::collections::BTreeMap<&str, std::collections::BTreeSet<Split>> = Default::default();
+            for f in &labels.frames {
+                by_episode.entry(f.episode.as_deref().unwrap()).or_default().insert(f.split);
+            }
+            by_episode.values().filter(|s| s.len() > 1).count()
+        };
+        let (episode, _) = splits(&root, "by-episode", &scenes, &EgoGridSettings::default());
+        assert_eq!(straddling(&episode), 0);
+        assert_eq!(episode.summary.split.groups, 40);
+        assert!(episode.summary.test > 0 && episode.summary.train > 0);
+        let (frame, _) = splits(&root, "by-frame", &scenes, &EgoGridSettings { split_by: SplitBy::Frame, ..Default::default() });
+        assert!(straddling(&frame) > 10, "frame by frame, most episodes straddle");
+        // Split by episode, a test frame's nearest training frame is another episode's; split by
+        // frame, it is its own episode's neighbour, as alike as two training frames.
+        let (e, f) = (episode.summary.nearest_neighbour.unwrap(), frame.summary.nearest_neighbour.unwrap());
+        assert!(e.test_to_train < e.train_to_train - 0.3, "{e:?}");
+        assert!((f.test_to_train - f.train_to_train).abs() < 0.05, "{f:?}");
+        std::fs::remove_dir_all(&root).unwrap();
     }
 
     #[test]
@@ -305,6 +539,8 @@ mod tests {
         assert_eq!((g.radius_px, g.sigma_px), (3.5, 1.25));
         let frame = Frame {
             index: 0,
+            id: String::new(),
+            episode: None,
             scenario: "t".into(),
             actors: vec![actor("car", 10.0, 0.0, 0.0, (20.5, 30.5)), actor("walker", 5.0, 0.0, 0.0, (60.5, 60.5))],
         };
@@ -316,7 +552,8 @@ mod tests {
         assert_eq!(at(20, 34), 0, "beyond the radius");
         assert_eq!(at(60, 60), 0, "walkers are not vehicles");
         assert_eq!(m.iter().filter(|v| **v > 0).count(), 37, "pixels within 3.5 px of a pixel centre");
-        let off = Frame { index: 0, scenario: "t".into(), actors: vec![actor("car", 10.0, 0.0, 0.0, (-40.0, 30.5))] };
+        let off =
+            Frame { index: 0, id: String::new(), episode: None, scenario: "t".into(), actors: vec![actor("car", 10.0, 0.0, 0.0, (-40.0, 30.5))] };
         assert!(mask(&off, &g).iter().all(|v| *v == 0));
     }
 
@@ -336,7 +573,8 @@ mod tests {
 
         let labels = labels_of(&root, &EgoGridSettings::default());
         assert_eq!(labels.summary.cells, summary.cells.iter().map(|(k, v)| (k.clone(), *v)).collect());
-        assert_eq!((labels.summary.train, labels.summary.test), (24, 6));
+        let held_out = frames_of(&root).iter().filter(|f| rlmflow_stages::identity::split_of(&f.id, 0.2, 0) == Split::Test).count();
+        assert_eq!((labels.summary.train + labels.summary.test, labels.summary.test), (30, held_out as u64));
         assert_eq!(labels.summary.mask.size, 48);
         let frames = Scenes::open(&root.join("scenes")).unwrap().frames().unwrap();
         for (label, frame) in labels.frames.iter().zip(&frames) {
@@ -350,6 +588,10 @@ mod tests {
         let wide = labels_of(&root, &EgoGridSettings { rule: GridRule { beside_m: 6.0, ..GridRule::default() }, ..EgoGridSettings::default() });
         assert_ne!(wide.summary.cells, labels.summary.cells);
         std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    fn frames_of(root: &Path) -> Vec<Frame> {
+        Scenes::open(&root.join("scenes")).unwrap().frames().unwrap()
     }
 
     fn rlmflow_radar_image(size: usize) -> rlmflow_radar::RadarConfig {

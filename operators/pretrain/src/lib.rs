@@ -156,7 +156,7 @@ pub fn spec() -> OperatorSpec {
     OperatorSpec {
         name: "clip",
         kind: "pretrain",
-        version: 2,
+        version: 3,
         inputs: None,
         summary: "radar and text towers trained with CLIP, SG-CLIP (alpha) or on the counts (libtorch, in rlmflow-torch)",
     }

@@ -6,14 +6,21 @@
 //! zero, from the frozen encoder's features (two rows: the projected CLS embedding and the mean
 //! of the patch tokens) or, with `source = "pixels"`, from the raw radar image: the pixel
 //! baseline, which reads no encoder (give its stage `inputs = { encoder = [] }` so it does not fan
-//! out over the encoder's variants). The ridge strength is chosen on a held-out share of the
-//! training split, then the ridge is refitted on all of it.
+//! out over the encoder's variants). A third encoder row, `patches`, reads every patch token in
+//! place (the spatial layout kept), as the pixel row reads every pixel: the like-for-like
+//! comparison with the pixel baseline. The ridge strength is chosen on a validation slice of the
+//! training split (by frame identity, episodes whole), then the ridge is refitted on all of it.
+//!
+//! Both probes check first that none of their test frames is among those the encoder trained on
+//! or a tokenizer learnt from (`rlmflow_stages::identity`), and stop with both stages named
+//! unless `allow_test_overlap` is set; the counts go into the artifact for the report.
 //!
 //! `clipcap`: the paper's caption probe (ClipCap). A transformer mapper turns the frozen
 //! encoder's projected CLS embedding into `prefix` embeddings, and a GPT-style decoder over the
 //! tokens stage's vocabulary continues them with the caption; both are trained on the training
 //! captions (teacher forcing, one caption per frame per epoch), from scratch or with the decoder
-//! started from GPT-2 weights at a given path. The test frames' captions are generated (greedy
+//! started from GPT-2 weights at a given path. A validation slice of the training split is held
+//! out for the per-epoch validation loss and a validation F1. The test frames' captions are generated (greedy
 //! or length-normalised beam search, to the end token), read back by the LLM-free parser and
 //! scored per cell like `linear`.
 
@@ -36,16 +43,27 @@ pub struct LinearSettings {
     pub source: Source,
     /// Ridge strengths tried (times the number of training frames), each in (0, 1e9].
     pub lambdas: Vec<f64>,
-    /// Share of the training split held out to choose the strength, (0, 0.5].
+    /// Share of the training split held out to choose the strength, (0, 0.5]: a validation
+    /// slice by frame identity (episodes whole), like the split.
     pub holdout: f64,
     /// CPU threads libtorch uses for the encoder's features, 1..=256 (part of the result, as in
     /// pretraining).
     pub threads: usize,
+    /// Run even when some test frames are among those the encoder trained on or its tokenizer
+    /// learnt from (a deliberate study; the report flags the row). Off: such an overlap stops
+    /// the stage.
+    pub allow_test_overlap: bool,
 }
 
 impl Default for LinearSettings {
     fn default() -> Self {
-        LinearSettings { source: Source::Encoder, lambdas: vec![1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0], holdout: 0.2, threads: 2 }
+        LinearSettings {
+            source: Source::Encoder,
+            lambdas: vec![1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0],
+            holdout: 0.2,
+            threads: 2,
+            allow_test_overlap: false,
+        }
     }
 }
 
@@ -89,6 +107,10 @@ pub struct ClipcapSettings {
     /// Mapper transformer blocks (ClipCap: 8), 1..=24.
     pub mapper_layers: i64,
     pub epochs: u64,
+    /// Share of the training split held out as the validation slice, (0, 0.5]: never trained
+    /// on, it gives the per-epoch validation loss and a validation F1, on which settings such
+    /// as `epochs` are chosen (the test split is only reported).
+    pub validation: f64,
     pub batch: u64,
     pub lr: f64,
     /// Warmup then cosine to `min_lr`; `min_lr = lr` with no warmup is the paper's constant rate.
@@ -105,6 +127,8 @@ pub struct ClipcapSettings {
     /// `auto` (CUDA when present), `cpu`, `cuda` or `cuda:N`.
     pub device: String,
     pub threads: usize,
+    /// As `linear`'s: run despite test frames the encoder or a tokenizer learnt from.
+    pub allow_test_overlap: bool,
 }
 
 impl Default for ClipcapSettings {
@@ -115,6 +139,7 @@ impl Default for ClipcapSettings {
             prefix: 10,
             mapper_layers: 2,
             epochs: 4,
+            validation: 0.1,
             batch: 64,
             lr: 1e-3,
             warmup_epochs: 0.5,
@@ -127,6 +152,7 @@ impl Default for ClipcapSettings {
             max_tokens: 0,
             device: "auto".into(),
             threads: 2,
+            allow_test_overlap: false,
         }
     }
 }
@@ -142,6 +168,9 @@ impl Settings for ClipcapSettings {
         SettingError::check_range("prefix", self.prefix, 1..=64)?;
         SettingError::check_range("mapper_layers", self.mapper_layers, 1..=24)?;
         SettingError::check_range("epochs", self.epochs, 1..=10_000)?;
+        if !(self.validation > 0.0 && self.validation <= 0.5) {
+            return Err(SettingError::new("validation", format!("must be in (0, 0.5], not {}", self.validation)));
+        }
         SettingError::check_range("batch", self.batch, 1..=65_536)?;
         SettingError::check_schedule(self.epochs, self.lr, self.warmup_epochs, self.warmup_lr, self.min_lr)?;
         SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
@@ -157,7 +186,7 @@ pub fn clipcap_spec() -> OperatorSpec {
     OperatorSpec {
         name: "clipcap",
         kind: "probe",
-        version: 2,
+        version: 3,
         inputs: None,
         summary: "ClipCap caption probe: mapper and GPT decoder on the frozen CLS embedding, captions parsed and scored per cell",
     }
@@ -176,7 +205,7 @@ pub fn linear_spec() -> OperatorSpec {
     OperatorSpec {
         name: "linear",
         kind: "probe",
-        version: 1,
+        version: 2,
         inputs: Some(&["encoder", "scenes", "labels"]),
         summary: "closed-form ridge (faer) from frozen encoder features or raw pixels to the 48 cell counts",
     }

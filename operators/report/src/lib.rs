@@ -70,7 +70,7 @@ impl Operator for Paper {
         OperatorSpec {
             name: "paper",
             kind: "report",
-            version: 4,
+            version: 5,
             inputs: None,
             summary: "the paper's tables and figures for this run: Markdown, self-contained HTML, metrics.json and a Rerun recording",
         }
@@ -81,6 +81,7 @@ impl Operator for Paper {
         let progress = ctx.progress(8, "sections");
         let mut report = sections::Report { blocks: Vec::new(), metrics: serde_json::Map::new() };
         report.dataset(&study)?;
+        report.hygiene(&study);
         progress.inc(1);
         report.pretraining(&study)?;
         progress.inc(1);

@@ -1,6 +1,7 @@
 //! The `concat` operator (kind `mix`): one Scenes artifact holding the frames of several, in the
-//! order the engine gathers them (by instance label), renumbered from 0. The default pipeline
-//! pretrains on highway-env drives mixed with placed scenes this way.
+//! order the engine gathers them (by instance label), renumbered from 0, each keeping its
+//! identity and episode (so its split). The default pipeline pretrains on highway-env drives
+//! mixed with placed scenes this way.
 //!
 //! The inputs must agree on the images (views and sizes) and the radar range, since every
 //! reader takes them from one summary. The summary's `generator` lists each input's generator
@@ -50,7 +51,7 @@ impl Operator for Concat {
         OperatorSpec {
             name: "concat",
             kind: "mix",
-            version: 1,
+            version: 2,
             inputs: None,
             summary: "the frames of several Scenes artifacts, one after another, as one Scenes artifact",
         }
@@ -213,7 +214,7 @@ mod tests {
         for (i, (source, j)) in (0..7).map(|j| (&a, j)).chain((0..5).map(|j| (&b, j))).enumerate() {
             let (want, got) = (source.frame(j).unwrap(), mixed.frame(i as u64).unwrap());
             assert_eq!(got.index, i as u64);
-            assert_eq!((got.scenario, got.actors), (want.scenario, want.actors), "frame {i}");
+            assert_eq!((got.id, got.episode, got.scenario, got.actors), (want.id, want.episode, want.scenario, want.actors), "frame {i}");
             assert_eq!(mixed.heatmap(i as u64).unwrap(), source.heatmap(j).unwrap(), "frame {i}");
         }
         for (cell, n) in &mixed.summary.cells {

@@ -2,7 +2,8 @@
 //! frame among all vehicles, rendered by the radar model in Rust threads.
 //!
 //! Frames come in episodes: a scenario drawn by `share`, simulated from a seed, `warmup_steps`
-//! steps, then a frame every `steps_per_frame` steps. The GIL is held only while stepping and
+//! steps, then a frame every `steps_per_frame` steps. Every frame of an episode carries the
+//! episode's id (its first frame's identity), so the split keeps an episode whole. The GIL is held only while stepping and
 //! reading the state; a finished episode's frames are rendered on every granted thread. An
 //! episode is the checkpoint unit, so a killed run resumes at the next episode and reproduces
 //! exactly what an uninterrupted run would have written.
@@ -140,7 +141,7 @@ impl Operator for HighwayEnv {
         OperatorSpec {
             name: "highway-env",
             kind: "scenes",
-            version: 4,
+            version: 5,
             inputs: None,
             summary: "traffic simulated by highway-env (highway, merge, roundabout, intersection, two-way, divided), rendered by the radar model",
         }
@@ -183,7 +184,14 @@ impl Operator for HighwayEnv {
             }
             let start = writer.done();
             let numbered: Vec<(u64, Scene, u64)> = scenes.into_iter().enumerate().map(|(i, (scene, seed))| (start + i as u64, scene, seed)).collect();
-            let batch = parallel_map(&numbered, ctx.threads, |(i, scene, seed)| renderer.render(*i, scene, &mut ChaCha8Rng::seed_from_u64(*seed)));
+            let mut batch =
+                parallel_map(&numbered, ctx.threads, |(i, scene, seed)| renderer.render(*i, scene, &mut ChaCha8Rng::seed_from_u64(*seed)));
+            // One episode, one split group: named by its first frame's identity.
+            if let Some(first) = batch.first().map(|(frame, _)| frame.id.clone()) {
+                for (frame, _) in &mut batch {
+                    frame.episode = Some(first.clone());
+                }
+            }
             cursor.episodes += 1;
             writer.append_with_cursor(&batch, serde_json::to_value(&cursor)?)?;
             progress.set_position(writer.done());

@@ -5,6 +5,7 @@
 use rand::{Rng, RngExt};
 use rlmflow_radar::{ImageMap, Path, RadarConfig, Segment, VehicleBox, View, radar_grids};
 use rlmflow_stages::SettingError;
+pub use rlmflow_stages::parallel_map;
 use rlmflow_stages::scenes::{Actor, Frame, Image};
 
 /// A vehicle as a scene source describes it.
@@ -75,7 +76,7 @@ impl Renderer {
     pub fn render(&self, index: u64, scene: &Scene, rng: &mut impl Rng) -> Rendered {
         let bodies: Vec<VehicleBox> = scene.vehicles.iter().map(|v| v.body).collect();
         let grids = radar_grids(&self.cfg, &bodies, &scene.edges, self.path, rng);
-        let images = self.maps.iter().map(|m| m.merge(&grids).iter().map(|&v| (v * 255.0).round() as u8).collect()).collect();
+        let images: Vec<Vec<u8>> = self.maps.iter().map(|m| m.merge(&grids).iter().map(|&v| (v * 255.0).round() as u8).collect()).collect();
         let primary = &self.maps[0].projection;
         let actors = scene
             .vehicles
@@ -98,18 +99,8 @@ impl Renderer {
                 }
             })
             .collect();
-        (Frame { index, scenario: scene.scenario.clone(), actors }, images)
+        (Frame::new(index, scene.scenario.clone(), actors, &images), images)
     }
-}
-
-/// `f` over `items` on up to `threads` scoped threads, results in order.
-pub fn parallel_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> R + Sync) -> Vec<R> {
-    let chunk = items.len().div_ceil(threads.max(1)).max(1);
-    std::thread::scope(|scope| {
-        let f = &f;
-        let handles: Vec<_> = items.chunks(chunk).map(|part| scope.spawn(move || part.iter().map(f).collect::<Vec<R>>())).collect();
-        handles.into_iter().flat_map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))).collect()
-    })
 }
 
 /// An index drawn with probability proportional to `weights`.

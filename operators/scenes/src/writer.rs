@@ -37,7 +37,7 @@ const FRAMES: &str = "frames.jsonl.part";
 /// Nominal time between frames in the MCAP timeline (10 Hz).
 const FRAME_PERIOD_NS: u64 = 100_000_000;
 /// JSON schema of the /actors channel, for readers that validate.
-const FRAME_SCHEMA: &str = r#"{"type":"object","properties":{"index":{"type":"integer"},"scenario":{"type":"string"},"actors":{"type":"array","items":{"type":"object","properties":{"id":{"type":"integer"},"class":{"type":"string"},"x":{"type":"number"},"y":{"type":"number"},"heading":{"type":"number"},"length":{"type":"number"},"width":{"type":"number"},"speed":{"type":"number"},"lane_heading":{"type":"number"},"row":{"type":"number"},"col":{"type":"number"}}}}}}"#;
+const FRAME_SCHEMA: &str = r#"{"type":"object","properties":{"index":{"type":"integer"},"id":{"type":"string"},"episode":{"type":"string"},"scenario":{"type":"string"},"actors":{"type":"array","items":{"type":"object","properties":{"id":{"type":"integer"},"class":{"type":"string"},"x":{"type":"number"},"y":{"type":"number"},"heading":{"type":"number"},"length":{"type":"number"},"width":{"type":"number"},"speed":{"type":"number"},"lane_heading":{"type":"number"},"row":{"type":"number"},"col":{"type":"number"}}}}}}"#;
 
 impl SceneWriter {
     /// Opens the parts in `checkpoint`, cut back to the last complete batch.

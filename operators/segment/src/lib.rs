@@ -109,6 +109,9 @@ pub struct PupSettings {
     pub device: String,
     /// CPU threads libtorch uses, 1..=256 (part of the result, as in pretraining).
     pub threads: usize,
+    /// Run even when some test frames are among those the encoder trained on (a deliberate
+    /// study; the report flags the row). Off: such an overlap stops the stage.
+    pub allow_test_overlap: bool,
 }
 
 impl Default for PupSettings {
@@ -128,6 +131,7 @@ impl Default for PupSettings {
             dice_weight: 0.6,
             device: "auto".into(),
             threads: 2,
+            allow_test_overlap: false,
         }
     }
 }
@@ -204,7 +208,7 @@ pub fn pup_spec() -> OperatorSpec {
     OperatorSpec {
         name: "pup",
         kind: "segment",
-        version: 1,
+        version: 2,
         inputs: None,
         summary: "progressive-upsampling decoder on the frozen encoder's patch tokens, with its attention rollout (libtorch, in rlmflow-torch)",
     }
@@ -214,7 +218,7 @@ pub fn unet_spec() -> OperatorSpec {
     OperatorSpec {
         name: "unet",
         kind: "segment",
-        version: 1,
+        version: 2,
         // No encoder: the baseline must not fan out over the encoder's variants.
         inputs: Some(&["scenes", "labels"]),
         summary: "U-Net on the heatmap pixels, the segmentation baseline (libtorch, in rlmflow-torch)",

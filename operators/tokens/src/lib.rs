@@ -12,6 +12,7 @@ use std::path::Path;
 
 use anyhow::{Context as _, anyhow};
 use rlmflow_stages::captions::Captions;
+use rlmflow_stages::identity::FrameSet;
 use rlmflow_stages::labels::Split;
 use rlmflow_stages::npy::{Dtype, NpyWriter};
 use rlmflow_stages::tokens::{self, Special};
@@ -65,7 +66,7 @@ impl Operator for Bpe {
         OperatorSpec {
             name: "bpe",
             kind: "tokens",
-            version: 1,
+            version: 2,
             inputs: None,
             summary: "byte-level BPE trained on the training captions (Hugging Face tokenizers)",
         }
@@ -82,6 +83,8 @@ impl Operator for Bpe {
         if train.is_empty() {
             anyhow::bail!("no training captions to learn a vocabulary from ({} captions, none in the train split)", captions.captions.len());
         }
+        let learnt: FrameSet = captions.captions.iter().filter(|c| c.split == Split::Train).map(|c| c.id.clone()).collect();
+        learnt.write(&ctx.output_dir.join(tokens::LEARNT))?;
         let progress = ctx.progress(captions.captions.len() as u64, "captions");
         let path = ctx.output_dir.join(tokens::TOKENIZER);
         pool.install(|| train_tokenizer(s, &train, &path))?;
@@ -208,10 +211,18 @@ mod tests {
     /// A Captions artifact: the training captions, plus test captions full of a word the
     /// training captions never use.
     fn write_captions(root: &Path, train: &[String]) -> Vec<Caption> {
-        let mut all: Vec<Caption> =
-            train.iter().enumerate().map(|(i, c)| Caption { frame: i as u64, split: Split::Train, caption: c.clone() }).collect();
+        let mut all: Vec<Caption> = train
+            .iter()
+            .enumerate()
+            .map(|(i, c)| Caption { frame: i as u64, id: format!("{i:032x}"), split: Split::Train, caption: c.clone() })
+            .collect();
         for i in 0..20 {
-            all.push(Caption { frame: (train.len() + i) as u64, split: Split::Test, caption: "zqxj zqxj zqxj zqxj zqxj".into() });
+            all.push(Caption {
+                frame: (train.len() + i) as u64,
+                id: format!("{:032x}", train.len() + i),
+                split: Split::Test,
+                caption: "zqxj zqxj zqxj zqxj zqxj".into(),
+            });
         }
         let lines: String = all.iter().map(|c| c.to_line() + "\n").collect();
         std::fs::write(root.join("captions").join(captions::LINES), lines).unwrap();

@@ -13,6 +13,8 @@ pub struct Dataset {
     pub side: i64,
     /// frames x 48.
     pub counts: Vec<f32>,
+    /// Every frame's identity.
+    pub ids: Vec<String>,
     /// Frames of each split that have at least one caption (all frames without a text tower).
     pub train: Vec<usize>,
     pub test: Vec<usize>,
@@ -49,6 +51,7 @@ impl Dataset {
             images,
             side,
             counts,
+            ids: labels.frames.iter().map(|f| f.id.clone()).collect(),
             train,
             test,
             tokens: ids.into_iter().map(i64::from).collect(),

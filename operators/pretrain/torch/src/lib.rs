@@ -24,6 +24,8 @@ use rlmflow_nn::tch::{self, Kind, Tensor, nn};
 use rlmflow_nn::train::{epoch_rng, finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
 use rlmflow_pretrain::{ClipSettings, Distance, Objective};
 use rlmflow_stages::encoder::{self, ModelConfig};
+use rlmflow_stages::identity::FrameSet;
+use rlmflow_stages::tokens;
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources};
 use serde_json::{Value, json};
 
@@ -212,6 +214,12 @@ fn write_artifact(
         generator: serde_json::to_value(s)?,
     };
     std::fs::write(out.join(encoder::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
+    let trained: FrameSet = if s.epochs > 0 { data.train.iter().map(|&f| data.ids[f].clone()).collect() } else { FrameSet::default() };
+    trained.write(&out.join(encoder::TRAINED))?;
+    if config.text.is_some() {
+        let learnt = FrameSet::read(&ctx.input("tokens")?.join(tokens::LEARNT))?;
+        learnt.write(&out.join(encoder::TOKENIZER_FRAMES))?;
+    }
     let text = match (last.get("top1"), last.get("top5")) {
         (Some(t1), Some(t5)) => {
             format!("test retrieval top-1 {:.3} top-5 {:.3} (chance {:.4})", t1.as_f64().unwrap_or(0.0), t5.as_f64().unwrap_or(0.0), 1.0 / n)

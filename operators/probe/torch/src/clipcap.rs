@@ -1,6 +1,7 @@
 //! The `clipcap` caption probe (see `rlmflow_probe`): ClipCap's mapper and a GPT decoder on the
-//! frozen encoder's projected CLS embedding, trained with teacher forcing, then test captions
-//! generated, parsed and scored. Each epoch draws its frame order and captions from (seed,
+//! frozen encoder's projected CLS embedding, trained with teacher forcing on the training split
+//! less a validation slice, then validation and test captions generated, parsed and scored
+//! (the validation F1 is what settings are chosen on). Each epoch draws its frame order and captions from (seed,
 //! epoch), so a checkpoint needs only the epoch to resume.
 
 use std::path::Path;
@@ -71,9 +72,13 @@ struct Data {
     context: i64,
     /// Caption rows of each frame.
     captions: Vec<Vec<usize>>,
+    /// The training split without its validation slice; the slice; the test split.
     train: Vec<usize>,
+    validation: Vec<usize>,
     test: Vec<usize>,
-    truth: Vec<[u32; CELLS]>,
+    /// Every frame's counts.
+    counts: Vec<[u32; CELLS]>,
+    hygiene: Vec<rlmflow_stages::identity::Overlap>,
 }
 
 impl Data {
@@ -90,10 +95,11 @@ impl Data {
     }
 }
 
-fn load(ctx: &Context, device: tch::Device) -> anyhow::Result<(Data, Tokens, rlmflow_stages::encoder::ModelConfig)> {
+fn load(s: &ClipcapSettings, ctx: &Context, device: tch::Device) -> anyhow::Result<(Data, Tokens, rlmflow_stages::encoder::ModelConfig)> {
     let scenes = Scenes::open(ctx.input("scenes")?)?;
     let labels = Labels::open(ctx.input("labels")?)?;
     labels.check_scenes(scenes.len())?;
+    let hygiene = rlmflow_stages::identity::check_inputs(ctx, &labels.ids(Split::Test), s.allow_test_overlap)?;
     let tokens = Tokens::open(ctx.input("tokens")?)?;
     let dir = ctx.input("encoder")?;
     let side = scenes.summary.images[0].size as i64;
@@ -112,20 +118,28 @@ fn load(ctx: &Context, device: tch::Device) -> anyhow::Result<(Data, Tokens, rlm
     })?;
     progress.finish();
     let captions = tokens.rows_by_frame(frames)?;
-    let split = |s: Split| labels.split(s).map(|f| f.frame as usize).filter(|&f| !captions[f].is_empty()).collect::<Vec<_>>();
-    let (train, test) = (split(Split::Train), split(Split::Test));
-    if train.is_empty() || test.is_empty() {
-        bail!("{} training and {} test frames with captions: the caption probe needs both", train.len(), test.len());
+    let split = |s: Split| labels.split(s).filter(|f| !captions[f.frame as usize].is_empty()).collect::<Vec<_>>();
+    let (validation, train): (Vec<_>, Vec<_>) = split(Split::Train).into_iter().partition(|f| labels.in_validation(f, s.validation));
+    let frames_of = |labels: Vec<&rlmflow_stages::labels::FrameLabel>| labels.into_iter().map(|f| f.frame as usize).collect::<Vec<_>>();
+    let (train, validation, test) = (frames_of(train), frames_of(validation), frames_of(split(Split::Test)));
+    if train.is_empty() || validation.is_empty() || test.is_empty() {
+        bail!(
+            "{} training, {} validation and {} test frames with captions: the caption probe needs all three (raise `validation` or the frame count)",
+            train.len(),
+            validation.len(),
+            test.len()
+        );
     }
-    let truth = test.iter().map(|&f| labels.frames[f].grid.counts).collect();
     let data = Data {
         embeddings: Tensor::cat(&parts, 0),
         ids: tokens.ids.all_u32().context("reading the token ids")?.into_iter().map(i64::from).collect(),
         context: tokens.summary.context as i64,
         captions,
         train,
+        validation,
         test,
-        truth,
+        counts: labels.frames.iter().map(|f| f.grid.counts).collect(),
+        hygiene,
     };
     Ok((data, tokens, encoder.config))
 }
@@ -133,7 +147,7 @@ fn load(ctx: &Context, device: tch::Device) -> anyhow::Result<(Data, Tokens, rlm
 fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     tch::set_num_threads(s.threads as i32);
     let device = resolve_device(&s.device, ctx.device)?;
-    let (data, tokens, encoder) = load(ctx, device)?;
+    let (data, tokens, encoder) = load(s, ctx, device)?;
     let tokenizer_path = ctx.input("tokens")?.join(tokens::TOKENIZER);
     let tokenizer = Tokenizer::from_file(&tokenizer_path).map_err(|e| anyhow::anyhow!("reading {}: {e}", tokenizer_path.display()))?;
     let special = &tokens.summary.special;
@@ -181,20 +195,20 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
             progress.set_position(global + 1);
             progress.set_message(format!("epoch {}/{} loss {:.3}", epoch + 1, s.epochs, losses[losses.len() - 1]));
         }
-        let test_loss = tch::no_grad(|| {
+        let validation_loss = tch::no_grad(|| {
             let mut sum = 0.0;
-            for frames in data.test.chunks(CHUNK) {
+            for frames in data.validation.chunks(CHUNK) {
                 let rows: Vec<usize> = frames.iter().map(|&f| data.captions[f][0]).collect();
                 let loss = caption_loss(&gpt, &mapper.forward(&data.embedding(frames)), &data.batch(&rows, device), pad, LENGTH_GROUPS);
                 sum += loss.double_value(&[]) * frames.len() as f64;
             }
-            sum / data.test.len() as f64
+            sum / data.validation.len() as f64
         });
         let line = json!({
             "epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch,
             "loss": losses.iter().sum::<f64>() / losses.len() as f64,
             "lr": warmup_cosine((epoch + 1) * steps_per_epoch - 1, total, warmup, s.warmup_lr, s.lr, s.min_lr),
-            "test_loss": test_loss,
+            "validation_loss": validation_loss,
         });
         let mut event = line.clone();
         event["seconds"] = clock.elapsed().as_secs_f64().into();
@@ -204,43 +218,54 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     }
     progress.finish();
 
-    // Generate the test captions.
+    // Generate the validation and test captions.
     let max_tokens = if s.max_tokens == 0 { data.context as usize } else { s.max_tokens.min(data.context as usize) };
     let clock = Instant::now();
-    let progress = ctx.progress(data.test.len() as u64, "captions generated");
-    let mut captions = Vec::with_capacity(data.test.len());
-    tch::no_grad(|| -> anyhow::Result<()> {
-        for frames in data.test.chunks(CHUNK) {
-            let prefix = mapper.forward(&data.embedding(frames));
-            let mut steps = Steps::new(&gpt, &prefix, start);
-            let sequences = match s.decode {
-                Decode::Greedy => greedy(&mut steps, end, max_tokens),
-                Decode::Beam => beam_search(&mut steps, s.beam, end, max_tokens),
-            };
-            for ids in sequences {
-                let ids: Vec<u32> = ids.into_iter().take_while(|&t| t != end).map(|t| t as u32).collect();
-                captions.push(tokenizer.decode(&ids, true).map_err(|e| anyhow::anyhow!("decoding a generated caption: {e}"))?.trim().to_owned());
+    let progress = ctx.progress((data.validation.len() + data.test.len()) as u64, "captions generated");
+    let generate = |frames: &[usize]| -> anyhow::Result<Vec<String>> {
+        let mut captions = Vec::with_capacity(frames.len());
+        tch::no_grad(|| -> anyhow::Result<()> {
+            for frames in frames.chunks(CHUNK) {
+                let prefix = mapper.forward(&data.embedding(frames));
+                let mut steps = Steps::new(&gpt, &prefix, start);
+                let sequences = match s.decode {
+                    Decode::Greedy => greedy(&mut steps, end, max_tokens),
+                    Decode::Beam => beam_search(&mut steps, s.beam, end, max_tokens),
+                };
+                for ids in sequences {
+                    let ids: Vec<u32> = ids.into_iter().take_while(|&t| t != end).map(|t| t as u32).collect();
+                    captions.push(tokenizer.decode(&ids, true).map_err(|e| anyhow::anyhow!("decoding a generated caption: {e}"))?.trim().to_owned());
+                }
+                progress.inc(frames.len() as u64);
             }
-            progress.inc(frames.len() as u64);
-        }
-        Ok(())
-    })?;
+            Ok(())
+        })?;
+        Ok(captions)
+    };
+    let truth = |frames: &[usize]| frames.iter().map(|&f| data.counts[f]).collect::<Vec<_>>();
+    let (_, validation_scores) = score_captions(&generate(&data.validation)?, &truth(&data.validation));
+    let captions = generate(&data.test)?;
     progress.finish();
     let seconds = clock.elapsed().as_secs_f64();
-    ctx.event("generated", json!({"captions": captions.len(), "seconds": seconds, "captions_per_second": captions.len() as f64 / seconds}));
+    let generated = data.validation.len() + captions.len();
+    ctx.event("generated", json!({"captions": generated, "seconds": seconds, "captions_per_second": generated as f64 / seconds}));
 
-    let (grids, scores) = score_captions(&captions, &data.truth);
+    let (grids, scores) = score_captions(&captions, &truth(&data.test));
     let mut predictions = String::new();
     for ((&frame, caption), grid) in data.test.iter().zip(&captions).zip(&grids) {
         predictions.push_str(&format!("{{\"frame\":{frame},\"features\":\"cls\",\"grid\":{},\"caption\":{}}}\n", grid.to_json(), json!(caption)));
     }
-    let details = json!({"decode": s.decode, "beam": s.beam, "max_tokens": max_tokens, "decoder": config.width, "log": log});
+    let details = json!({
+        "decode": s.decode, "beam": s.beam, "max_tokens": max_tokens, "decoder": config.width, "log": log,
+        "validation_frames": data.validation.len(), "validation_f1": validation_scores.overall.f1,
+    });
     let row = Row { features: "cls".into(), details, scores: scores.clone() };
     let summary = Summary {
         format: probe::FORMAT,
         probe: "clipcap".into(),
         train_frames: data.train.len() as u64,
         test_frames: data.test.len() as u64,
+        hygiene: data.hygiene.clone(),
         rows: vec![row],
         generator: serde_json::to_value(s)?,
     };
@@ -250,15 +275,19 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     write_weights(&vs, &out.join(WEIGHTS))?;
     let last: &Value = log.last().unwrap_or(&Value::Null);
     Ok(Outcome {
-        metrics: json!({"cls": {"f1": scores.overall.f1, "precision": scores.overall.precision, "recall": scores.overall.recall}, "last": last}),
+        metrics: json!({
+            "cls": {"f1": scores.overall.f1, "precision": scores.overall.precision, "recall": scores.overall.recall},
+            "validation_f1": validation_scores.overall.f1, "last": last,
+        }),
         summary: format!(
-            "{} test captions ({:?}): F1 {:.3} (P {:.3} R {:.3}), test loss {:.3}",
+            "{} test captions ({:?}): F1 {:.3} (P {:.3} R {:.3}); validation F1 {:.3}, loss {:.3}",
             captions.len(),
             s.decode,
             scores.overall.f1,
             scores.overall.precision,
             scores.overall.recall,
-            last.get("test_loss").and_then(Value::as_f64).unwrap_or(f64::NAN)
+            validation_scores.overall.f1,
+            last.get("validation_loss").and_then(Value::as_f64).unwrap_or(f64::NAN)
         ),
     })
 }

@@ -7,9 +7,6 @@ mod ridge;
 use std::path::Path;
 
 use anyhow::bail;
-use rand::SeedableRng;
-use rand::seq::SliceRandom;
-use rand_chacha::ChaCha8Rng;
 use rlmflow_nn::clip::{self, images_from_u8};
 use rlmflow_nn::tch::{self, Kind, Tensor};
 use rlmflow_probe::{LinearSettings, Source};
@@ -42,6 +39,7 @@ impl Operator for Linear {
         let scenes = Scenes::open(ctx.input("scenes")?)?;
         let labels = Labels::open(ctx.input("labels")?)?;
         labels.check_scenes(scenes.len())?;
+        let hygiene = rlmflow_stages::identity::check_inputs(ctx, &labels.ids(Split::Test), s.allow_test_overlap)?;
         let encoder = ctx.optional_input("encoder").map(Path::to_path_buf);
         let features: Vec<(&str, Vec<f64>, usize)> = match (s.source, &encoder) {
             (Source::Pixels, _) => {
@@ -53,14 +51,18 @@ impl Operator for Linear {
             (Source::Encoder, None) => bail!("source = \"encoder\" needs an encoder input; use source = \"pixels\" for the pixel baseline"),
         };
         let counts: Vec<f64> = labels.frames.iter().flat_map(|f| f.grid.counts.iter().map(|&c| f64::from(c))).collect();
-        let mut train: Vec<usize> = labels.split(Split::Train).map(|f| f.frame as usize).collect();
+        let train: Vec<usize> = labels.split(Split::Train).map(|f| f.frame as usize).collect();
         let test: Vec<usize> = labels.split(Split::Test).map(|f| f.frame as usize).collect();
-        let held = ((train.len() as f64 * s.holdout).round() as usize).max(1);
-        if train.len() <= held || test.is_empty() {
-            bail!("{} training and {} test frames are too few for a held-out strength choice", train.len(), test.len());
+        let (validate, fit): (Vec<usize>, Vec<usize>) = train.iter().partition(|&&f| labels.in_validation(&labels.frames[f], s.holdout));
+        if fit.is_empty() || validate.is_empty() || test.is_empty() {
+            bail!(
+                "{} training, {} validation and {} test frames are too few for a validated strength choice (raise `holdout` or the frame count)",
+                fit.len(),
+                validate.len(),
+                test.len()
+            );
         }
-        train.shuffle(&mut ChaCha8Rng::seed_from_u64(ctx.seed));
-        let (fit, validate) = train.split_at(train.len() - held);
+        let (fit, validate) = (fit.as_slice(), validate.as_slice());
         let truth = |frames: &[usize]| -> Vec<[u32; CELLS]> { frames.iter().map(|&f| labels.frames[f].grid.counts).collect() };
 
         let progress = ctx.progress((features.len() * (s.lambdas.len() + 1)) as u64, "ridge fits");
@@ -98,6 +100,7 @@ impl Operator for Linear {
             probe: "linear".into(),
             train_frames: train.len() as u64,
             test_frames: test.len() as u64,
+            hygiene,
             rows: rows.clone(),
             generator: serde_json::to_value(s)?,
         };
@@ -121,20 +124,23 @@ fn round(predictions: &[f64]) -> Vec<[u32; CELLS]> {
     predictions.chunks_exact(CELLS).map(|row| std::array::from_fn(|c| row[c].round().max(0.0) as u32)).collect()
 }
 
-/// Every frame's projected CLS embedding and mean patch token from the frozen encoder.
+/// Every frame's projected CLS embedding, mean patch token and patch tokens in grid order (the
+/// spatial layout kept) from the frozen encoder.
 fn encoder_features(dir: &Path, scenes: &Scenes, ctx: &Context) -> anyhow::Result<Vec<(&'static str, Vec<f64>, usize)>> {
     let device = rlmflow_nn::device(ctx.device);
     let side = scenes.summary.images[0].size as i64;
     let (_vs, model) = clip::load(dir, device, side)?;
-    let (mut cls, mut patches) = (Vec::new(), Vec::new());
+    let (mut cls, mut means, mut patches) = (Vec::new(), Vec::new(), Vec::new());
     tch::no_grad(|| -> anyhow::Result<()> {
         for start in (0..scenes.len()).step_by(256) {
             let frames: Vec<u64> = (start..(start + 256).min(scenes.len())).collect();
             let pixels = frames.iter().map(|&i| scenes.heatmap(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
             let out = model.encode_image(&images_from_u8(&pixels, frames.len() as i64, side, device), false);
-            let mean = out.tokens.narrow(1, 1, out.tokens.size()[1] - 1).mean_dim([1].as_slice(), false, Kind::Float);
+            let tokens = out.tokens.narrow(1, 1, out.tokens.size()[1] - 1);
+            let mean = tokens.mean_dim([1].as_slice(), false, Kind::Float);
             cls.push(out.embedding.to_kind(Kind::Double).to_device(tch::Device::Cpu));
-            patches.push(mean.to_kind(Kind::Double).to_device(tch::Device::Cpu));
+            means.push(mean.to_kind(Kind::Double).to_device(tch::Device::Cpu));
+            patches.push(tokens.flatten(1, -1).to_kind(Kind::Double).to_device(tch::Device::Cpu));
         }
         Ok(())
     })?;
@@ -144,6 +150,7 @@ fn encoder_features(dir: &Path, scenes: &Scenes, ctx: &Context) -> anyhow::Resul
         Ok((Vec::<f64>::try_from(t.flatten(0, -1))?, width))
     };
     let (c, cw) = flat(cls)?;
+    let (m, mw) = flat(means)?;
     let (p, pw) = flat(patches)?;
-    Ok(vec![("cls", c, cw), ("mean-patch", p, pw)])
+    Ok(vec![("cls", c, cw), ("mean-patch", m, mw), ("patches", p, pw)])
 }

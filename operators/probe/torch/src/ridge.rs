@@ -1,5 +1,6 @@
 //! Closed-form ridge regression on faer: features standardised by their training mean and
-//! standard deviation, targets centred, then (XᵀX + λ n I) W = Xᵀ Y solved by Cholesky. Every
+//! standard deviation, targets centred, then (XᵀX + λ n I) W = Xᵀ Y solved by Cholesky, or with
+//! more features than rows its dual, W = Xᵀ (XXᵀ + λ n I)⁻¹ Y (the same W, a smaller system). Every
 //! product runs sequentially, so the result does not depend on a thread count.
 
 use anyhow::Context as _;
@@ -33,15 +34,23 @@ impl Ridge {
         let target_mean = column_mean(y, targets);
         let xs = Mat::from_fn(n, features, |i, j| (x[i * features + j] - mean[j]) / scale[j]);
         let yc = Mat::from_fn(n, targets, |i, j| y[i * targets + j] - target_mean[j]);
-        let mut gram = Mat::<f64>::zeros(features, features);
-        matmul(gram.as_mut(), Accum::Replace, xs.transpose(), xs.as_ref(), 1.0, Par::Seq);
-        for j in 0..features {
-            gram[(j, j)] += lambda * n as f64;
-        }
-        let mut weights = Mat::<f64>::zeros(features, targets);
-        matmul(weights.as_mut(), Accum::Replace, xs.transpose(), yc.as_ref(), 1.0, Par::Seq);
-        let llt = gram.llt(Side::Lower).ok().context("the regularised Gram matrix is not positive definite; raise `lambdas`")?;
-        llt.solve_in_place(weights.as_mut());
+        let weights = if features <= n {
+            // Primal: (XᵀX + λ n I) W = Xᵀ Y, a features x features system.
+            let mut gram = Mat::<f64>::zeros(features, features);
+            matmul(gram.as_mut(), Accum::Replace, xs.transpose(), xs.as_ref(), 1.0, Par::Seq);
+            let mut weights = Mat::<f64>::zeros(features, targets);
+            matmul(weights.as_mut(), Accum::Replace, xs.transpose(), yc.as_ref(), 1.0, Par::Seq);
+            solve_regularised(gram, lambda * n as f64, weights)?
+        } else {
+            // Dual, for more features than rows (every patch token): W = Xᵀ (XXᵀ + λ n I)⁻¹ Y,
+            // the same solution through an n x n system.
+            let mut kernel = Mat::<f64>::zeros(n, n);
+            matmul(kernel.as_mut(), Accum::Replace, xs.as_ref(), xs.transpose(), 1.0, Par::Seq);
+            let alpha = solve_regularised(kernel, lambda * n as f64, yc)?;
+            let mut weights = Mat::<f64>::zeros(features, targets);
+            matmul(weights.as_mut(), Accum::Replace, xs.transpose(), alpha.as_ref(), 1.0, Par::Seq);
+            weights
+        };
         Ok(Ridge { mean, scale, target_mean, weights })
     }
 
@@ -54,6 +63,16 @@ impl Ridge {
         matmul(out.as_mut(), Accum::Replace, xs.as_ref(), self.weights.as_ref(), 1.0, Par::Seq);
         (0..n).flat_map(|i| (0..targets).map(move |j| (i, j))).map(|(i, j)| out[(i, j)] + self.target_mean[j]).collect()
     }
+}
+
+/// Solves (A + shift I) X = B for a symmetric positive semi-definite A by Cholesky.
+fn solve_regularised(mut a: Mat<f64>, shift: f64, mut b: Mat<f64>) -> anyhow::Result<Mat<f64>> {
+    for j in 0..a.nrows() {
+        a[(j, j)] += shift;
+    }
+    let llt = a.llt(Side::Lower).ok().context("the regularised Gram matrix is not positive definite; raise `lambdas`")?;
+    llt.solve_in_place(b.as_mut());
+    Ok(b)
 }
 
 #[cfg(test)]
@@ -73,5 +92,22 @@ mod tests {
         let ridge = Ridge::fit(&[-1.0, 0.0, 1.0], 1, &[3.0, 1.0, 5.0, 1.0, 7.0, 1.0], 2, 1e-15).unwrap();
         let p = ridge.predict(&[4.0]);
         assert!((p[0] - 13.0).abs() < 1e-9 && (p[1] - 1.0).abs() < 1e-9, "{p:?}");
+    }
+
+    #[test]
+    fn the_dual_form_gives_the_primal_solution() {
+        // 6 rows: with 4 features the primal solves, with the same 4 features repeated to 8 the
+        // dual does; the duplicated columns share the weight, so predictions agree.
+        let x: Vec<f64> = (0..24).map(|i| ((i * 7 % 11) as f64 - 5.0) * 0.3 + (i / 4) as f64 * 0.1).collect();
+        let y: Vec<f64> = (0..12).map(|i| ((i * 5 % 7) as f64) - 2.0).collect();
+        let wide: Vec<f64> = x.chunks(4).flat_map(|row| row.iter().chain(row).copied().collect::<Vec<_>>()).collect();
+        let primal = Ridge::fit(&x, 4, &y, 2, 0.05).unwrap();
+        let dual = Ridge::fit(&wide, 8, &y, 2, 0.1).unwrap();
+        let query = [0.3, -1.0, 2.0, 0.5];
+        let wide_query: Vec<f64> = query.iter().chain(&query).copied().collect();
+        let (p, d) = (primal.predict(&query), dual.predict(&wide_query));
+        for (a, b) in p.iter().zip(&d) {
+            assert!((a - b).abs() < 1e-9, "{p:?} {d:?}");
+        }
     }
 }

@@ -3,8 +3,10 @@
 //! artifact and the metrics are `rlmflow_stages::segment`'s.
 //!
 //! Both share one loop. Each epoch visits the training frames in an order seeded by (seed,
-//! epoch), so a checkpoint needs only the epoch; after each epoch the test split is scored and a
-//! checkpoint written. The frozen encoder's tokens are computed once for every frame when they
+//! epoch), so a checkpoint needs only the epoch; after each epoch a validation slice of the
+//! training split (never trained on; by frame identity, episodes whole) is scored and a
+//! checkpoint written. The test split is scored once, at the end. Both first check that no test
+//! frame is among those the encoder trained on (`rlmflow_stages::identity`). The frozen encoder's tokens are computed once for every frame when they
 //! fit in [`TOKEN_CACHE_BYTES`], else per batch.
 
 use std::time::Instant;
@@ -44,7 +46,7 @@ impl Operator for Pup {
 
     fn run(&self, s: &PupSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         let schedule = s.schedule();
-        let (device, data) = prepare(&schedule, ctx)?;
+        let (device, data) = prepare(&schedule, ctx, s.allow_test_overlap)?;
         let dir = ctx.input("encoder")?;
         let (_encoder_vs, encoder) = clip::load(dir, device, data.side)?;
         let vision = &encoder.config.vision;
@@ -83,7 +85,7 @@ impl Operator for Unet {
 
     fn run(&self, s: &UnetSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         let schedule = s.schedule();
-        let (device, data) = prepare(&schedule, ctx)?;
+        let (device, data) = prepare(&schedule, ctx, false)?;
         let divisor = 1i64 << (s.channels.len() - 1);
         if data.side % divisor != 0 {
             bail!("setting `channels`: {} levels need an image side divisible by {divisor}; the scenes have {}", s.channels.len(), data.side);
@@ -98,20 +100,27 @@ impl Operator for Unet {
     }
 }
 
-/// The heatmaps and masks of every frame, and the split.
+/// Share of the training split held out as the validation slice the per-epoch log scores.
+const VALIDATION_SHARE: f64 = 0.1;
+
+/// The heatmaps and masks of every frame, and the split: training frames less the validation
+/// slice, the slice, the test frames.
 struct Data {
     side: i64,
     pixels: Vec<u8>,
     masks: Vec<u8>,
     train: Vec<usize>,
+    validation: Vec<usize>,
     test: Vec<usize>,
+    hygiene: Vec<rlmflow_stages::identity::Overlap>,
 }
 
 impl Data {
-    fn load(ctx: &Context) -> anyhow::Result<Data> {
+    fn load(ctx: &Context, allow_test_overlap: bool) -> anyhow::Result<Data> {
         let scenes = Scenes::open(ctx.input("scenes")?)?;
         let labels = Labels::open(ctx.input("labels")?)?;
         labels.check_scenes(scenes.len())?;
+        let hygiene = rlmflow_stages::identity::check_inputs(ctx, &labels.ids(Split::Test), allow_test_overlap)?;
         let side = scenes.summary.images[0].size;
         if labels.summary.mask.size != side {
             bail!(
@@ -121,12 +130,22 @@ impl Data {
         }
         let pixels = (0..scenes.len()).map(|i| scenes.heatmap(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
         let masks = (0..scenes.len()).map(|i| labels.mask(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
-        let split = |s: Split| labels.split(s).map(|f| f.frame as usize).collect::<Vec<_>>();
-        let (train, test) = (split(Split::Train), split(Split::Test));
-        if train.is_empty() || test.is_empty() {
-            bail!("{} training and {} test frames: segmentation needs both", train.len(), test.len());
+        let (validation, train): (Vec<usize>, Vec<usize>) = labels
+            .split(Split::Train)
+            .map(|f| (f.frame as usize, labels.in_validation(f, VALIDATION_SHARE)))
+            .fold((Vec::new(), Vec::new()), |(mut v, mut t), (f, held)| {
+                if held {
+                    v.push(f)
+                } else {
+                    t.push(f)
+                }
+                (v, t)
+            });
+        let test: Vec<usize> = labels.split(Split::Test).map(|f| f.frame as usize).collect();
+        if train.is_empty() || validation.is_empty() || test.is_empty() {
+            bail!("{} training, {} validation and {} test frames: segmentation needs all three", train.len(), validation.len(), test.len());
         }
-        Ok(Data { side: side as i64, pixels, masks, train, test })
+        Ok(Data { side: side as i64, pixels, masks, train, validation, test, hygiene })
     }
 
     fn frame_bytes(&self) -> usize {
@@ -150,9 +169,9 @@ impl Data {
     }
 }
 
-fn prepare(s: &Schedule, ctx: &Context) -> anyhow::Result<(tch::Device, Data)> {
+fn prepare(s: &Schedule, ctx: &Context, allow_test_overlap: bool) -> anyhow::Result<(tch::Device, Data)> {
     tch::set_num_threads(s.threads as i32);
-    Ok((resolve_device(&s.device, ctx.device)?, Data::load(ctx)?))
+    Ok((resolve_device(&s.device, ctx.device)?, Data::load(ctx, allow_test_overlap)?))
 }
 
 /// The frozen encoder's tokens after `ln_post` for any frames: from a table of every frame's
@@ -210,12 +229,12 @@ struct Segmenter<'a> {
     forward: Box<dyn Fn(&[usize], bool) -> Tensor + 'a>,
 }
 
-/// The test split scored: pixel counts for the metrics and the mean loss.
-fn evaluate(segmenter: &Segmenter, data: &Data, device: tch::Device, dice_weight: f64) -> anyhow::Result<(PixelCounts, f64)> {
+/// `scored` frames scored: pixel counts for the metrics and the mean loss.
+fn evaluate(segmenter: &Segmenter, data: &Data, scored: &[usize], device: tch::Device, dice_weight: f64) -> anyhow::Result<(PixelCounts, f64)> {
     tch::no_grad(|| {
         let mut counts = PixelCounts::new();
         let mut loss = 0.0;
-        for frames in data.test.chunks(CHUNK) {
+        for frames in scored.chunks(CHUNK) {
             let logits = (segmenter.forward)(frames, false);
             loss += dice_bce_loss(&logits, &data.targets(frames, device), dice_weight).double_value(&[]) * frames.len() as f64;
             let predicted = Vec::<f32>::try_from(logits.sigmoid().to_device(tch::Device::Cpu).flatten(0, -1))?;
@@ -224,7 +243,7 @@ fn evaluate(segmenter: &Segmenter, data: &Data, device: tch::Device, dice_weight
                 counts.add(&predicted[i * n..(i + 1) * n], data.mask(f));
             }
         }
-        Ok((counts, loss / data.test.len() as f64))
+        Ok((counts, loss / scored.len() as f64))
     })
 }
 
@@ -253,7 +272,6 @@ fn train(
     }
     let progress = ctx.progress(total, "steps");
     progress.set_position(opt.steps() as u64);
-    let mut scored = None;
     for epoch in log.len() as u64..s.epochs {
         let clock = Instant::now();
         let mut order = data.train.clone();
@@ -270,27 +288,22 @@ fn train(
             progress.set_position(global + 1);
             progress.set_message(format!("epoch {}/{} loss {:.3}", epoch + 1, s.epochs, losses[losses.len() - 1]));
         }
-        let (counts, test_loss) = evaluate(&segmenter, data, device, s.dice_weight)?;
+        let (counts, validation_loss) = evaluate(&segmenter, data, &data.validation, device, s.dice_weight)?;
         let m = counts.metrics();
         let line = json!({
             "epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch,
             "loss": losses.iter().sum::<f64>() / losses.len() as f64,
             "lr": warmup_cosine((epoch + 1) * steps_per_epoch - 1, total, warmup, s.warmup_lr, s.lr, s.min_lr),
-            "test_loss": test_loss, "iou": m.iou, "ap": m.ap,
+            "validation_loss": validation_loss, "validation_iou": m.iou, "validation_ap": m.ap,
         });
         let mut event = line.clone();
         event["seconds"] = clock.elapsed().as_secs_f64().into();
         ctx.event("epoch", event);
         log.push(line);
         save_checkpoint(&segmenter.vs, &opt, &log, &ctx.checkpoint_dir)?;
-        scored = Some(m);
     }
     progress.finish();
-    // A run resumed after its last epoch scores the restored head.
-    let metrics = match scored {
-        Some(m) => m,
-        None => evaluate(&segmenter, data, device, s.dice_weight)?.0.metrics(),
-    };
+    let metrics = evaluate(&segmenter, data, &data.test, device, s.dice_weight)?.0.metrics();
     write_artifact(s, ctx, data, &segmenter, rollout, &log, total, metrics, generator)
 }
 
@@ -335,6 +348,7 @@ fn write_artifact(
         operator: segmenter.name.into(),
         train_frames: data.train.len() as u64,
         test_frames: data.test.len() as u64,
+        hygiene: data.hygiene.clone(),
         epochs: s.epochs,
         steps,
         metrics: metrics.clone(),
