@@ -55,14 +55,6 @@ pub fn split_of(group: &str, test_fraction: f64, split_seed: u64) -> Split {
     if split_position(group, split_seed) < test_fraction { Split::Test } else { Split::Train }
 }
 
-/// Whether a frame of this group falls in the validation slice of its training split: the
-/// groups whose position lies in the last `share` of the training range. Like the split, it
-/// depends on the group alone, so a validation slice never holds half an episode.
-pub fn in_validation(group: &str, test_fraction: f64, split_seed: u64, share: f64) -> bool {
-    let p = split_position(group, split_seed);
-    p >= test_fraction && p >= 1.0 - share * (1.0 - test_fraction)
-}
-
 /// A set of frame identities: the frames a model learnt from, or a probe tests on.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct FrameSet(pub BTreeSet<String>);
@@ -206,11 +198,6 @@ mod tests {
         let share = large.iter().filter(|s| **s == Split::Test).count() as f64 / 4000.0;
         assert!((share - 0.2).abs() < 0.02, "{share}");
         assert_ne!(large, groups.iter().map(|g| split_of(g, 0.2, 4)).collect::<Vec<_>>(), "the seed matters");
-        // Validation is a slice of the training split.
-        let validation: Vec<bool> = groups.iter().map(|g| in_validation(g, 0.2, 3, 0.25)).collect();
-        assert!(validation.iter().zip(&large).all(|(v, s)| !v || *s == Split::Train));
-        let share = validation.iter().filter(|v| **v).count() as f64 / 4000.0;
-        assert!((share - 0.2).abs() < 0.02, "a quarter of the 80% training split: {share}");
     }
 
     #[test]

@@ -196,10 +196,18 @@ impl Labels {
         self.split(split).map(|f| f.id.clone()).collect()
     }
 
-    /// Whether frame `frame` (a training frame) lies in the validation slice of the training
-    /// split that takes `share` of it: decided by the frame's split group, like the split.
-    pub fn in_validation(&self, frame: &FrameLabel, share: f64) -> bool {
-        let group = if self.summary.split.by == "episode" { frame.episode.as_deref().unwrap_or(&frame.id) } else { &frame.id };
-        frame.split == Split::Train && crate::identity::in_validation(group, self.summary.split.test_fraction, self.summary.split.seed, share)
+    /// The training split cut into the frames to fit on and a validation slice of about `share`
+    /// of its split groups (at least one): the groups whose split position lies highest, so an
+    /// episode is never cut and the slice depends on the frames alone, not their order.
+    pub fn train_validation(&self, share: f64) -> (Vec<&FrameLabel>, Vec<&FrameLabel>) {
+        let group = |f: &FrameLabel| -> String {
+            if self.summary.split.by == "episode" { f.episode.clone().unwrap_or_else(|| f.id.clone()) } else { f.id.clone() }
+        };
+        let groups: std::collections::BTreeSet<String> = self.split(Split::Train).map(group).collect();
+        let mut ranked: Vec<(f64, &String)> = groups.iter().map(|g| (crate::identity::split_position(g, self.summary.split.seed), g)).collect();
+        ranked.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(b.1)));
+        let take = ((groups.len() as f64 * share).round() as usize).clamp(usize::from(!groups.is_empty()), groups.len().saturating_sub(1).max(1));
+        let held: std::collections::BTreeSet<&String> = ranked.iter().take(take).map(|(_, g)| *g).collect();
+        self.split(Split::Train).partition(|f| !held.contains(&group(f)))
     }
 }

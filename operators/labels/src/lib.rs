@@ -522,6 +522,14 @@ mod tests {
         let (episode, _) = splits(&root, "by-episode", &scenes, &EgoGridSettings::default());
         assert_eq!(straddling(&episode), 0);
         assert_eq!(episode.summary.split.groups, 40);
+        // The validation slice takes whole training episodes, about the share asked for.
+        let (fit, validation) = episode.train_validation(0.25);
+        let episodes = |frames: &[&FrameLabel]| frames.iter().map(|f| f.episode.clone().unwrap()).collect::<std::collections::BTreeSet<_>>();
+        let (fit_episodes, validation_episodes) = (episodes(&fit), episodes(&validation));
+        assert!(fit_episodes.is_disjoint(&validation_episodes));
+        let train_episodes = (fit_episodes.len() + validation_episodes.len()) as f64;
+        assert_eq!(validation_episodes.len(), (train_episodes * 0.25).round() as usize);
+        assert_eq!(fit.len() + validation.len(), episode.summary.train as usize);
         assert!(episode.summary.test > 0 && episode.summary.train > 0);
         let (frame, _) = splits(&root, "by-frame", &scenes, &EgoGridSettings { split_by: SplitBy::Frame, ..Default::default() });
         assert!(straddling(&frame) > 10, "frame by frame, most episodes straddle");

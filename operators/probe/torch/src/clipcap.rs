@@ -118,10 +118,11 @@ fn load(s: &ClipcapSettings, ctx: &Context, device: tch::Device) -> anyhow::Resu
     })?;
     progress.finish();
     let captions = tokens.rows_by_frame(frames)?;
-    let split = |s: Split| labels.split(s).filter(|f| !captions[f.frame as usize].is_empty()).collect::<Vec<_>>();
-    let (validation, train): (Vec<_>, Vec<_>) = split(Split::Train).into_iter().partition(|f| labels.in_validation(f, s.validation));
-    let frames_of = |labels: Vec<&rlmflow_stages::labels::FrameLabel>| labels.into_iter().map(|f| f.frame as usize).collect::<Vec<_>>();
-    let (train, validation, test) = (frames_of(train), frames_of(validation), frames_of(split(Split::Test)));
+    let (train, validation) = labels.train_validation(s.validation);
+    let frames_of = |labels: Vec<&rlmflow_stages::labels::FrameLabel>| {
+        labels.into_iter().map(|f| f.frame as usize).filter(|&f| !captions[f].is_empty()).collect::<Vec<_>>()
+    };
+    let (train, validation, test) = (frames_of(train), frames_of(validation), frames_of(labels.split(Split::Test).collect()));
     if train.is_empty() || validation.is_empty() || test.is_empty() {
         bail!(
             "{} training, {} validation and {} test frames with captions: the caption probe needs all three (raise `validation` or the frame count)",

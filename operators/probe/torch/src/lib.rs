@@ -53,7 +53,9 @@ impl Operator for Linear {
         let counts: Vec<f64> = labels.frames.iter().flat_map(|f| f.grid.counts.iter().map(|&c| f64::from(c))).collect();
         let train: Vec<usize> = labels.split(Split::Train).map(|f| f.frame as usize).collect();
         let test: Vec<usize> = labels.split(Split::Test).map(|f| f.frame as usize).collect();
-        let (validate, fit): (Vec<usize>, Vec<usize>) = train.iter().partition(|&&f| labels.in_validation(&labels.frames[f], s.holdout));
+        let (fit, validate) = labels.train_validation(s.holdout);
+        let frames = |labels: Vec<&rlmflow_stages::labels::FrameLabel>| labels.into_iter().map(|f| f.frame as usize).collect::<Vec<_>>();
+        let (fit, validate) = (frames(fit), frames(validate));
         if fit.is_empty() || validate.is_empty() || test.is_empty() {
             bail!(
                 "{} training, {} validation and {} test frames are too few for a validated strength choice (raise `holdout` or the frame count)",

@@ -130,17 +130,9 @@ impl Data {
         }
         let pixels = (0..scenes.len()).map(|i| scenes.heatmap(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
         let masks = (0..scenes.len()).map(|i| labels.mask(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
-        let (validation, train): (Vec<usize>, Vec<usize>) = labels
-            .split(Split::Train)
-            .map(|f| (f.frame as usize, labels.in_validation(f, VALIDATION_SHARE)))
-            .fold((Vec::new(), Vec::new()), |(mut v, mut t), (f, held)| {
-                if held {
-                    v.push(f)
-                } else {
-                    t.push(f)
-                }
-                (v, t)
-            });
+        let (train, validation) = labels.train_validation(VALIDATION_SHARE);
+        let frames = |labels: Vec<&rlmflow_stages::labels::FrameLabel>| labels.into_iter().map(|f| f.frame as usize).collect::<Vec<_>>();
+        let (train, validation) = (frames(train), frames(validation));
         let test: Vec<usize> = labels.split(Split::Test).map(|f| f.frame as usize).collect();
         if train.is_empty() || validation.is_empty() || test.is_empty() {
             bail!("{} training, {} validation and {} test frames: segmentation needs all three", train.len(), validation.len(), test.len());
