@@ -44,7 +44,8 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
             Freshness::Stale { key, preimage, .. } => (*key, (**preimage).clone(), None),
             Freshness::Pending { reason } => bail!("{}: {reason}", inst.label),
         };
-        store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone() })?;
+        let input_labels = plan.input_labels(i);
+        store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone(), input_labels })?;
         println!("check-determinism {} (key {})", inst.label, key.short());
         let exe = crate::exec::executable(registry.get(&inst.operator).expect("validated operator"))?;
         let mut attempts: Vec<(PathBuf, Digest)> = Vec::new();

@@ -12,7 +12,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::Context as _;
-use rlmflow_cache::{ActionRecord, ActionRequest, Digest, Preimage, Store, hash_tree, now_rfc3339};
+use rlmflow_cache::{ActionRecord, ActionRequest, Digest, Store, hash_tree, now_rfc3339};
 use rlmflow_stages::{Context, Device, DynOperator, Input, Outcome, Registry, Reporter};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -102,7 +102,7 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
     }
     store.sweep_tmp(Some(&key))?;
     let op = registry.get(&request.preimage.operator).with_context(|| format!("this rlmflow has no operator `{}`", request.preimage.operator))?;
-    let inputs = match inputs(&store, &request.preimage)? {
+    let inputs = match inputs(&store, &request)? {
         Ok(inputs) => inputs,
         Err(code) => return Ok(code),
     };
@@ -142,7 +142,7 @@ pub fn exec_scratch(registry: &Registry, store: &Path, key: Digest, threads: usi
     let _shared = store.lock_shared()?;
     let request = store.request(&key)?.with_context(|| format!("the store has no request for action {key}"))?;
     let op = registry.get(&request.preimage.operator).with_context(|| format!("this rlmflow has no operator `{}`", request.preimage.operator))?;
-    let inputs = match inputs(&store, &request.preimage)? {
+    let inputs = match inputs(&store, &request)? {
         Ok(inputs) => inputs,
         Err(code) => return Ok(code),
     };
@@ -158,9 +158,9 @@ pub fn exec_scratch(registry: &Registry, store: &Path, key: Digest, threads: usi
 
 /// The action's inputs by slot, each re-hashed first; `Err(exit status)` when one is damaged or
 /// missing (quarantined and reported, so the engine recomputes its producer).
-fn inputs(store: &Store, preimage: &Preimage) -> anyhow::Result<Result<BTreeMap<String, Vec<Input>>, i32>> {
+fn inputs(store: &Store, request: &ActionRequest) -> anyhow::Result<Result<BTreeMap<String, Vec<Input>>, i32>> {
     let mut inputs: BTreeMap<String, Vec<Input>> = BTreeMap::new();
-    for input in &preimage.inputs {
+    for input in &request.preimage.inputs {
         let damaged = if store.has_object(&input.digest) { store.check_object(&input.digest)? } else { None };
         if let Some(corruption) = damaged {
             store.quarantine(&input.digest)?;
@@ -172,7 +172,12 @@ fn inputs(store: &Store, preimage: &Preimage) -> anyhow::Result<Result<BTreeMap<
             return Ok(Err(EXIT_CORRUPT_INPUT));
         }
         let path = store.object_dir(&input.digest);
-        inputs.entry(input.slot.clone()).or_default().push(Input { label: input.label.clone(), path });
+        // A single input's label is not in the preimage; the request names it for messages.
+        let label = match (input.label.is_empty(), request.input_labels.get(&input.slot)) {
+            (true, Some(label)) => label.clone(),
+            _ => input.label.clone(),
+        };
+        inputs.entry(input.slot.clone()).or_default().push(Input { label, path });
     }
     Ok(Ok(inputs))
 }

@@ -190,6 +190,12 @@ impl Plan<'_> {
         Ok(keep)
     }
 
+    /// The producing instance of each of instance `i`'s single-artifact inputs, by slot.
+    pub fn input_labels(&self, i: usize) -> BTreeMap<String, String> {
+        let one = self.instances[i].inputs.iter().filter(|input| input.arity == Arity::One);
+        one.filter_map(|input| Some((input.slot.to_owned(), self.instances[*input.providers.first()?].label.clone()))).collect()
+    }
+
     /// The preimage of instance `i`, once every input's output digest is known.
     pub fn preimage(&self, i: usize, registry: &Registry, outputs: &[Option<Digest>]) -> Option<Preimage> {
         let inst = &self.instances[i];

@@ -382,7 +382,8 @@ impl Executor<'_> {
 
     fn write_request(&self, i: usize, key: Digest, preimage: Preimage) -> anyhow::Result<()> {
         let inst = &self.plan.instances[i];
-        self.store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone() })
+        let input_labels = self.plan.input_labels(i);
+        self.store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone(), input_labels })
     }
 
     fn write_plan_if_dirty(&mut self) -> anyhow::Result<()> {

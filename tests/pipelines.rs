@@ -153,13 +153,32 @@ fn the_report_holds_every_probe(objects: &Path) {
     let markdown = std::fs::read_to_string(report.join("report.md")).unwrap();
     let metrics: serde_json::Value = serde_json::from_slice(&std::fs::read(report.join("metrics.json")).unwrap()).unwrap();
     let captioning = metrics["captioning"].as_object().unwrap();
-    for row in ["clipcap · clip", "clipcap · random", "clipcap-beam · clip", "linear · clip (cls)", "linear · random (mean-patch)", "pixels (pixels)"]
-    {
+    for row in [
+        "clipcap · clip",
+        "clipcap · random",
+        "clipcap-beam · clip",
+        "linear · clip (cls)",
+        "linear · random (mean-patch)",
+        "linear · clip (patches)",
+        "pixels (pixels)",
+    ] {
         assert!(captioning.contains_key(row), "captioning row {row}: {:?}", captioning.keys());
         assert!(html.contains(row) && markdown.contains(row), "{row} not in the report");
     }
     assert_eq!(captioning["clipcap · random"]["row"], "random init (sanity)");
     assert_eq!(captioning["pixels (pixels)"]["row"], "pixels (baseline)");
+    // Every probe and segmenter on an encoder counted its test frames among the encoder's
+    // training frames and each tokenizer's: all zero, shown in the hygiene table.
+    let hygiene = metrics["hygiene"].as_array().unwrap();
+    let checked: std::collections::BTreeSet<&str> = hygiene.iter().map(|r| r["instance"].as_str().unwrap()).collect();
+    for instance in ["clipcap[clip]", "clipcap-beam[random]", "linear[clip]", "pup[random]"] {
+        assert!(checked.contains(instance), "{instance} not in {checked:?}");
+    }
+    assert!(hygiene.iter().all(|r| r["check"]["overlap"] == 0), "{hygiene:?}");
+    let trained_on = |r: &&serde_json::Value| r["check"]["against"] == "encoder training" && r["check"]["frames"].as_u64().unwrap() > 0;
+    assert!(hygiene.iter().filter(trained_on).all(|r| r["instance"].as_str().unwrap().contains("[clip]")), "an untrained encoder trained on nothing");
+    assert!(hygiene.iter().filter(trained_on).count() >= 4, "{hygiene:?}");
+    assert!(markdown.contains("# Data hygiene") && markdown.contains("Every count is zero"), "no hygiene table");
     let segmentation = metrics["segmentation"].as_object().unwrap();
     assert_eq!(segmentation.keys().collect::<Vec<_>>(), ["pup · clip", "pup · random", "unet"]);
     assert_eq!(segmentation["unet"]["paper"][2], 0.489, "the paper's U-Net IoU stands beside ours");
@@ -587,7 +606,12 @@ fn hygiene_rows(dir: &Path) -> Vec<(String, String, u64, u64)> {
         .iter()
         .map(|r| {
             let c = &r["check"];
-            (r["instance"].as_str().unwrap().into(), c["against"].as_str().unwrap().into(), c["frames"].as_u64().unwrap(), c["overlap"].as_u64().unwrap())
+            (
+                r["instance"].as_str().unwrap().into(),
+                c["against"].as_str().unwrap().into(),
+                c["frames"].as_u64().unwrap(),
+                c["overlap"].as_u64().unwrap(),
+            )
         })
         .collect()
 }
@@ -624,7 +648,11 @@ fn a_probe_never_tests_on_frames_its_encoder_learnt_from_and_a_leak_is_refused_u
     let rows = hygiene_rows(&dir);
     assert!(rows.iter().any(|(_, against, _, overlap)| against == "encoder training" && *overlap > 0), "{rows:?}");
     let report = std::fs::read_to_string(
-        rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap().object_dir(&output_digest(&dir, "hygiene", "report")).join("report.md"),
+        rlmflow_cache::Store::open_existing(&dir.join(".rlmflow"))
+            .unwrap()
+            .unwrap()
+            .object_dir(&output_digest(&dir, "hygiene", "report"))
+            .join("report.md"),
     )
     .unwrap();
     assert!(report.contains("OVERLAP (allowed)") && report.contains("not clean test results"), "{report}");

@@ -42,6 +42,10 @@ pub struct ActionRequest {
     pub preimage: Preimage,
     /// Every setting, including those left out of the key (`threads`, `log_every`).
     pub settings: Value,
+    /// The producing instance of each single-artifact input, by slot (for messages only: those
+    /// labels stay out of the key, so renaming a stage reruns nothing).
+    #[serde(default)]
+    pub input_labels: BTreeMap<String, String>,
 }
 
 /// One stage instance in a run's plan.

@@ -109,7 +109,8 @@ impl Context {
         self.optional_input(slot).with_context(|| format!("stage {} has no `{slot}` input", self.stage))
     }
 
-    /// The producing instance of the single artifact bound to `slot` (e.g. `pretrain[alpha4]`).
+    /// The producing instance of the single artifact bound to `slot` (e.g. `pretrain[alpha4]`),
+    /// for messages only: it is not part of the action's key, so it never goes into the output.
     pub fn input_label(&self, slot: &str) -> Option<&str> {
         self.inputs.get(slot).and_then(|v| v.first()).map(|i| i.label.as_str())
     }

@@ -102,11 +102,12 @@ impl FromIterator<String> for FrameSet {
 /// What a probe's test frames were compared with.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Overlap {
-    /// `encoder training` (the frames the radar tower trained on) or `tokenizer` (the frames
-    /// whose captions a vocabulary was learnt from).
+    /// `encoder training` (the frames the radar tower trained on), `encoder's tokenizer` or
+    /// `tokenizer` (the frames whose captions a vocabulary was learnt from).
     pub against: String,
-    /// The instance that learnt from them, e.g. `pretrain[alpha4]`.
-    pub stage: String,
+    /// The input slot that carried the set (`encoder`, `tokens`); the instance behind it is
+    /// the engine's to name (stage names stay out of artifacts, as they are out of keys).
+    pub slot: String,
     /// Frames it learnt from.
     pub frames: u64,
     /// The probe's test frames.
@@ -117,11 +118,20 @@ pub struct Overlap {
     pub allowed: bool,
 }
 
+/// One set of frames something upstream learnt from: what it is, the slot that carried it, the
+/// producing instance (for the message) and the set.
+pub struct Learnt<'a> {
+    pub against: &'static str,
+    pub slot: &'static str,
+    pub label: &'a str,
+    pub set: FrameSet,
+}
+
 /// Counts the probe's test frames among each learnt set and refuses a non-zero count unless
-/// `allow` is set. `stage` is the probe's instance; `learnt` holds (against, stage, set).
-pub fn check_overlap(stage: &str, test: &FrameSet, learnt: &[(&str, &str, FrameSet)], allow: bool) -> anyhow::Result<Vec<Overlap>> {
+/// `allow` is set. `stage` is the probe's instance.
+pub fn check_overlap(stage: &str, test: &FrameSet, learnt: &[Learnt], allow: bool) -> anyhow::Result<Vec<Overlap>> {
     let mut out = Vec::new();
-    for (against, source, set) in learnt {
+    for Learnt { against, slot, label: source, set } in learnt {
         let overlap = test.overlap(set);
         if overlap > 0 && !allow {
             bail!(
@@ -135,7 +145,7 @@ pub fn check_overlap(stage: &str, test: &FrameSet, learnt: &[(&str, &str, FrameS
         }
         out.push(Overlap {
             against: against.to_string(),
-            stage: source.to_string(),
+            slot: slot.to_string(),
             frames: set.len(),
             test_frames: test.len(),
             overlap,
@@ -150,16 +160,18 @@ pub fn check_overlap(stage: &str, test: &FrameSet, learnt: &[(&str, &str, FrameS
 /// learnt from. Refuses a non-zero overlap unless `allow`.
 pub fn check_inputs(ctx: &crate::Context, test: &FrameSet, allow: bool) -> anyhow::Result<Vec<Overlap>> {
     let mut learnt = Vec::new();
+    let label = |slot: &'static str| ctx.input_label(slot).filter(|l| !l.is_empty()).unwrap_or(slot);
     if let Some(dir) = ctx.optional_input("encoder") {
-        let label = ctx.input_label("encoder").unwrap_or("encoder");
-        learnt.push(("encoder training", label, FrameSet::read(&dir.join(crate::encoder::TRAINED))?));
+        let set = FrameSet::read(&dir.join(crate::encoder::TRAINED))?;
+        learnt.push(Learnt { against: "encoder training", slot: "encoder", label: label("encoder"), set });
         let tokenizer = dir.join(crate::encoder::TOKENIZER_FRAMES);
         if tokenizer.exists() {
-            learnt.push(("encoder's tokenizer", label, FrameSet::read(&tokenizer)?));
+            learnt.push(Learnt { against: "encoder's tokenizer", slot: "encoder", label: label("encoder"), set: FrameSet::read(&tokenizer)? });
         }
     }
     if let Some(dir) = ctx.optional_input("tokens") {
-        learnt.push(("tokenizer", ctx.input_label("tokens").unwrap_or("tokens"), FrameSet::read(&dir.join(crate::tokens::LEARNT))?));
+        let set = FrameSet::read(&dir.join(crate::tokens::LEARNT))?;
+        learnt.push(Learnt { against: "tokenizer", slot: "tokens", label: label("tokens"), set });
     }
     let rows = check_overlap(&ctx.stage, test, &learnt, allow)?;
     for row in &rows {
@@ -220,11 +232,12 @@ mod tests {
         let test: FrameSet = ids(0..10).into_iter().collect();
         let seen: FrameSet = ids(8..30).into_iter().collect();
         let clean: FrameSet = ids(10..30).into_iter().collect();
-        let e = check_overlap("clipcap[vanilla]", &test, &[("encoder training", "pretrain[vanilla]", seen.clone())], false).unwrap_err();
+        let learnt = |against, label, set: &FrameSet| Learnt { against, slot: "encoder", label, set: set.clone() };
+        let e = check_overlap("clipcap[vanilla]", &test, &[learnt("encoder training", "pretrain[vanilla]", &seen)], false).unwrap_err();
         let e = e.to_string();
         assert!(e.starts_with("clipcap[vanilla]: 2 of its 10 test frames are among the 22 frames `pretrain[vanilla]` learnt from"), "{e}");
         assert!(e.contains("allow_test_overlap = true"), "{e}");
-        let rows = check_overlap("p", &test, &[("encoder training", "e", clean), ("tokenizer", "t", seen)], true).unwrap();
+        let rows = check_overlap("p", &test, &[learnt("encoder training", "e", &clean), learnt("tokenizer", "t", &seen)], true).unwrap();
         assert_eq!(rows.iter().map(|r| (r.overlap, r.allowed)).collect::<Vec<_>>(), [(0, true), (2, true)]);
     }
 }

@@ -12,7 +12,7 @@ use crate::paper;
 use crate::plots::{self, Series};
 use crate::samples::{Captioner, Sample};
 use crate::stats::{Stat, name, rows};
-use crate::study::{EncoderRun, Role, Study};
+use crate::study::{EncoderRun, Instance, Role, Study};
 
 /// The document and the numbers, built section by section.
 pub struct Report {
@@ -233,17 +233,17 @@ impl Report {
     /// each set of frames upstream learnt from (the encoder's training frames, its tokenizer's,
     /// the probe's own tokenizer's), as the instance counted them before it ran.
     pub fn hygiene(&mut self, study: &Study) {
-        let checks: Vec<(&str, &[identity::Overlap])> = study
+        let checks: Vec<(&str, &Instance, &[identity::Overlap])> = study
             .probes
             .iter()
-            .map(|p| (p.label.as_str(), p.summary.hygiene.as_slice()))
-            .chain(study.segments.iter().map(|s| (s.label.as_str(), s.summary.hygiene.as_slice())))
-            .filter(|(_, rows)| !rows.is_empty())
+            .map(|p| (p.label.as_str(), &p.instance, p.summary.hygiene.as_slice()))
+            .chain(study.segments.iter().map(|s| (s.label.as_str(), &s.instance, s.summary.hygiene.as_slice())))
+            .filter(|(_, _, rows)| !rows.is_empty())
             .collect();
         if checks.is_empty() {
             return;
         }
-        let flagged = checks.iter().flat_map(|(_, rows)| rows.iter()).filter(|r| r.overlap > 0).count();
+        let flagged = checks.iter().flat_map(|(_, _, rows)| rows.iter()).filter(|r| r.overlap > 0).count();
         self.blocks.push(Block::Heading(1, "Data hygiene".into()));
         self.blocks.push(Block::Paragraph(format!(
             "Frames are compared by identity (the digest of their content, kept through every mix and shard). Each row counts a \
@@ -257,14 +257,19 @@ impl Report {
         )));
         let mut table_rows = Vec::new();
         let mut metrics = Vec::new();
-        for (label, rows) in checks {
+        for (label, instance, rows) in checks {
             for r in rows {
                 let flag = if r.overlap > 0 { "OVERLAP (allowed)" } else { "clean" };
+                // The encoder the instance read, where the study can tell; else the input slot.
+                let learnt_by = match study.encoder_of(instance) {
+                    Some(encoder) if r.slot == "encoder" => encoder.label.clone(),
+                    _ => format!("its `{}` input", r.slot),
+                };
                 table_rows.push(vec![
                     label.to_string(),
                     r.test_frames.to_string(),
                     r.against.clone(),
-                    r.stage.clone(),
+                    learnt_by,
                     r.frames.to_string(),
                     r.overlap.to_string(),
                     flag.to_string(),
