@@ -52,7 +52,7 @@ fn ridge_on_encoder_features_and_on_pixels_beats_a_trivial_predictor() {
     let truth: Vec<[u32; CELLS]> = labels.split(Split::Test).map(|f| f.grid.counts).collect();
     let trivial = score(&vec![mean; truth.len()], &truth).overall.f1;
 
-    for (label, rows) in [("pixels", vec!["pixels"]), ("linear[clip]", vec!["cls", "mean-patch"]), ("linear[random]", vec!["cls", "mean-patch"])] {
+    for (label, rows) in [("pixels", vec!["pixels"]), ("linear[clip]", vec!["cls", "mean-patch", "patches"]), ("linear[random]", vec!["cls", "mean-patch", "patches"])] {
         let summary = rlmflow_stages::probe::read_summary(&object(&dir, label)).unwrap();
         let names: Vec<&str> = summary.rows.iter().map(|r| r.features.as_str()).collect();
         assert_eq!(names, rows, "{label}");
