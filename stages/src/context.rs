@@ -11,9 +11,13 @@ use std::time::{Duration, Instant};
 use anyhow::{Context as _, bail};
 use serde_json::Value;
 
-/// Where an operator should put its tensors.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// A device, as a torch operator's `device` setting and the run's `--device` name it: `auto`,
+/// `cpu`, `cuda` (device 0) or `cuda:N`, parsed once here. `auto` leaves the choice to the
+/// operator: the engine's GPU, else CUDA when libtorch has one, else the CPU.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(try_from = "String", into = "String")]
 pub enum Device {
+    Auto,
     #[default]
     Cpu,
     Cuda(usize),
@@ -23,19 +27,34 @@ impl FromStr for Device {
     type Err = anyhow::Error;
     fn from_str(s: &str) -> anyhow::Result<Device> {
         match s {
+            "auto" => Ok(Device::Auto),
             "cpu" => Ok(Device::Cpu),
             "cuda" => Ok(Device::Cuda(0)),
             _ => match s.strip_prefix("cuda:").map(str::parse) {
                 Some(Ok(n)) => Ok(Device::Cuda(n)),
-                _ => bail!("unknown device `{s}`; valid: cpu, cuda, cuda:N"),
+                _ => bail!("unknown device `{s}`; valid: cpu, cuda, cuda:N, auto"),
             },
         }
+    }
+}
+
+impl TryFrom<String> for Device {
+    type Error = anyhow::Error;
+    fn try_from(s: String) -> anyhow::Result<Device> {
+        s.parse()
+    }
+}
+
+impl From<Device> for String {
+    fn from(d: Device) -> String {
+        d.to_string()
     }
 }
 
 impl fmt::Display for Device {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
+            Device::Auto => write!(f, "auto"),
             Device::Cpu => write!(f, "cpu"),
             Device::Cuda(n) => write!(f, "cuda:{n}"),
         }
@@ -56,12 +75,30 @@ impl Reporter for Silent {
     fn event(&self, _: &str, _: Value) {}
 }
 
-/// One upstream artifact: the producing instance's label (e.g. `pretrain[alpha4]`) and its
-/// directory. Artifact directories are read-only.
+/// One upstream artifact: the producing instance, by label (e.g. `pretrain[alpha4]`, for
+/// messages) and as data, and its directory. Artifact directories are read-only.
 #[derive(Clone, Debug)]
 pub struct Input {
     pub label: String,
+    pub instance: InstanceId,
     pub path: PathBuf,
+}
+
+impl Input {
+    /// An input whose producer is known by label only (an operator run on its own): the label
+    /// is its stage, with no variant.
+    pub fn new(label: impl Into<String>, path: impl Into<PathBuf>) -> Input {
+        let label = label.into();
+        Input { instance: InstanceId { stage: label.clone(), variant: BTreeMap::new() }, label, path: path.into() }
+    }
+}
+
+/// A stage instance as data: its stage and, per variant dimension (the stage that declared the
+/// variants, or `seed`), the variant it takes.
+#[derive(Clone, Debug, Default, PartialEq, Eq, PartialOrd, Ord, serde::Serialize, serde::Deserialize)]
+pub struct InstanceId {
+    pub stage: String,
+    pub variant: BTreeMap<String, String>,
 }
 
 /// The operator's view of one run of one stage instance.
@@ -100,7 +137,7 @@ impl Context {
     /// input slot, on the CPU, reporting nothing.
     pub fn standalone(stage: &str, inputs: &[(&str, &Path)], output_dir: &Path, checkpoint_dir: &Path, seed: u64, threads: usize) -> Context {
         let inputs =
-            inputs.iter().map(|(slot, path)| (slot.to_string(), vec![Input { label: slot.to_string(), path: path.to_path_buf() }])).collect();
+            inputs.iter().map(|(slot, path)| (slot.to_string(), vec![Input::new(*slot, *path)])).collect();
         Context::new(stage.into(), inputs, output_dir.into(), checkpoint_dir.into(), seed, threads, Device::Cpu, Arc::new(Silent))
     }
 

@@ -49,6 +49,18 @@ pub enum Head {
     Mlp,
 }
 
+/// How SG-CLIP measures d_ij, the distance between two frames' 48-cell count vectors.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Distance {
+    /// The L1 count difference (the paper).
+    Raw,
+    /// The difference divided by the pair's total count (at least 1): a difference of one
+    /// vehicle weighs less between busy scenes, so near-identical scenes exist even where exact
+    /// ones are rare.
+    PairTotal,
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct VisionConfig {
     /// Image side in pixels; one input channel.

@@ -11,8 +11,11 @@
 //!   [`identity`]: frame identities, the split rule and the train/test overlap check.
 //! * [`scenes`], [`labels`], [`captions`], [`tokens`], [`encoder`], [`probe`]: each artifact's directory layout, its
 //!   writer-side line formats and its reader; [`npy`] for their dense arrays.
+//! * [`training`]: the settings every training operator shares; [`item_seed`]: the seed rule of
+//!   every per-item draw.
 //!
-//! Nothing here knows about scheduling, caching or processes; nothing here knows machine learning.
+//! Nothing here knows about scheduling, caching or processes, and nothing links a tensor
+//! library: model shapes and training settings are plain data here, computed on elsewhere.
 
 pub mod captions;
 pub mod context;
@@ -27,12 +30,21 @@ pub mod probe;
 pub mod scenes;
 pub mod segment;
 pub mod tokens;
+pub mod training;
 
-pub use context::{Context, Device, Input, Progress, Reporter};
+pub use context::{Context, Device, Input, InstanceId, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};
 pub use operator::{
     DynOperator, InWorker, ItemCount, Items, Operator, OperatorSpec, Outcome, Part, Registry, Resources, SettingError, Settings, Sharding, Share,
 };
+pub use training::Training;
+
+/// The seed of item `index` (a frame, an epoch) of a run seeded `seed`: each item's draws come
+/// from its own generator, never from one shared across items, so an item's result does not
+/// depend on which thread, batch, shard or resumed attempt computed it.
+pub fn item_seed(seed: u64, index: u64) -> u64 {
+    seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15)
+}
 
 /// `f` over `items` on up to `threads` scoped threads, results in order.
 pub fn parallel_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> R + Sync) -> Vec<R> {

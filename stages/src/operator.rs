@@ -53,24 +53,6 @@ impl SettingError {
         }
         Err(SettingError::new(key, format!("must be in (0, {max}], not {value}")))
     }
-
-    /// The learning-rate schedule every training operator shares: `lr` in (0, 1], warmup within
-    /// the epochs, the warmup start and final rates at most `lr`.
-    pub fn check_schedule(epochs: u64, lr: f64, warmup_epochs: f64, warmup_lr: f64, min_lr: f64) -> Result<(), SettingError> {
-        SettingError::check_positive("lr", lr, 1.0)?;
-        SettingError::check_range("warmup_epochs", warmup_epochs, 0.0..=epochs as f64)?;
-        SettingError::check_range("warmup_lr", warmup_lr, 0.0..=lr)?;
-        SettingError::check_range("min_lr", min_lr, 0.0..=lr)
-    }
-
-    /// A torch device setting: `auto`, `cpu`, `cuda` or `cuda:N`.
-    pub fn check_device(key: &str, value: &str) -> Result<(), SettingError> {
-        let cuda_n = value.strip_prefix("cuda:").is_some_and(|n| n.parse::<u32>().is_ok());
-        if ["auto", "cpu", "cuda"].contains(&value) || cuda_n {
-            return Ok(());
-        }
-        Err(SettingError::new(key, format!("unknown device `{value}`; valid: auto, cpu, cuda, cuda:N")))
-    }
 }
 
 impl fmt::Display for SettingError {
@@ -101,12 +83,16 @@ pub struct OperatorSpec {
 pub struct Resources {
     /// The most threads the operator can use; the scheduler grants up to this many.
     pub threads: usize,
+    /// It uses a GPU where there is one.
     pub gpu: bool,
+    /// It cannot run without a CUDA device (its `device` names one): a run checks for one before
+    /// anything starts.
+    pub needs_cuda: bool,
 }
 
 impl Default for Resources {
     fn default() -> Self {
-        Resources { threads: 1, gpu: false }
+        Resources { threads: 1, gpu: false, needs_cuda: false }
     }
 }
 
@@ -301,17 +287,59 @@ impl<O: Operator> DynOperator for O {
     }
 }
 
+/// Typed settings from a stage's table: given keys over the operator's defaults, deserialised
+/// with the failing key's path, then checked. A struct that flattens a shared group (such as
+/// [`crate::Training`]) cannot deny unknown fields through serde, and serde loses the key of a
+/// bad value inside the group: both are recovered here, so every struct reports alike.
 fn parse_settings<S: Settings>(raw: Value) -> Result<S, SettingError> {
-    let typed: S = serde_path_to_error::deserialize(raw).map_err(|e| {
+    let defaults = serde_json::to_value(S::default()).expect("settings serialise to JSON");
+    let Value::Object(given) = &raw else { return deserialize::<S>(raw).and_then(|t| t.check().map(|()| t)) };
+    let typed: S = deserialize(over_defaults(&defaults, given)).map_err(|e| match e.key.is_empty() {
+        true => locate::<S>(&defaults, given).unwrap_or(e),
+        false => e,
+    })?;
+    let Value::Object(known) = serde_json::to_value(&typed).expect("settings serialise to JSON") else { return Ok(typed) };
+    if let Some(unknown) = given.keys().find(|k| !known.contains_key(*k)) {
+        return Err(SettingError { key: unknown.clone(), message: format!("unknown setting `{unknown}`"), valid: known.keys().cloned().collect() });
+    }
+    typed.check()?;
+    Ok(typed)
+}
+
+/// The defaults with the given top-level keys replaced.
+fn over_defaults(defaults: &Value, given: &serde_json::Map<String, Value>) -> Value {
+    let mut full = defaults.clone();
+    if let Value::Object(map) = &mut full {
+        map.extend(given.iter().map(|(k, v)| (k.clone(), v.clone())));
+    }
+    full
+}
+
+/// The first given key whose value alone, over the defaults, fails to deserialise, with its error.
+fn locate<S: Settings>(defaults: &Value, given: &serde_json::Map<String, Value>) -> Option<SettingError> {
+    given.iter().find_map(|(key, value)| {
+        let one = serde_json::Map::from_iter([(key.clone(), value.clone())]);
+        deserialize::<S>(over_defaults(defaults, &one)).err().map(|e| SettingError { key: key.clone(), ..e })
+    })
+}
+
+fn deserialize<S: Settings>(value: Value) -> Result<S, SettingError> {
+    serde_path_to_error::deserialize(value).map_err(|e| {
         let key = e.path().to_string();
         let message = e.inner().to_string();
         match unknown_field(&message) {
             Some((field, valid)) => SettingError { key, message: format!("unknown setting `{field}`"), valid },
-            None => SettingError::new(if key == "." { String::new() } else { key }, message),
+            None => SettingError::new(if key == "." { String::new() } else { key }, not_finite(&message).unwrap_or(message)),
         }
-    })?;
-    typed.check()?;
-    Ok(typed)
+    })
+}
+
+/// "not a finite number" for a `nan` or `inf` where a number belongs: JSON has no such numbers,
+/// so the config reader hands them over as their text, which serde would call a type error.
+fn not_finite(message: &str) -> Option<String> {
+    let text = message.strip_prefix("invalid type: string \"")?.split('"').next()?;
+    let bare = text.trim_start_matches(['+', '-']);
+    (bare == "nan" || bare == "inf").then(|| format!("`{text}` is not a finite number"))
 }
 
 /// Picks apart serde's "unknown field `x`, expected one of `a`, `b`" (its stable wording).
@@ -426,7 +454,56 @@ mod tests {
         let e = DemoOp.settings(serde_json::json!({"nested": {"image": "big"}})).unwrap_err();
         assert_eq!(e.key, "nested.image");
         assert!(e.message.contains("invalid type"), "{}", e.message);
+        let e = DemoOp.settings(serde_json::json!({"alpha": "nan"})).unwrap_err();
+        assert_eq!((e.key.as_str(), e.message.as_str()), ("alpha", "`nan` is not a finite number"));
         let e = DemoOp.settings(serde_json::json!({"alpha": -1.0})).unwrap_err();
         assert_eq!((e.key.as_str(), e.message.as_str()), ("alpha", "must be >= 0"));
+    }
+
+    /// Settings with a shared group flattened in, as the torch operators hold `Training`.
+    #[derive(Serialize, Deserialize)]
+    #[serde(default)]
+    struct WithGroup {
+        alpha: f64,
+        #[serde(flatten)]
+        group: Group,
+    }
+
+    #[derive(Serialize, Deserialize)]
+    struct Group {
+        lr: f64,
+        epochs: u64,
+    }
+
+    impl Default for WithGroup {
+        fn default() -> Self {
+            WithGroup { alpha: 1.0, group: Group { lr: 0.5, epochs: 3 } }
+        }
+    }
+
+    impl Settings for WithGroup {}
+
+    struct GroupOp;
+    impl Operator for GroupOp {
+        type Settings = WithGroup;
+        fn spec(&self) -> OperatorSpec {
+            OperatorSpec { name: "group", kind: "scenes", version: 1, inputs: None, summary: "" }
+        }
+        fn run(&self, _: &WithGroup, _: &mut Context) -> anyhow::Result<Outcome> {
+            Ok(Outcome::default())
+        }
+    }
+
+    #[test]
+    fn a_flattened_group_keeps_flat_keys_the_operators_defaults_and_named_errors() {
+        assert_eq!(GroupOp.settings(serde_json::json!({"lr": 1})).unwrap(), serde_json::json!({"alpha": 1.0, "lr": 1.0, "epochs": 3}));
+        let e = GroupOp.settings(serde_json::json!({"alpha": 2.0, "lr": "fast"})).unwrap_err();
+        assert_eq!(e.key, "lr");
+        assert!(e.message.contains("invalid type"), "{}", e.message);
+        let e = GroupOp.settings(serde_json::json!({"lr": "-inf"})).unwrap_err();
+        assert_eq!((e.key.as_str(), e.message.as_str()), ("lr", "`-inf` is not a finite number"));
+        let e = GroupOp.settings(serde_json::json!({"epoch": 2})).unwrap_err();
+        assert_eq!((e.key.as_str(), e.message.as_str()), ("epoch", "unknown setting `epoch`"));
+        assert_eq!(e.valid, ["alpha", "epochs", "lr"]);
     }
 }

@@ -377,7 +377,7 @@ impl Statistics {
 
 /// Asks for a frame's captions until `n` agree with its grid or the regenerations run out.
 fn caption_frame(s: &LlmSettings, label: &FrameLabel, seed: u64, client: &Client) -> anyhow::Result<FrameCaptions> {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ label.frame.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let mut rng = ChaCha8Rng::seed_from_u64(rlmflow_stages::item_seed(seed, label.frame));
     let no_numbers = rng.random_bool(s.no_distance_numbers);
     let prompt = user_prompt(&label.grid, no_numbers, &mut rng);
     let mut out = FrameCaptions::default();
@@ -937,7 +937,7 @@ mod tests {
             let (summary, _) = run_into(&root, &share, &dir);
             let frames = serde_json::from_slice::<Value>(&summary).unwrap()["frames"].as_u64().unwrap();
             assert_eq!(frames, Share { index, of: 3 }.range(10).count() as u64);
-            inputs.push(Input { label: format!("{index:020}"), path: root.join(dir) });
+            inputs.push(Input::new(format!("{index:020}"), root.join(dir)));
         }
         let sent = server.requests.load(Ordering::SeqCst);
         let whole = run_into(&root, &s, "whole");

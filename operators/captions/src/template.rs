@@ -78,7 +78,7 @@ impl Operator for Template {
 
 /// A frame's captions: deterministic in (seed, frame).
 fn frame_captions(s: &TemplateSettings, label: &FrameLabel, seed: u64) -> Vec<Caption> {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ label.frame.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let mut rng = ChaCha8Rng::seed_from_u64(rlmflow_stages::item_seed(seed, label.frame));
     (0..s.per_frame)
         .map(|_| {
             let numbers = rng.random_bool(s.distance_numbers);

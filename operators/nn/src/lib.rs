@@ -4,11 +4,13 @@
 //! (the radar ViT, patch or convolutional stem), [`text`] (the causal text tower), [`clip`]
 //! (both towers and the logit scale), [`loss`] (CLIP and SG-CLIP), [`optim`] (AdamW with saveable
 //! state, clipping, the learning-rate schedule), [`segment`] (the PUP decoder, the U-Net, Dice +
-//! BCE), [`train`] (device choice, checkpoints), [`gpt`] and [`decode`] (ClipCap's
-//! mapper and decoder, greedy and beam search). Tensor names follow open_clip's CLIP layout, so
+//! BCE), [`data`] (the frames every operator trains on, in memory), [`train`] (the one training
+//! loop, `fit`: schedule, clipping, resume, checkpoints, device choice), [`gpt`] and [`decode`]
+//! (ClipCap's mapper and decoder, greedy and beam search). Tensor names follow open_clip's CLIP layout, so
 //! a Python user can map the weights onto it.
 
 pub mod clip;
+pub mod data;
 pub mod decode;
 pub mod gpt;
 pub mod loss;
@@ -21,10 +23,3 @@ pub mod vision;
 
 pub use tch;
 
-/// The device an operator asked for, as tch names it.
-pub fn device(device: rlmflow_stages::Device) -> tch::Device {
-    match device {
-        rlmflow_stages::Device::Cpu => tch::Device::Cpu,
-        rlmflow_stages::Device::Cuda(n) => tch::Device::Cuda(n),
-    }
-}

@@ -6,18 +6,8 @@
 //!   the loss is the mean of the two soft cross-entropies. When every pair of frames differs
 //!   and alpha is large, T is the identity and SG-CLIP is CLIP.
 
+pub use rlmflow_stages::encoder::Distance;
 use tch::{Kind, Reduction, Tensor};
-
-/// How d_ij is measured.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Distance {
-    /// The raw count difference (the paper).
-    Raw,
-    /// The count difference divided by the pair's total count (at least 1): a difference of
-    /// one vehicle weighs less between busy scenes, so near-identical scenes exist even where
-    /// exact ones are rare.
-    PairTotal,
-}
 
 /// Symmetric cross-entropy against the identity.
 pub fn clip_loss(logits: &Tensor) -> Tensor {

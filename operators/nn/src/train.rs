@@ -1,58 +1,171 @@
-//! What every training operator shares around its loop: the device a setting names, the
-//! finite-loss guard, and per-epoch checkpoints.
+//! The one training loop every torch operator runs ([`fit`]), and what it stands on: the device
+//! a setting names, the finite-loss guard, and per-epoch checkpoints.
+//!
+//! An operator brings its model's variables, its training frames, the loss of one batch and an
+//! evaluation after each epoch; `fit` owns the rest: the warmup-cosine schedule, AdamW, gradient
+//! clipping, the epoch's frame order, progress, `epoch` and `resumed` events, and checkpoints.
 //!
 //! A checkpoint is the model's variables and the optimiser's moments in one safetensors file
 //! plus the epochs' log lines in JSON; the log is renamed into place last, so the epochs it
-//! lists are always the ones the state holds. An operator that seeds each epoch's draws by
-//! (seed, epoch) needs nothing else to resume where it stopped and end with the same weights.
+//! lists are always the ones the state holds. Each epoch's draws (frame order, then whatever the
+//! loss draws) come from a generator seeded by (seed, epoch) alone, so a killed run resumes at
+//! the next epoch and ends with the weights of an uninterrupted one.
 
 use std::collections::HashMap;
 use std::path::Path;
+use std::time::Instant;
 
 use anyhow::{Context as _, bail};
 use rand::SeedableRng;
+use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
-use serde_json::Value;
+use rlmflow_stages::{Context, Device, Training};
+use serde_json::{Value, json};
 use tch::{Tensor, nn};
 
-use crate::optim::AdamW;
+use crate::optim::{AdamW, warmup_cosine};
 
 const STATE: &str = "state.safetensors";
 const LOG: &str = "state.json";
 
-/// The device a `device` setting (`auto`, `cpu`, `cuda`, `cuda:N`) names, given the engine's
-/// choice for the action: `auto` takes the engine's GPU, else CUDA when libtorch has one.
-pub fn resolve_device(setting: &str, engine: rlmflow_stages::Device) -> anyhow::Result<tch::Device> {
+/// The device to train on for a `device` setting, given the engine's choice for the action:
+/// `auto` takes the engine's GPU, else CUDA when libtorch has one, else the CPU.
+pub fn resolve_device(setting: Device, engine: Device) -> anyhow::Result<tch::Device> {
     let cuda = |n: usize| {
         if !tch::Cuda::is_available() {
             bail!("device `{setting}`: this machine has no CUDA device libtorch can use");
         }
         Ok(tch::Device::Cuda(n))
     };
-    match setting {
-        "cpu" => Ok(tch::Device::Cpu),
-        "cuda" => cuda(0),
-        "auto" => Ok(match engine {
-            rlmflow_stages::Device::Cuda(n) => cuda(n)?,
-            rlmflow_stages::Device::Cpu if tch::Cuda::is_available() => tch::Device::Cuda(0),
-            rlmflow_stages::Device::Cpu => tch::Device::Cpu,
-        }),
-        other => cuda(other.trim_start_matches("cuda:").parse().with_context(|| format!("device `{other}`"))?),
+    match (setting, engine) {
+        (Device::Cpu, _) => Ok(tch::Device::Cpu),
+        (Device::Cuda(n), _) | (Device::Auto, Device::Cuda(n)) => cuda(n),
+        (Device::Auto, _) if tch::Cuda::is_available() => Ok(tch::Device::Cuda(0)),
+        (Device::Auto, _) => Ok(tch::Device::Cpu),
     }
 }
 
+/// The generator an epoch's draws come from.
+pub type EpochRng = ChaCha8Rng;
+
 /// The generator of epoch `epoch`'s draws (frame order, captions): seeded by (seed, epoch) alone,
 /// so the finished epochs are all the state a resumed run needs.
-pub fn epoch_rng(seed: u64, epoch: u64) -> ChaCha8Rng {
-    ChaCha8Rng::seed_from_u64(seed ^ (epoch + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15))
+fn epoch_rng(seed: u64, epoch: u64) -> EpochRng {
+    ChaCha8Rng::seed_from_u64(rlmflow_stages::item_seed(seed, epoch + 1))
 }
 
 /// The loss of `step` (1-based), or an error naming the step when it is not finite.
-pub fn finite(loss: f64, step: u64, epoch: u64) -> anyhow::Result<f64> {
+fn finite(loss: f64, step: u64, epoch: u64) -> anyhow::Result<f64> {
     if !loss.is_finite() {
         bail!("the loss is {loss} at step {step} (epoch {epoch}); lower `lr` or raise `batch`");
     }
     Ok(loss)
+}
+
+/// One batch's loss, and figures logged beside it (an epoch's line holds each one's mean).
+pub struct Step {
+    pub loss: Tensor,
+    pub figures: Vec<(&'static str, f64)>,
+}
+
+impl From<Tensor> for Step {
+    fn from(loss: Tensor) -> Step {
+        Step { loss, figures: Vec::new() }
+    }
+}
+
+/// Figures an evaluation adds to an epoch's log line.
+pub type Figures = Vec<(&'static str, f64)>;
+
+/// What [`fit`] trains on.
+pub struct Fit<'a> {
+    pub training: &'a Training,
+    /// The training frames (indices into the operator's data); each epoch visits them once in a
+    /// seeded order, in batches of `training.batch`, the remainder dropped.
+    pub frames: &'a [usize],
+    /// Keep each batch's loss and figures in the epoch's log line (`batch_loss`, `batch_<name>`).
+    pub per_batch: bool,
+}
+
+/// The finished training: one log line per epoch (one line of evaluation for 0 epochs) and the
+/// optimiser steps taken.
+pub struct Fitted {
+    pub log: Vec<Value>,
+    pub steps: u64,
+}
+
+/// Trains `vs`'s variables: for each epoch not already in the checkpoint, the frames in the
+/// epoch's order, `loss` per batch (given the epoch's generator after the order was drawn), an
+/// AdamW step at the schedule's rate after clipping, then `evaluate` and a checkpoint.
+pub fn fit(
+    vs: &nn::VarStore,
+    fit: Fit,
+    ctx: &mut Context,
+    mut loss: impl FnMut(&[usize], &mut EpochRng) -> anyhow::Result<Step>,
+    mut evaluate: impl FnMut() -> anyhow::Result<Figures>,
+) -> anyhow::Result<Fitted> {
+    let t = fit.training;
+    let batch = t.batch as usize;
+    let steps_per_epoch = (fit.frames.len() / batch) as u64;
+    if steps_per_epoch == 0 && t.epochs > 0 {
+        bail!("batch {batch} is larger than the {} training frames; lower `batch`", fit.frames.len());
+    }
+    let total = t.epochs * steps_per_epoch;
+    let warmup = (t.warmup_epochs * steps_per_epoch as f64).round() as u64;
+    let lr = |step: u64| warmup_cosine(step, total, warmup, t.warmup_lr, t.lr, t.min_lr);
+    let mut opt = AdamW::new(vs, (t.betas[0], t.betas[1]), t.eps, t.weight_decay);
+    let mut log = restore_checkpoint(vs, &mut opt, &ctx.checkpoint_dir)?;
+    if !log.is_empty() {
+        ctx.event("resumed", json!({"epoch": log.len()}));
+    }
+    let progress = ctx.progress(total, "steps");
+    progress.set_position(opt.steps() as u64);
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    for epoch in log.len() as u64..t.epochs {
+        let clock = Instant::now();
+        let mut rng = epoch_rng(ctx.seed, epoch);
+        let mut order = fit.frames.to_vec();
+        order.shuffle(&mut rng);
+        let mut losses = Vec::with_capacity(steps_per_epoch as usize);
+        let mut figures: Vec<(&'static str, Vec<f64>)> = Vec::new();
+        for (step, frames) in order.chunks_exact(batch).enumerate() {
+            let global = epoch * steps_per_epoch + step as u64;
+            let Step { loss: value, figures: batch_figures } = loss(frames, &mut rng)?;
+            losses.push(finite(value.double_value(&[]), global + 1, epoch + 1)?);
+            for (i, (name, figure)) in batch_figures.into_iter().enumerate() {
+                match figures.get_mut(i) {
+                    Some((_, series)) => series.push(figure),
+                    None => figures.push((name, vec![figure])),
+                }
+            }
+            let grads = opt.gradients(&value);
+            AdamW::clip_grad_norm(&grads, t.clip_norm);
+            opt.step(&grads, lr(global));
+            progress.set_position(global + 1);
+            progress.set_message(format!("epoch {}/{} loss {:.3}", epoch + 1, t.epochs, losses[losses.len() - 1]));
+        }
+        let step = (epoch + 1) * steps_per_epoch;
+        let mut line = json!({"epoch": epoch + 1, "step": step, "loss": mean(&losses), "lr": lr(step - 1)});
+        figures.iter().for_each(|(name, series)| line[*name] = mean(series).into());
+        evaluate()?.into_iter().for_each(|(name, figure)| line[name] = figure.into());
+        // Times go to the event log only: the artifact holds what the key determines.
+        let mut event = line.clone();
+        event["seconds"] = clock.elapsed().as_secs_f64().into();
+        ctx.event("epoch", event);
+        if fit.per_batch {
+            line["batch_loss"] = losses.into();
+            figures.into_iter().for_each(|(name, series)| line[format!("batch_{name}")] = series.into());
+        }
+        log.push(line);
+        save_checkpoint(vs, &opt, &log, &ctx.checkpoint_dir)?;
+    }
+    progress.finish();
+    if t.epochs == 0 {
+        let mut line = json!({"epoch": 0, "step": 0});
+        evaluate()?.into_iter().for_each(|(name, figure)| line[name] = figure.into());
+        log.push(line);
+    }
+    Ok(Fitted { log, steps: total })
 }
 
 /// Variables sorted by name: files' bytes never depend on a hash order.
@@ -69,7 +182,7 @@ pub fn write_weights(vs: &nn::VarStore, path: &Path) -> anyhow::Result<()> {
 }
 
 /// Saves the model, the optimiser and the finished epochs' log to `dir`.
-pub fn save_checkpoint(vs: &nn::VarStore, opt: &AdamW, log: &[Value], dir: &Path) -> anyhow::Result<()> {
+fn save_checkpoint(vs: &nn::VarStore, opt: &AdamW, log: &[Value], dir: &Path) -> anyhow::Result<()> {
     let mut tensors = named_variables(vs);
     tensors.extend(opt.state());
     let tmp = dir.join(format!("{STATE}.tmp"));
@@ -82,7 +195,7 @@ pub fn save_checkpoint(vs: &nn::VarStore, opt: &AdamW, log: &[Value], dir: &Path
 
 /// Restores the last checkpoint in `dir` into `vs` and `opt`; the finished epochs' log, empty
 /// when there is none.
-pub fn restore_checkpoint(vs: &nn::VarStore, opt: &mut AdamW, dir: &Path) -> anyhow::Result<Vec<Value>> {
+fn restore_checkpoint(vs: &nn::VarStore, opt: &mut AdamW, dir: &Path) -> anyhow::Result<Vec<Value>> {
     let path = dir.join(STATE);
     if !path.is_file() {
         return Ok(Vec::new());

@@ -12,11 +12,12 @@
 //! 3x3 stride-2 convolutions before two transformer blocks; `tiny` text: eight 64-wide token
 //! embeddings per position), `distance = "pair-total"` (scaled SG-CLIP distance), a fixed or
 //! learnt temperature, and `device = "auto"` (CUDA when present; the result then depends on the
-//! machine's device, so a pipeline that must reproduce bit for bit everywhere names `cpu`).
+//! machine's device, so a pipeline that must reproduce bit for bit everywhere names `cpu`). The
+//! schedule and optimiser settings are the shared `Training` group.
 
-use rlmflow_stages::encoder::{Head, ModelConfig, Stem, TextConfig, VisionConfig};
+use rlmflow_stages::encoder::{Distance, Head, ModelConfig, Stem, TextConfig, VisionConfig};
 use rlmflow_stages::grid::CELLS;
-use rlmflow_stages::{InWorker, OperatorSpec, Resources, SettingError, Settings};
+use rlmflow_stages::{Device, InWorker, OperatorSpec, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
 /// The binary the torch operators run in.
@@ -33,18 +34,8 @@ pub enum Objective {
     Counts,
 }
 
-/// How SG-CLIP measures the distance between two frames' counts.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Distance {
-    /// The L1 count difference (the paper).
-    Raw,
-    /// The difference divided by the pair's total count (at least 1).
-    PairTotal,
-}
-
 #[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(default)]
 pub struct ClipSettings {
     /// Radar tower: `conv-tiny` (laptop), `conv-small`, `vit-b16` (the paper's ViT-B/16).
     pub encoder: String,
@@ -63,29 +54,9 @@ pub struct ClipSettings {
     /// A CLIP ViT-B/16 safetensors file (open_clip or Hugging Face names) to start the radar
     /// tower from; empty: random. Only for `encoder = "vit-b16"`.
     pub init: String,
-    /// 0..=10,000; 0 writes the untrained model.
-    pub epochs: u64,
-    /// Frames per step, 2..=65,536.
-    pub batch: u64,
-    /// Peak learning rate, (0, 1].
-    pub lr: f64,
-    /// Linear warmup from `warmup_lr` to `lr`, in epochs (fractions allowed), 0..=epochs.
-    pub warmup_epochs: f64,
-    pub warmup_lr: f64,
-    /// The cosine schedule ends here, [0, lr].
-    pub min_lr: f64,
-    pub betas: [f64; 2],
-    pub eps: f64,
-    /// AdamW decay on matrices and kernels only, 0..=1.
-    pub weight_decay: f64,
-    /// Global gradient-norm clip, (0, 1e6].
-    pub clip_norm: f64,
-    /// `auto` (CUDA when present), `cpu`, `cuda` or `cuda:N`.
-    pub device: String,
-    /// CPU threads libtorch uses, 1..=256. Part of the result: libtorch's parallel reductions
-    /// add in an order that depends on the thread count, so the same key must mean the same
-    /// count, whatever the scheduler grants.
-    pub threads: usize,
+    /// The schedule, optimiser and device (`rlmflow_stages::training`).
+    #[serde(flatten)]
+    pub training: Training,
 }
 
 impl Default for ClipSettings {
@@ -100,18 +71,20 @@ impl Default for ClipSettings {
             tau: 0.07,
             learn_tau: false,
             init: String::new(),
-            epochs: 10,
-            batch: 128,
-            lr: 1e-3,
-            warmup_epochs: 1.0,
-            warmup_lr: 1e-6,
-            min_lr: 1e-5,
-            betas: [0.9, 0.98],
-            eps: 1e-8,
-            weight_decay: 0.05,
-            clip_norm: 1.0,
-            device: "auto".into(),
-            threads: 2,
+            training: Training {
+                epochs: 10,
+                batch: 128,
+                lr: 1e-3,
+                warmup_epochs: 1.0,
+                warmup_lr: 1e-6,
+                min_lr: 1e-5,
+                betas: [0.9, 0.98],
+                eps: 1e-8,
+                weight_decay: 0.05,
+                clip_norm: 1.0,
+                device: Device::Auto,
+                threads: 2,
+            },
         }
     }
 }
@@ -130,21 +103,10 @@ impl Settings for ClipSettings {
         one_of("text", &self.text, &TEXTS)?;
         SettingError::check_range("alpha", self.alpha, 0.0..=1000.0)?;
         SettingError::check_range("tau", self.tau, 0.001..=1.0)?;
-        SettingError::check_range("epochs", self.epochs, 0..=10_000)?;
-        SettingError::check_range("batch", self.batch, 2..=65_536)?;
-        SettingError::check_schedule(self.epochs, self.lr, self.warmup_epochs, self.warmup_lr, self.min_lr)?;
-        for (i, b) in self.betas.iter().enumerate() {
-            if !(0.0..1.0).contains(b) {
-                return Err(SettingError::new(format!("betas.{i}"), format!("must be in [0, 1), not {b}")));
-            }
+        self.training.check()?;
+        if self.objective != Objective::Counts && self.training.batch < 2 {
+            return Err(SettingError::new("batch", "a contrastive batch needs at least 2 frames"));
         }
-        if !(self.eps > 0.0 && self.eps <= 1.0) {
-            return Err(SettingError::new("eps", format!("must be in (0, 1], not {}", self.eps)));
-        }
-        SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
-        SettingError::check_range("threads", self.threads, 1..=256)?;
-        SettingError::check_positive("clip_norm", self.clip_norm, 1e6)?;
-        SettingError::check_device("device", &self.device)?;
         if !self.init.is_empty() && self.encoder != "vit-b16" {
             return Err(SettingError::new("init", "CLIP weights fit only encoder = \"vit-b16\""));
         }
@@ -163,7 +125,7 @@ pub fn spec() -> OperatorSpec {
 }
 
 pub fn resources(s: &ClipSettings) -> Resources {
-    Resources { threads: s.threads, gpu: s.device != "cpu" }
+    s.training.resources()
 }
 
 /// The operator as `rlmflow` registers it: validated and planned here, run by the worker.

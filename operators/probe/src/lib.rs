@@ -24,7 +24,7 @@
 //! or length-normalised beam search, to the end token), read back by the LLM-free parser and
 //! scored per cell like `linear`.
 
-use rlmflow_stages::{InWorker, OperatorSpec, Resources, SettingError, Settings};
+use rlmflow_stages::{InWorker, OperatorSpec, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
 /// The binary the probes run in.
@@ -95,7 +95,7 @@ pub enum Decode {
 pub const DECODERS: [&str; 2] = ["tiny", "gpt2"];
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(default)]
 pub struct ClipcapSettings {
     /// `tiny` (width 128, 2 blocks, 4 heads) or `gpt2` (width 768, 12 blocks, 12 heads).
     pub decoder: String,
@@ -106,29 +106,21 @@ pub struct ClipcapSettings {
     pub prefix: i64,
     /// Mapper transformer blocks (ClipCap: 8), 1..=24.
     pub mapper_layers: i64,
-    pub epochs: u64,
     /// Share of the training split held out as the validation slice, (0, 0.5]: never trained
     /// on, it gives the per-epoch validation loss and a validation F1, on which settings such
     /// as `epochs` are chosen (the test split is only reported).
     pub validation: f64,
-    pub batch: u64,
-    pub lr: f64,
-    /// Warmup then cosine to `min_lr`; `min_lr = lr` with no warmup is the paper's constant rate.
-    pub warmup_epochs: f64,
-    pub warmup_lr: f64,
-    pub min_lr: f64,
-    pub weight_decay: f64,
-    pub clip_norm: f64,
     pub decode: Decode,
     /// Beam width for `decode = "beam"`, 1..=64.
     pub beam: usize,
     /// Longest generated caption in tokens; 0: the tokens stage's context.
     pub max_tokens: usize,
-    /// `auto` (CUDA when present), `cpu`, `cuda` or `cuda:N`.
-    pub device: String,
-    pub threads: usize,
     /// As `linear`'s: run despite test frames the encoder or a tokenizer learnt from.
     pub allow_test_overlap: bool,
+    /// The schedule, optimiser and device (`rlmflow_stages::training`); `min_lr = lr` with no
+    /// warmup is the paper's constant rate.
+    #[serde(flatten)]
+    pub training: Training,
 }
 
 impl Default for ClipcapSettings {
@@ -138,21 +130,12 @@ impl Default for ClipcapSettings {
             init: String::new(),
             prefix: 10,
             mapper_layers: 2,
-            epochs: 4,
             validation: 0.1,
-            batch: 64,
-            lr: 1e-3,
-            warmup_epochs: 0.5,
-            warmup_lr: 1e-6,
-            min_lr: 1e-5,
-            weight_decay: 0.01,
-            clip_norm: 4.0,
             decode: Decode::Greedy,
             beam: 5,
             max_tokens: 0,
-            device: "auto".into(),
-            threads: 2,
             allow_test_overlap: false,
+            training: Training { epochs: 4, ..Training::default() },
         }
     }
 }
@@ -167,18 +150,12 @@ impl Settings for ClipcapSettings {
         }
         SettingError::check_range("prefix", self.prefix, 1..=64)?;
         SettingError::check_range("mapper_layers", self.mapper_layers, 1..=24)?;
-        SettingError::check_range("epochs", self.epochs, 1..=10_000)?;
         if !(self.validation > 0.0 && self.validation <= 0.5) {
             return Err(SettingError::new("validation", format!("must be in (0, 0.5], not {}", self.validation)));
         }
-        SettingError::check_range("batch", self.batch, 1..=65_536)?;
-        SettingError::check_schedule(self.epochs, self.lr, self.warmup_epochs, self.warmup_lr, self.min_lr)?;
-        SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
-        SettingError::check_positive("clip_norm", self.clip_norm, 1e6)?;
         SettingError::check_range("beam", self.beam, 1..=64)?;
         SettingError::check_range("max_tokens", self.max_tokens, 0..=100_000)?;
-        SettingError::check_device("device", &self.device)?;
-        SettingError::check_range("threads", self.threads, 1..=256)
+        self.training.check()
     }
 }
 
@@ -186,14 +163,14 @@ pub fn clipcap_spec() -> OperatorSpec {
     OperatorSpec {
         name: "clipcap",
         kind: "probe",
-        version: 3,
+        version: 4,
         inputs: None,
         summary: "ClipCap caption probe: mapper and GPT decoder on the frozen CLS embedding, captions parsed and scored per cell",
     }
 }
 
 pub fn clipcap_resources(s: &ClipcapSettings) -> Resources {
-    Resources { threads: s.threads, gpu: s.device != "cpu" }
+    s.training.resources()
 }
 
 /// `clipcap` as `rlmflow` registers it.
@@ -212,7 +189,7 @@ pub fn linear_spec() -> OperatorSpec {
 }
 
 pub fn linear_resources(s: &LinearSettings) -> Resources {
-    Resources { threads: s.threads, gpu: false }
+    Resources { threads: s.threads, ..Resources::default() }
 }
 
 /// `linear` as `rlmflow` registers it: validated and planned here, run by the worker.

@@ -140,7 +140,7 @@ impl Operator for Procedural {
     }
 
     fn resources(&self, _: &ProceduralSettings) -> Resources {
-        Resources { threads: usize::MAX, gpu: false }
+        Resources { threads: usize::MAX, ..Resources::default() }
     }
 
     /// A shard is a range of frames; `concat` joins consecutive ranges into the whole's bytes.
@@ -194,7 +194,7 @@ fn generator(s: &ProceduralSettings) -> anyhow::Result<serde_json::Value> {
 /// thread or shard split.
 fn frame(s: &ProceduralSettings, renderer: &Renderer, weights: &[f64], seed: u64, index: u64) -> Rendered {
     let global = s.first_frame + index;
-    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ global.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let mut rng = ChaCha8Rng::seed_from_u64(rlmflow_stages::item_seed(seed, global));
     let chosen = &s.layouts[rng.random_range(0..s.layouts.len())];
     let kind = LAYOUTS.iter().find(|l| *l == chosen).expect("layouts were checked against LAYOUTS");
     let layout = Layout::sample(kind, &mut rng);

@@ -12,66 +12,16 @@
 //! Training: AdamW, warmup then cosine, global-norm clipping, loss `dice_weight` * soft Dice +
 //! (1 - `dice_weight`) * BCE against the labels' soft masks; one checkpoint per epoch.
 
-use rlmflow_stages::{InWorker, OperatorSpec, Resources, SettingError, Settings};
+use rlmflow_stages::{InWorker, OperatorSpec, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
 /// The binary the segmenters run in.
 pub const WORKER: &str = "rlmflow-torch";
 
-/// The training schedule both segmenters share, checked the same way.
-#[derive(Clone, Debug)]
-pub struct Schedule {
-    pub epochs: u64,
-    pub batch: u64,
-    pub lr: f64,
-    pub warmup_epochs: f64,
-    pub warmup_lr: f64,
-    pub min_lr: f64,
-    pub weight_decay: f64,
-    pub clip_norm: f64,
-    pub dice_weight: f64,
-    pub samples: usize,
-    pub device: String,
-    pub threads: usize,
-}
-
-/// The [`Schedule`] of a settings struct with the same field names.
-macro_rules! schedule_of {
-    ($s:expr) => {
-        Schedule {
-            epochs: $s.epochs,
-            batch: $s.batch,
-            lr: $s.lr,
-            warmup_epochs: $s.warmup_epochs,
-            warmup_lr: $s.warmup_lr,
-            min_lr: $s.min_lr,
-            weight_decay: $s.weight_decay,
-            clip_norm: $s.clip_norm,
-            dice_weight: $s.dice_weight,
-            samples: $s.samples,
-            device: $s.device.clone(),
-            threads: $s.threads,
-        }
-    };
-}
-
-impl Schedule {
-    fn resources(&self) -> Resources {
-        Resources { threads: self.threads, gpu: self.device != "cpu" }
-    }
-
-    fn check(&self) -> Result<(), SettingError> {
-        SettingError::check_range("epochs", self.epochs, 1..=10_000)?;
-        SettingError::check_range("batch", self.batch, 1..=65_536)?;
-        SettingError::check_schedule(self.epochs, self.lr, self.warmup_epochs, self.warmup_lr, self.min_lr)?;
-        SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
-        SettingError::check_positive("clip_norm", self.clip_norm, 1e6)?;
-        SettingError::check_range("dice_weight", self.dice_weight, 0.0..=1.0)?;
-        SettingError::check_range("samples", self.samples, 0..=256)?;
-        SettingError::check_range("threads", self.threads, 1..=256)?;
-        SettingError::check_device("device", &self.device)?;
-        Ok(())
-    }
+/// What both segmenters check alike: the kept sample frames and the loss's Dice share.
+fn check_head(samples: usize, dice_weight: f64) -> Result<(), SettingError> {
+    SettingError::check_range("dice_weight", dice_weight, 0.0..=1.0)?;
+    SettingError::check_range("samples", samples, 0..=256)
 }
 
 fn check_widths(key: &str, widths: &[i64], allow_empty: bool) -> Result<(), SettingError> {
@@ -86,7 +36,7 @@ fn check_widths(key: &str, widths: &[i64], allow_empty: bool) -> Result<(), Sett
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(default)]
 pub struct PupSettings {
     /// Decoder widths, one conv + BN + ReLU + 2x upsampling stage each; empty: the paper's table
     /// (256, 256, 128, 64), one stage per doubling from the encoder's grid to the image side.
@@ -95,50 +45,19 @@ pub struct PupSettings {
     pub rollout_layers: usize,
     /// Test frames whose predicted masks and rollout maps the artifact keeps, 0..=256.
     pub samples: usize,
-    pub epochs: u64,
-    pub batch: u64,
-    pub lr: f64,
-    pub warmup_epochs: f64,
-    pub warmup_lr: f64,
-    pub min_lr: f64,
-    pub weight_decay: f64,
-    pub clip_norm: f64,
     /// The Dice share of the loss, the rest BCE (the paper: 0.6).
     pub dice_weight: f64,
-    /// `auto` (CUDA when present), `cpu`, `cuda` or `cuda:N`.
-    pub device: String,
-    /// CPU threads libtorch uses, 1..=256 (part of the result, as in pretraining).
-    pub threads: usize,
     /// Run even when some test frames are among those the encoder trained on (a deliberate
     /// study; the report flags the row). Off: such an overlap stops the stage.
     pub allow_test_overlap: bool,
+    /// The schedule, optimiser and device (`rlmflow_stages::training`).
+    #[serde(flatten)]
+    pub training: Training,
 }
 
 impl Default for PupSettings {
     fn default() -> Self {
-        PupSettings {
-            channels: Vec::new(),
-            rollout_layers: 3,
-            samples: 8,
-            epochs: 6,
-            batch: 64,
-            lr: 1e-3,
-            warmup_epochs: 0.5,
-            warmup_lr: 1e-6,
-            min_lr: 1e-5,
-            weight_decay: 0.01,
-            clip_norm: 4.0,
-            dice_weight: 0.6,
-            device: "auto".into(),
-            threads: 2,
-            allow_test_overlap: false,
-        }
-    }
-}
-
-impl PupSettings {
-    pub fn schedule(&self) -> Schedule {
-        schedule_of!(self)
+        PupSettings { channels: Vec::new(), rollout_layers: 3, samples: 8, dice_weight: 0.6, allow_test_overlap: false, training: Training::default() }
     }
 }
 
@@ -146,61 +65,35 @@ impl Settings for PupSettings {
     fn check(&self) -> Result<(), SettingError> {
         check_widths("channels", &self.channels, true)?;
         SettingError::check_range("rollout_layers", self.rollout_layers, 0..=64)?;
-        self.schedule().check()
+        check_head(self.samples, self.dice_weight)?;
+        self.training.check()
     }
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(default)]
 pub struct UnetSettings {
     /// Widths per level, finest first (the original U-Net: 64, 128, 256, 512, 1024); the image
     /// side must divide by 2^(levels - 1).
     pub channels: Vec<i64>,
     pub samples: usize,
-    pub epochs: u64,
-    pub batch: u64,
-    pub lr: f64,
-    pub warmup_epochs: f64,
-    pub warmup_lr: f64,
-    pub min_lr: f64,
-    pub weight_decay: f64,
-    pub clip_norm: f64,
     pub dice_weight: f64,
-    pub device: String,
-    pub threads: usize,
+    #[serde(flatten)]
+    pub training: Training,
 }
 
 impl Default for UnetSettings {
     fn default() -> Self {
         let pup = PupSettings::default();
-        UnetSettings {
-            channels: vec![16, 32, 64, 128],
-            samples: pup.samples,
-            epochs: pup.epochs,
-            batch: pup.batch,
-            lr: pup.lr,
-            warmup_epochs: pup.warmup_epochs,
-            warmup_lr: pup.warmup_lr,
-            min_lr: pup.min_lr,
-            weight_decay: pup.weight_decay,
-            clip_norm: pup.clip_norm,
-            dice_weight: pup.dice_weight,
-            device: pup.device,
-            threads: pup.threads,
-        }
-    }
-}
-
-impl UnetSettings {
-    pub fn schedule(&self) -> Schedule {
-        schedule_of!(self)
+        UnetSettings { channels: vec![16, 32, 64, 128], samples: pup.samples, dice_weight: pup.dice_weight, training: pup.training }
     }
 }
 
 impl Settings for UnetSettings {
     fn check(&self) -> Result<(), SettingError> {
         check_widths("channels", &self.channels, false)?;
-        self.schedule().check()
+        check_head(self.samples, self.dice_weight)?;
+        self.training.check()
     }
 }
 
@@ -208,7 +101,7 @@ pub fn pup_spec() -> OperatorSpec {
     OperatorSpec {
         name: "pup",
         kind: "segment",
-        version: 2,
+        version: 3,
         inputs: None,
         summary: "progressive-upsampling decoder on the frozen encoder's patch tokens, with its attention rollout (libtorch, in rlmflow-torch)",
     }
@@ -218,7 +111,7 @@ pub fn unet_spec() -> OperatorSpec {
     OperatorSpec {
         name: "unet",
         kind: "segment",
-        version: 2,
+        version: 3,
         // No encoder: the baseline must not fan out over the encoder's variants.
         inputs: Some(&["scenes", "labels"]),
         summary: "U-Net on the heatmap pixels, the segmentation baseline (libtorch, in rlmflow-torch)",
@@ -226,11 +119,11 @@ pub fn unet_spec() -> OperatorSpec {
 }
 
 pub fn pup_resources(s: &PupSettings) -> Resources {
-    s.schedule().resources()
+    s.training.resources()
 }
 
 pub fn unet_resources(s: &UnetSettings) -> Resources {
-    s.schedule().resources()
+    s.training.resources()
 }
 
 /// `pup` as `rlmflow` registers it: validated and planned here, run by the worker.

@@ -8,28 +8,22 @@
 //! weights as an uninterrupted one. Test-split radar->text retrieval (each test frame's first
 //! caption) is measured after every epoch.
 
-mod data;
-
 use std::collections::HashMap;
 use std::path::Path;
-use std::time::Instant;
 
 use anyhow::{Context as _, bail};
 use rand::RngExt;
-use rand::seq::SliceRandom;
-use rlmflow_nn::clip::{Clip as Model, images_from_u8, logits};
-use rlmflow_nn::loss::{self, Distance as LossDistance};
-use rlmflow_nn::optim::{AdamW, warmup_cosine};
+use rlmflow_nn::clip::{Clip as Model, logits};
+use rlmflow_nn::data::{Frames, Need, Splits};
+use rlmflow_nn::loss;
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
-use rlmflow_nn::train::{epoch_rng, finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
-use rlmflow_pretrain::{ClipSettings, Distance, Objective};
+use rlmflow_nn::train::{EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
+use rlmflow_pretrain::{ClipSettings, Objective};
 use rlmflow_stages::encoder::{self, ModelConfig};
 use rlmflow_stages::identity::FrameSet;
 use rlmflow_stages::tokens;
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources};
 use serde_json::{Value, json};
-
-pub use data::Dataset;
 
 pub struct Clip;
 
@@ -49,17 +43,19 @@ impl Operator for Clip {
     }
 }
 
-/// Per-batch series in each epoch's log line.
-const BATCH_LOSS: &str = "batch_loss";
-const BATCH_OFF_DIAGONAL: &str = "batch_off_diagonal";
-
 fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-    tch::set_num_threads(s.threads as i32);
-    let device = resolve_device(&s.device, ctx.device)?;
+    tch::set_num_threads(s.training.threads as i32);
+    let device = resolve_device(s.training.device, ctx.device)?;
     let text = s.objective != Objective::Counts;
-    let data = Dataset::load(ctx.input("scenes")?, ctx.input("labels")?, ctx.input("tokens")?, text)?;
-    let config =
-        rlmflow_pretrain::model_config(s, data.side, data.context, data.vocab, data.end_token).map_err(|e| anyhow::anyhow!("setting `{e}`"))?;
+    let frames = Frames::load(ctx, Need { captions: true, masks: false })?;
+    let captions = frames.captions.as_ref().context("pretraining reads the tokens stage")?;
+    let split = frames.splits(0.0, text);
+    if split.train.is_empty() || split.test.is_empty() {
+        bail!("{} training and {} test frames with captions: the encoder needs both", split.train.len(), split.test.len());
+    }
+    let summary = &captions.tokens.summary;
+    let config = rlmflow_pretrain::model_config(s, frames.side, captions.context, i64::from(summary.vocab), i64::from(summary.special.end))
+        .map_err(|e| anyhow::anyhow!("setting `{e}`"))?;
 
     tch::manual_seed(ctx.seed as i64);
     let vs = nn::VarStore::new(device);
@@ -67,110 +63,51 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     if !s.init.is_empty() {
         load_clip_vision(&vs, Path::new(&s.init))?;
     }
-    let mut opt = AdamW::new(&vs, (s.betas[0], s.betas[1]), s.eps, s.weight_decay);
 
-    let batch = s.batch as usize;
-    let steps_per_epoch = (data.train.len() / batch) as u64;
-    if steps_per_epoch == 0 && s.epochs > 0 {
-        bail!("batch {batch} is larger than the {} training frames; lower `batch`", data.train.len());
-    }
-    let total = s.epochs * steps_per_epoch;
-    let warmup = (s.warmup_epochs * steps_per_epoch as f64).round() as u64;
-
-    // Resume from the last finished epoch.
-    let mut log = restore_checkpoint(&vs, &mut opt, &ctx.checkpoint_dir)?;
-    if !log.is_empty() {
-        ctx.event("resumed", json!({"epoch": log.len()}));
-    }
-
-    let progress = ctx.progress(total, "steps");
-    progress.set_position(opt.steps() as u64);
-    let scale = |m: &Model| m.scale().double_value(&[]);
-    for epoch in log.len() as u64..s.epochs {
-        let clock = Instant::now();
-        let mut rng = epoch_rng(ctx.seed, epoch);
-        let mut order = data.train.clone();
-        order.shuffle(&mut rng);
-        let (mut batch_loss, mut batch_off) = (Vec::new(), Vec::new());
-        for step in 0..steps_per_epoch {
-            let global = epoch * steps_per_epoch + step;
-            let lr = warmup_cosine(global, total, warmup, s.warmup_lr, s.lr, s.min_lr);
-            let frames = &order[step as usize * batch..(step as usize + 1) * batch];
-            let images = images_from_u8(&data.image_pixels(frames), batch as i64, data.side, device);
-            let counts = Tensor::from_slice(&data.frame_counts(frames)).view([batch as i64, -1]).to_device(device);
-            let image = model.encode_image(&images, true).embedding;
-            let (loss, off) = match s.objective {
-                Objective::Counts => (model.counts(&image).mse_loss(&counts, tch::Reduction::Mean), 0.0),
-                objective => {
-                    let rows: Vec<usize> = frames.iter().map(|&f| data.captions[f][rng.random_range(0..data.captions[f].len())]).collect();
-                    let tokens = Tensor::from_slice(&data.caption_tokens(&rows)).view([batch as i64, data.context]).to_device(device);
-                    let logits = logits(&image, &model.encode_text(&tokens), &model.scale());
-                    if objective == Objective::SgClip {
-                        let distance = match s.distance {
-                            Distance::Raw => LossDistance::Raw,
-                            Distance::PairTotal => LossDistance::PairTotal,
-                        };
-                        let targets = loss::soft_targets(&counts, s.alpha, distance);
-                        (loss::soft_clip_loss(&logits, &targets), loss::off_diagonal_mass(&targets))
-                    } else {
-                        (loss::clip_loss(&logits), 0.0)
-                    }
+    let batch_loss = |batch: &[usize], rng: &mut EpochRng| -> anyhow::Result<Step> {
+        let counts = frames.counts(batch, device);
+        let image = model.encode_image(&frames.images(batch, device), true).embedding;
+        let (loss, off_diagonal) = match s.objective {
+            Objective::Counts => (model.counts(&image).mse_loss(&counts, tch::Reduction::Mean), 0.0),
+            objective => {
+                let rows: Vec<usize> = batch.iter().map(|&f| captions.rows[f][rng.random_range(0..captions.rows[f].len())]).collect();
+                let logits = logits(&image, &model.encode_text(&captions.ids(&rows, device)), &model.scale());
+                if objective == Objective::SgClip {
+                    let targets = loss::soft_targets(&counts, s.alpha, s.distance);
+                    (loss::soft_clip_loss(&logits, &targets), loss::off_diagonal_mass(&targets))
+                } else {
+                    (loss::clip_loss(&logits), 0.0)
                 }
-            };
-            let value = finite(loss.double_value(&[]), global + 1, epoch + 1)?;
-            let grads = opt.gradients(&loss);
-            AdamW::clip_grad_norm(&grads, s.clip_norm);
-            opt.step(&grads, lr);
-            batch_loss.push(value);
-            batch_off.push(off);
-            progress.set_position(global + 1);
-            progress.set_message(format!("epoch {}/{} loss {value:.3}", epoch + 1, s.epochs));
-        }
-        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
-        let mut line = json!({
-            "epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch, "loss": mean(&batch_loss),
-            "lr": warmup_cosine((epoch + 1) * steps_per_epoch - 1, total, warmup, s.warmup_lr, s.lr, s.min_lr),
-            "tau": 1.0 / scale(&model), "off_diagonal": mean(&batch_off),
-        });
-        evaluate(&model, &data, device, text).into_iter().for_each(|(k, v)| line[k] = v.into());
-        // Times go to the event log only: the artifact holds what the key determines.
-        let mut event = line.clone();
-        event["seconds"] = clock.elapsed().as_secs_f64().into();
-        ctx.event("epoch", event);
-        // Per batch, in the log only (not in events or the summary).
-        line[BATCH_LOSS] = batch_loss.into();
-        line[BATCH_OFF_DIAGONAL] = batch_off.into();
-        log.push(line);
-        save_checkpoint(&vs, &opt, &log, &ctx.checkpoint_dir)?;
-    }
-    progress.finish();
-    if s.epochs == 0 {
-        let mut line = json!({"epoch": 0, "step": 0, "tau": 1.0 / scale(&model)});
-        evaluate(&model, &data, device, text).into_iter().for_each(|(k, v)| line[k] = v.into());
-        log.push(line);
-    }
-    write_artifact(s, ctx, &vs, &config, &data, &log, total)
+            }
+        };
+        Ok(Step { loss, figures: vec![("off_diagonal", off_diagonal)] })
+    };
+    let after_epoch = || -> anyhow::Result<Figures> {
+        let mut figures = vec![("tau", 1.0 / model.scale().double_value(&[]))];
+        figures.extend(evaluate(&model, &frames, &split.test, device, text));
+        Ok(figures)
+    };
+    let fitted = fit(&vs, Fit { training: &s.training, frames: &split.train, per_batch: true }, ctx, batch_loss, after_epoch)?;
+    write_artifact(s, ctx, &vs, &config, &frames, &split, fitted)
 }
 
 /// Test-split metrics: radar->text retrieval top-1 / top-5 with a text tower, else the counts
 /// head's mean squared error.
-fn evaluate(model: &Model, data: &Dataset, device: tch::Device, text: bool) -> Vec<(&'static str, f64)> {
+fn evaluate(model: &Model, frames: &Frames, test: &[usize], device: tch::Device, text: bool) -> Figures {
     tch::no_grad(|| {
         let chunk = 256;
         let mut images = Vec::new();
         let mut texts = Vec::new();
-        for frames in data.test.chunks(chunk) {
-            let pixels = images_from_u8(&data.image_pixels(frames), frames.len() as i64, data.side, device);
-            images.push(model.encode_image(&pixels, false).embedding);
-            if text {
-                let rows: Vec<usize> = frames.iter().map(|&f| data.captions[f][0]).collect();
-                let tokens = Tensor::from_slice(&data.caption_tokens(&rows)).view([frames.len() as i64, data.context]).to_device(device);
-                texts.push(model.encode_text(&tokens));
+        for part in test.chunks(chunk) {
+            images.push(model.encode_image(&frames.images(part, device), false).embedding);
+            if let (true, Some(captions)) = (text, &frames.captions) {
+                let rows: Vec<usize> = part.iter().map(|&f| captions.rows[f][0]).collect();
+                texts.push(model.encode_text(&captions.ids(&rows, device)));
             }
         }
         let images = Tensor::cat(&images, 0);
         if !text {
-            let counts = Tensor::from_slice(&data.frame_counts(&data.test)).view([data.test.len() as i64, -1]).to_device(device);
+            let counts = frames.counts(test, device);
             return vec![("test_mse", model.counts(&images).mse_loss(&counts, tch::Reduction::Mean).double_value(&[]))];
         }
         let similarity = logits(&images, &Tensor::cat(&texts, 0), &Tensor::from(1f32).to_device(device));
@@ -186,9 +123,9 @@ fn write_artifact(
     ctx: &Context,
     vs: &nn::VarStore,
     config: &ModelConfig,
-    data: &Dataset,
-    log: &[Value],
-    steps: u64,
+    frames: &Frames,
+    split: &Splits,
+    Fitted { log, steps }: Fitted,
 ) -> anyhow::Result<Outcome> {
     let out = &ctx.output_dir;
     write_weights(vs, &out.join(encoder::WEIGHTS))?;
@@ -197,24 +134,25 @@ fn write_artifact(
     std::fs::write(out.join(encoder::LOG), lines)?;
     let mut last = log.last().cloned().unwrap_or(Value::Null);
     if let Value::Object(map) = &mut last {
-        map.remove(BATCH_LOSS);
-        map.remove(BATCH_OFF_DIAGONAL);
+        map.retain(|key, _| !key.starts_with("batch_"));
     }
-    let n = data.test.len() as f64;
+    let epochs = s.training.epochs;
+    let n = split.test.len() as f64;
     let summary = encoder::Summary {
         format: encoder::FORMAT,
         objective: serde_json::to_value(s.objective)?.as_str().unwrap_or_default().to_owned(),
-        epochs: s.epochs,
+        epochs,
         steps,
-        train_frames: data.train.len() as u64,
-        test_frames: data.test.len() as u64,
+        train_frames: split.train.len() as u64,
+        test_frames: split.test.len() as u64,
         last: last.clone(),
         chance_top1: 1.0 / n,
         chance_top5: (5.0 / n).min(1.0),
         generator: serde_json::to_value(s)?,
     };
     std::fs::write(out.join(encoder::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
-    let trained: FrameSet = if s.epochs > 0 { data.train.iter().map(|&f| data.ids[f].clone()).collect() } else { FrameSet::default() };
+    let ids = |f: &usize| frames.labels.frames[*f].id.clone();
+    let trained: FrameSet = if epochs > 0 { split.train.iter().map(ids).collect() } else { FrameSet::default() };
     trained.write(&out.join(encoder::TRAINED))?;
     if config.text.is_some() {
         let learnt = FrameSet::read(&ctx.input("tokens")?.join(tokens::LEARNT))?;
@@ -228,7 +166,7 @@ fn write_artifact(
     };
     Ok(Outcome {
         metrics: json!({"last": last, "steps": steps, "chance_top1": 1.0 / n}),
-        summary: format!("{} epochs, {steps} steps; {text}", s.epochs),
+        summary: format!("{epochs} epochs, {steps} steps; {text}"),
     })
 }
 

@@ -7,21 +7,19 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{Context as _, bail};
+use anyhow::bail;
 use rand::RngExt;
-use rand::seq::SliceRandom;
-use rlmflow_nn::clip::{self, images_from_u8};
+use rlmflow_nn::clip;
+use rlmflow_nn::data::{Captions, Frames, Need, Splits};
 use rlmflow_nn::decode::{beam_search, greedy};
 use rlmflow_nn::gpt::{Gpt, GptConfig, Mapper, Steps, caption_loss};
-use rlmflow_nn::optim::{AdamW, warmup_cosine};
 use rlmflow_nn::tch::{self, Tensor, nn};
-use rlmflow_nn::train::{epoch_rng, finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
+use rlmflow_nn::train::{EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
 use rlmflow_probe::{ClipcapSettings, Decode};
 use rlmflow_stages::grid::{CELLS, Grid};
-use rlmflow_stages::labels::{Labels, Split};
+use rlmflow_stages::labels::Split;
 use rlmflow_stages::probe::{self, Row, Scores, Summary, score};
-use rlmflow_stages::scenes::Scenes;
-use rlmflow_stages::tokens::{self, Tokens};
+use rlmflow_stages::tokens;
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources};
 use serde_json::{Value, json};
 use tokenizers::Tokenizer;
@@ -65,28 +63,18 @@ pub fn score_captions(captions: &[String], truth: &[[u32; CELLS]]) -> (Vec<Grid>
     (grids, scores)
 }
 
+/// The frames with every frame's frozen projected CLS embedding, and their roles.
 struct Data {
-    /// Frozen projected CLS embeddings, (frames, embed).
+    frames: Frames,
+    /// (frames, embed).
     embeddings: Tensor,
-    ids: Vec<i64>,
-    context: i64,
-    /// Caption rows of each frame.
-    captions: Vec<Vec<usize>>,
-    /// The training split without its validation slice; the slice; the test split.
-    train: Vec<usize>,
-    validation: Vec<usize>,
-    test: Vec<usize>,
-    /// Every frame's counts.
-    counts: Vec<[u32; CELLS]>,
+    split: Splits,
     hygiene: Vec<rlmflow_stages::identity::Overlap>,
 }
 
 impl Data {
-    /// Rows' ids, (rows, context).
-    fn batch(&self, rows: &[usize], device: tch::Device) -> Tensor {
-        let c = self.context as usize;
-        let ids: Vec<i64> = rows.iter().flat_map(|&r| self.ids[r * c..(r + 1) * c].iter().copied()).collect();
-        Tensor::from_slice(&ids).view([rows.len() as i64, self.context]).to_device(device)
+    fn captions(&self) -> &Captions {
+        self.frames.captions.as_ref().expect("loaded with captions")
     }
 
     fn embedding(&self, frames: &[usize]) -> Tensor {
@@ -95,68 +83,46 @@ impl Data {
     }
 }
 
-fn load(s: &ClipcapSettings, ctx: &Context, device: tch::Device) -> anyhow::Result<(Data, Tokens, rlmflow_stages::encoder::ModelConfig)> {
-    let scenes = Scenes::open(ctx.input("scenes")?)?;
-    let labels = Labels::open(ctx.input("labels")?)?;
-    labels.check_scenes(scenes.len())?;
-    let hygiene = rlmflow_stages::identity::check_inputs(ctx, &labels.ids(Split::Test), s.allow_test_overlap)?;
-    let tokens = Tokens::open(ctx.input("tokens")?)?;
-    let dir = ctx.input("encoder")?;
-    let side = scenes.summary.images[0].size as i64;
-    let (_vs, encoder) = clip::load(dir, device, side)?;
-    let frames = scenes.len() as usize;
-    let progress = ctx.progress(frames as u64, "frames embedded");
-    let mut parts = Vec::new();
-    tch::no_grad(|| -> anyhow::Result<()> {
-        for start in (0..frames).step_by(CHUNK) {
-            let chunk: Vec<u64> = (start as u64..(start + CHUNK).min(frames) as u64).collect();
-            let pixels = chunk.iter().map(|&i| scenes.heatmap(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
-            parts.push(encoder.encode_image(&images_from_u8(&pixels, chunk.len() as i64, side, device), false).embedding);
-            progress.inc(chunk.len() as u64);
-        }
-        Ok(())
-    })?;
+fn load(s: &ClipcapSettings, ctx: &Context, device: tch::Device) -> anyhow::Result<(Data, rlmflow_stages::encoder::ModelConfig)> {
+    let frames = Frames::load(ctx, Need { captions: true, masks: false })?;
+    let hygiene = rlmflow_stages::identity::check_inputs(ctx, &frames.labels.ids(Split::Test), s.allow_test_overlap)?;
+    let (_vs, encoder) = clip::load(ctx.input("encoder")?, device, frames.side)?;
+    let all: Vec<usize> = (0..frames.len()).collect();
+    let progress = ctx.progress(all.len() as u64, "frames embedded");
+    let parts: Vec<Tensor> = tch::no_grad(|| {
+        all.chunks(CHUNK)
+            .map(|chunk| {
+                progress.inc(chunk.len() as u64);
+                encoder.encode_image(&frames.images(chunk, device), false).embedding
+            })
+            .collect()
+    });
     progress.finish();
-    let captions = tokens.rows_by_frame(frames)?;
-    let (train, validation) = labels.train_validation(s.validation);
-    let frames_of = |labels: Vec<&rlmflow_stages::labels::FrameLabel>| {
-        labels.into_iter().map(|f| f.frame as usize).filter(|&f| !captions[f].is_empty()).collect::<Vec<_>>()
-    };
-    let (train, validation, test) = (frames_of(train), frames_of(validation), frames_of(labels.split(Split::Test).collect()));
-    if train.is_empty() || validation.is_empty() || test.is_empty() {
+    let split = frames.splits(s.validation, true);
+    if split.train.is_empty() || split.validation.is_empty() || split.test.is_empty() {
         bail!(
             "{} training, {} validation and {} test frames with captions: the caption probe needs all three (raise `validation` or the frame count)",
-            train.len(),
-            validation.len(),
-            test.len()
+            split.train.len(),
+            split.validation.len(),
+            split.test.len()
         );
     }
-    let data = Data {
-        embeddings: Tensor::cat(&parts, 0),
-        ids: tokens.ids.all_u32().context("reading the token ids")?.into_iter().map(i64::from).collect(),
-        context: tokens.summary.context as i64,
-        captions,
-        train,
-        validation,
-        test,
-        counts: labels.frames.iter().map(|f| f.grid.counts).collect(),
-        hygiene,
-    };
-    Ok((data, tokens, encoder.config))
+    Ok((Data { frames, embeddings: Tensor::cat(&parts, 0), split, hygiene }, encoder.config))
 }
 
 fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-    tch::set_num_threads(s.threads as i32);
-    let device = resolve_device(&s.device, ctx.device)?;
-    let (data, tokens, encoder) = load(s, ctx, device)?;
+    tch::set_num_threads(s.training.threads as i32);
+    let device = resolve_device(s.training.device, ctx.device)?;
+    let (data, encoder) = load(s, ctx, device)?;
+    let captions = data.captions();
     let tokenizer_path = ctx.input("tokens")?.join(tokens::TOKENIZER);
     let tokenizer = Tokenizer::from_file(&tokenizer_path).map_err(|e| anyhow::anyhow!("reading {}: {e}", tokenizer_path.display()))?;
-    let special = &tokens.summary.special;
-    let (start, end, pad) = (i64::from(special.start), i64::from(special.end), i64::from(special.pad));
+    let summary = &captions.tokens.summary;
+    let (start, end, pad) = (i64::from(summary.special.start), i64::from(summary.special.end), i64::from(summary.special.pad));
 
     tch::manual_seed(ctx.seed as i64);
     let vs = nn::VarStore::new(device);
-    let config = decoder_config(s, i64::from(tokens.summary.vocab), data.context);
+    let config = decoder_config(s, i64::from(summary.vocab), captions.context);
     let mapper = Mapper::new(&(vs.root() / "mapper"), encoder.embed, config.width, s.prefix, s.mapper_layers, config.heads);
     let gpt = Gpt::new(&(vs.root() / "gpt"), &config);
     if !s.init.is_empty() {
@@ -164,65 +130,28 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         ctx.event("init", json!({"path": s.init, "tensors": loaded}));
     }
 
-    let batch = s.batch as usize;
-    let steps_per_epoch = (data.train.len() / batch) as u64;
-    if steps_per_epoch == 0 {
-        bail!("batch {batch} is larger than the {} training frames; lower `batch`", data.train.len());
-    }
-    let total = s.epochs * steps_per_epoch;
-    let warmup = (s.warmup_epochs * steps_per_epoch as f64).round() as u64;
-    let mut opt = AdamW::new(&vs, (0.9, 0.999), 1e-8, s.weight_decay);
-    let mut log = restore_checkpoint(&vs, &mut opt, &ctx.checkpoint_dir)?;
-    if !log.is_empty() {
-        ctx.event("resumed", json!({"epoch": log.len()}));
-    }
-    let progress = ctx.progress(total, "steps");
-    progress.set_position(opt.steps() as u64);
-    for epoch in log.len() as u64..s.epochs {
-        let clock = Instant::now();
-        let mut rng = epoch_rng(ctx.seed, epoch);
-        let mut order = data.train.clone();
-        order.shuffle(&mut rng);
-        let mut losses = Vec::new();
-        for (step, frames) in order.chunks_exact(batch).enumerate() {
-            let global = epoch * steps_per_epoch + step as u64;
-            let lr = warmup_cosine(global, total, warmup, s.warmup_lr, s.lr, s.min_lr);
-            let rows: Vec<usize> = frames.iter().map(|&f| data.captions[f][rng.random_range(0..data.captions[f].len())]).collect();
-            let loss = caption_loss(&gpt, &mapper.forward(&data.embedding(frames)), &data.batch(&rows, device), pad, LENGTH_GROUPS);
-            losses.push(finite(loss.double_value(&[]), global + 1, epoch + 1)?);
-            let grads = opt.gradients(&loss);
-            AdamW::clip_grad_norm(&grads, s.clip_norm);
-            opt.step(&grads, lr);
-            progress.set_position(global + 1);
-            progress.set_message(format!("epoch {}/{} loss {:.3}", epoch + 1, s.epochs, losses[losses.len() - 1]));
-        }
-        let validation_loss = tch::no_grad(|| {
-            let mut sum = 0.0;
-            for frames in data.validation.chunks(CHUNK) {
-                let rows: Vec<usize> = frames.iter().map(|&f| data.captions[f][0]).collect();
-                let loss = caption_loss(&gpt, &mapper.forward(&data.embedding(frames)), &data.batch(&rows, device), pad, LENGTH_GROUPS);
-                sum += loss.double_value(&[]) * frames.len() as f64;
-            }
-            sum / data.validation.len() as f64
+    let loss = |frames: &[usize], rows: &[usize]| caption_loss(&gpt, &mapper.forward(&data.embedding(frames)), &captions.ids(rows, device), pad, LENGTH_GROUPS);
+    let batch_loss = |frames: &[usize], rng: &mut EpochRng| -> anyhow::Result<Step> {
+        let rows: Vec<usize> = frames.iter().map(|&f| captions.rows[f][rng.random_range(0..captions.rows[f].len())]).collect();
+        Ok(loss(frames, &rows).into())
+    };
+    let validation_loss = || -> anyhow::Result<Figures> {
+        let sum: f64 = tch::no_grad(|| {
+            data.split.validation.chunks(CHUNK).map(|frames| {
+                let rows: Vec<usize> = frames.iter().map(|&f| captions.rows[f][0]).collect();
+                loss(frames, &rows).double_value(&[]) * frames.len() as f64
+            }).sum()
         });
-        let line = json!({
-            "epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch,
-            "loss": losses.iter().sum::<f64>() / losses.len() as f64,
-            "lr": warmup_cosine((epoch + 1) * steps_per_epoch - 1, total, warmup, s.warmup_lr, s.lr, s.min_lr),
-            "validation_loss": validation_loss,
-        });
-        let mut event = line.clone();
-        event["seconds"] = clock.elapsed().as_secs_f64().into();
-        ctx.event("epoch", event);
-        log.push(line);
-        save_checkpoint(&vs, &opt, &log, &ctx.checkpoint_dir)?;
-    }
-    progress.finish();
+        Ok(vec![("validation_loss", sum / data.split.validation.len() as f64)])
+    };
+    let Fitted { log, .. } = fit(&vs, Fit { training: &s.training, frames: &data.split.train, per_batch: false }, ctx, batch_loss, validation_loss)?;
 
     // Generate the validation and test captions.
-    let max_tokens = if s.max_tokens == 0 { data.context as usize } else { s.max_tokens.min(data.context as usize) };
+    let context = captions.context as usize;
+    let max_tokens = if s.max_tokens == 0 { context } else { s.max_tokens.min(context) };
     let clock = Instant::now();
-    let progress = ctx.progress((data.validation.len() + data.test.len()) as u64, "captions generated");
+    let (validation, test) = (&data.split.validation, &data.split.test);
+    let progress = ctx.progress((validation.len() + test.len()) as u64, "captions generated");
     let generate = |frames: &[usize]| -> anyhow::Result<Vec<String>> {
         let mut captions = Vec::with_capacity(frames.len());
         tch::no_grad(|| -> anyhow::Result<()> {
@@ -243,29 +172,29 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         })?;
         Ok(captions)
     };
-    let truth = |frames: &[usize]| frames.iter().map(|&f| data.counts[f]).collect::<Vec<_>>();
-    let (_, validation_scores) = score_captions(&generate(&data.validation)?, &truth(&data.validation));
-    let captions = generate(&data.test)?;
+    let truth = |frames: &[usize]| frames.iter().map(|&f| data.frames.labels.frames[f].grid.counts).collect::<Vec<_>>();
+    let (_, validation_scores) = score_captions(&generate(validation)?, &truth(validation));
+    let generated = generate(test)?;
     progress.finish();
     let seconds = clock.elapsed().as_secs_f64();
-    let generated = data.validation.len() + captions.len();
-    ctx.event("generated", json!({"captions": generated, "seconds": seconds, "captions_per_second": generated as f64 / seconds}));
+    let count = validation.len() + generated.len();
+    ctx.event("generated", json!({"captions": count, "seconds": seconds, "captions_per_second": count as f64 / seconds}));
 
-    let (grids, scores) = score_captions(&captions, &truth(&data.test));
+    let (grids, scores) = score_captions(&generated, &truth(test));
     let mut predictions = String::new();
-    for ((&frame, caption), grid) in data.test.iter().zip(&captions).zip(&grids) {
+    for ((&frame, caption), grid) in test.iter().zip(&generated).zip(&grids) {
         predictions.push_str(&format!("{{\"frame\":{frame},\"features\":\"cls\",\"grid\":{},\"caption\":{}}}\n", grid.to_json(), json!(caption)));
     }
     let details = json!({
         "decode": s.decode, "beam": s.beam, "max_tokens": max_tokens, "decoder": config.width, "log": log,
-        "validation_frames": data.validation.len(), "validation_f1": validation_scores.overall.f1,
+        "validation_frames": validation.len(), "validation_f1": validation_scores.overall.f1,
     });
     let row = Row { features: "cls".into(), details, scores: scores.clone() };
     let summary = Summary {
         format: probe::FORMAT,
         probe: "clipcap".into(),
-        train_frames: data.train.len() as u64,
-        test_frames: data.test.len() as u64,
+        train_frames: data.split.train.len() as u64,
+        test_frames: test.len() as u64,
         hygiene: data.hygiene.clone(),
         rows: vec![row],
         generator: serde_json::to_value(s)?,
@@ -282,7 +211,7 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         }),
         summary: format!(
             "{} test captions ({:?}): F1 {:.3} (P {:.3} R {:.3}); validation F1 {:.3}, loss {:.3}",
-            captions.len(),
+            generated.len(),
             s.decode,
             scores.overall.f1,
             scores.overall.precision,

@@ -129,7 +129,7 @@ fn round(predictions: &[f64]) -> Vec<[u32; CELLS]> {
 /// Every frame's projected CLS embedding, mean patch token and patch tokens in grid order (the
 /// spatial layout kept) from the frozen encoder.
 fn encoder_features(dir: &Path, scenes: &Scenes, ctx: &Context) -> anyhow::Result<Vec<(&'static str, Vec<f64>, usize)>> {
-    let device = rlmflow_nn::device(ctx.device);
+    let device = rlmflow_nn::train::resolve_device(ctx.device, rlmflow_stages::Device::Cpu)?;
     let side = scenes.summary.images[0].size as i64;
     let (_vs, model) = clip::load(dir, device, side)?;
     let (mut cls, mut means, mut patches) = (Vec::new(), Vec::new(), Vec::new());

@@ -2,28 +2,25 @@
 //! encoder's patch tokens, `unet` on pixels. See `rlmflow_segment` for what each does; the
 //! artifact and the metrics are `rlmflow_stages::segment`'s.
 //!
-//! Both share one loop. Each epoch visits the training frames in an order seeded by (seed,
-//! epoch), so a checkpoint needs only the epoch; after each epoch a validation slice of the
-//! training split (never trained on; by frame identity, episodes whole) is scored and a
+//! Both train through `rlmflow_nn::train::fit` on the frames of `rlmflow_nn::data`: each epoch
+//! visits the training frames in an order seeded by (seed, epoch), then a validation slice of
+//! the training split (never trained on; by frame identity, episodes whole) is scored and a
 //! checkpoint written. The test split is scored once, at the end. Both first check that no test
-//! frame is among those the encoder trained on (`rlmflow_stages::identity`). The frozen encoder's tokens are computed once for every frame when they
-//! fit in [`TOKEN_CACHE_BYTES`], else per batch.
-
-use std::time::Instant;
+//! frame is among those the encoder trained on (`rlmflow_stages::identity`). The frozen
+//! encoder's tokens are computed once for every frame when they fit in [`TOKEN_CACHE_BYTES`],
+//! else per batch.
 
 use anyhow::bail;
-use rand::seq::SliceRandom;
-use rlmflow_nn::clip::{self, Clip as Model, images_from_u8};
-use rlmflow_nn::optim::{AdamW, warmup_cosine};
+use rlmflow_nn::clip::{self, Clip as Model};
+use rlmflow_nn::data::{Frames, Need, Splits};
 use rlmflow_nn::segment::{Pup as PupHead, UNet, dice_bce_loss, pup_widths};
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
-use rlmflow_nn::train::{epoch_rng, finite, resolve_device, restore_checkpoint, save_checkpoint, write_weights};
-use rlmflow_segment::{PupSettings, Schedule, UnetSettings};
-use rlmflow_stages::labels::{Labels, Split};
+use rlmflow_nn::train::{EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
+use rlmflow_segment::{PupSettings, UnetSettings};
+use rlmflow_stages::labels::Split;
 use rlmflow_stages::npy::{Dtype, NpyWriter};
-use rlmflow_stages::scenes::Scenes;
 use rlmflow_stages::segment::{self, PixelCounts, SegMetrics};
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources};
+use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Training};
 use serde_json::{Value, json};
 
 /// Frozen-encoder tokens up to this size are computed once for every frame.
@@ -45,16 +42,14 @@ impl Operator for Pup {
     }
 
     fn run(&self, s: &PupSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-        let schedule = s.schedule();
-        let (device, data) = prepare(&schedule, ctx, s.allow_test_overlap)?;
-        let dir = ctx.input("encoder")?;
-        let (_encoder_vs, encoder) = clip::load(dir, device, data.side)?;
+        let (device, data) = prepare(&s.training, ctx, s.allow_test_overlap)?;
+        let (_encoder_vs, encoder) = clip::load(ctx.input("encoder")?, device, data.frames.side)?;
         let vision = &encoder.config.vision;
-        let widths = if s.channels.is_empty() { pup_widths(vision.grid(), data.side) } else { s.channels.clone() };
+        let widths = if s.channels.is_empty() { pup_widths(vision.grid(), data.frames.side) } else { s.channels.clone() };
         let vs = nn::VarStore::new(device);
         tch::manual_seed(ctx.seed as i64);
-        let head = PupHead::new(&vs.root(), vision.width, &widths, data.side);
-        let tokens = Tokens::new(&encoder, &data, device, ctx);
+        let head = PupHead::new(&vs.root(), vision.width, &widths, data.frames.side);
+        let tokens = Tokens::new(&encoder, &data.frames, device, ctx);
         let blocks: Vec<usize> = {
             let layers = vision.layers as usize;
             let take = if s.rollout_layers == 0 { layers } else { s.rollout_layers.min(layers) };
@@ -62,11 +57,9 @@ impl Operator for Pup {
         };
         let segmenter =
             Segmenter { name: "pup", vs, forward: Box::new(move |frames: &[usize], train: bool| head.forward_t(&tokens.get(frames), train)) };
-        let rollout = |frames: &[usize]| {
-            let images = images_from_u8(&data.pixels(frames), frames.len() as i64, data.side, device);
-            tch::no_grad(|| encoder.visual.attention_rollout(&images, blocks.len()))
-        };
-        train(&schedule, ctx, &data, device, segmenter, Some((&blocks, &rollout)), serde_json::to_value(s)?)
+        let rollout = |frames: &[usize]| tch::no_grad(|| encoder.visual.attention_rollout(&data.frames.images(frames, device), blocks.len()));
+        let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: serde_json::to_value(s)? };
+        train(&s.training, &segmentation, ctx, &data, device, segmenter, Some((&blocks, &rollout)))
     }
 }
 
@@ -84,106 +77,74 @@ impl Operator for Unet {
     }
 
     fn run(&self, s: &UnetSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-        let schedule = s.schedule();
-        let (device, data) = prepare(&schedule, ctx, false)?;
+        let (device, data) = prepare(&s.training, ctx, false)?;
         let divisor = 1i64 << (s.channels.len() - 1);
-        if data.side % divisor != 0 {
-            bail!("setting `channels`: {} levels need an image side divisible by {divisor}; the scenes have {}", s.channels.len(), data.side);
+        if data.frames.side % divisor != 0 {
+            bail!("setting `channels`: {} levels need an image side divisible by {divisor}; the scenes have {}", s.channels.len(), data.frames.side);
         }
         let vs = nn::VarStore::new(device);
         tch::manual_seed(ctx.seed as i64);
         let unet = UNet::new(&vs.root(), &s.channels);
-        let pixels = |frames: &[usize]| images_from_u8(&data.pixels(frames), frames.len() as i64, data.side, device);
+        let frames = &data.frames;
         let segmenter =
-            Segmenter { name: "unet", vs, forward: Box::new(move |frames: &[usize], train: bool| unet.forward_t(&pixels(frames), train)) };
-        train(&schedule, ctx, &data, device, segmenter, None, serde_json::to_value(s)?)
+            Segmenter { name: "unet", vs, forward: Box::new(move |batch: &[usize], train: bool| unet.forward_t(&frames.images(batch, device), train)) };
+        let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: serde_json::to_value(s)? };
+        train(&s.training, &segmentation, ctx, &data, device, segmenter, None)
     }
 }
 
 /// Share of the training split held out as the validation slice the per-epoch log scores.
 const VALIDATION_SHARE: f64 = 0.1;
 
-/// The heatmaps and masks of every frame, and the split: training frames less the validation
-/// slice, the slice, the test frames.
+/// The settings both segmenters have besides training.
+struct Segmentation {
+    samples: usize,
+    dice_weight: f64,
+    generator: Value,
+}
+
+/// The frames with their masks, their roles and the overlap counts.
 struct Data {
-    side: i64,
-    pixels: Vec<u8>,
-    masks: Vec<u8>,
-    train: Vec<usize>,
-    validation: Vec<usize>,
-    test: Vec<usize>,
+    frames: Frames,
+    split: Splits,
     hygiene: Vec<rlmflow_stages::identity::Overlap>,
 }
 
-impl Data {
-    fn load(ctx: &Context, allow_test_overlap: bool) -> anyhow::Result<Data> {
-        let scenes = Scenes::open(ctx.input("scenes")?)?;
-        let labels = Labels::open(ctx.input("labels")?)?;
-        labels.check_scenes(scenes.len())?;
-        let hygiene = rlmflow_stages::identity::check_inputs(ctx, &labels.ids(Split::Test), allow_test_overlap)?;
-        let side = scenes.summary.images[0].size;
-        if labels.summary.mask.size != side {
-            bail!(
-                "the labels' masks are {} px but the scenes' primary image {side} px: give the stage the scenes that were labelled",
-                labels.summary.mask.size
-            );
-        }
-        let pixels = (0..scenes.len()).map(|i| scenes.heatmap(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
-        let masks = (0..scenes.len()).map(|i| labels.mask(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
-        let (train, validation) = labels.train_validation(VALIDATION_SHARE);
-        let frames = |labels: Vec<&rlmflow_stages::labels::FrameLabel>| labels.into_iter().map(|f| f.frame as usize).collect::<Vec<_>>();
-        let (train, validation) = (frames(train), frames(validation));
-        let test: Vec<usize> = labels.split(Split::Test).map(|f| f.frame as usize).collect();
-        if train.is_empty() || validation.is_empty() || test.is_empty() {
-            bail!("{} training, {} validation and {} test frames: segmentation needs all three", train.len(), validation.len(), test.len());
-        }
-        Ok(Data { side: side as i64, pixels, masks, train, validation, test, hygiene })
+fn prepare(t: &Training, ctx: &Context, allow_test_overlap: bool) -> anyhow::Result<(tch::Device, Data)> {
+    tch::set_num_threads(t.threads as i32);
+    let device = resolve_device(t.device, ctx.device)?;
+    let frames = Frames::load(ctx, Need { captions: false, masks: true })?;
+    let hygiene = rlmflow_stages::identity::check_inputs(ctx, &frames.labels.ids(Split::Test), allow_test_overlap)?;
+    let split = frames.splits(VALIDATION_SHARE, false);
+    if split.train.is_empty() || split.validation.is_empty() || split.test.is_empty() {
+        bail!(
+            "{} training, {} validation and {} test frames: segmentation needs all three",
+            split.train.len(),
+            split.validation.len(),
+            split.test.len()
+        );
     }
-
-    fn frame_bytes(&self) -> usize {
-        (self.side * self.side) as usize
-    }
-
-    fn pixels(&self, frames: &[usize]) -> Vec<u8> {
-        let n = self.frame_bytes();
-        frames.iter().flat_map(|&f| self.pixels[f * n..(f + 1) * n].iter().copied()).collect()
-    }
-
-    fn mask(&self, frame: usize) -> &[u8] {
-        let n = self.frame_bytes();
-        &self.masks[frame * n..(frame + 1) * n]
-    }
-
-    /// Targets in [0, 1], (frames, 1, side, side).
-    fn targets(&self, frames: &[usize], device: tch::Device) -> Tensor {
-        let bytes: Vec<u8> = frames.iter().flat_map(|&f| self.mask(f).iter().copied()).collect();
-        Tensor::from_slice(&bytes).view([frames.len() as i64, 1, self.side, self.side]).to_device(device).to_kind(Kind::Float) / 255.0
-    }
-}
-
-fn prepare(s: &Schedule, ctx: &Context, allow_test_overlap: bool) -> anyhow::Result<(tch::Device, Data)> {
-    tch::set_num_threads(s.threads as i32);
-    Ok((resolve_device(&s.device, ctx.device)?, Data::load(ctx, allow_test_overlap)?))
+    Ok((device, Data { frames, split, hygiene }))
 }
 
 /// The frozen encoder's tokens after `ln_post` for any frames: from a table of every frame's
 /// when it fits in memory, else encoded on demand.
 struct Tokens<'a> {
     encoder: &'a Model,
-    data: &'a Data,
+    frames: &'a Frames,
     device: tch::Device,
     table: Option<Tensor>,
 }
 
 impl<'a> Tokens<'a> {
-    fn new(encoder: &'a Model, data: &'a Data, device: tch::Device, ctx: &Context) -> Tokens<'a> {
+    fn new(encoder: &'a Model, frames: &'a Frames, device: tch::Device, ctx: &Context) -> Tokens<'a> {
         let v = &encoder.config.vision;
-        let frames = data.pixels.len() as i64 / (data.side * data.side);
-        let bytes = frames * (v.grid() * v.grid() + 1) * v.width * 4;
-        let mut tokens = Tokens { encoder, data, device, table: None };
+        let count = frames.len() as i64;
+        let bytes = count * (v.grid() * v.grid() + 1) * v.width * 4;
+        let mut tokens = Tokens { encoder, frames, device, table: None };
         if bytes <= TOKEN_CACHE_BYTES {
-            let all: Vec<usize> = (0..frames as usize).collect();
-            let progress = ctx.progress(frames as u64, "frames encoded");
+            let all: Vec<usize> = (0..frames.len()).collect();
+            let progress = ctx.progress(count as u64, "frames encoded");
             let parts: Vec<Tensor> = all
                 .chunks(CHUNK)
                 .map(|chunk| {
@@ -199,8 +160,7 @@ impl<'a> Tokens<'a> {
     }
 
     fn encode(&self, frames: &[usize]) -> Tensor {
-        let images = images_from_u8(&self.data.pixels(frames), frames.len() as i64, self.data.side, self.device);
-        tch::no_grad(|| self.encoder.encode_image(&images, false).tokens)
+        tch::no_grad(|| self.encoder.encode_image(&self.frames.images(frames, self.device), false).tokens)
     }
 
     fn get(&self, frames: &[usize]) -> Tensor {
@@ -222,17 +182,17 @@ struct Segmenter<'a> {
 }
 
 /// `scored` frames scored: pixel counts for the metrics and the mean loss.
-fn evaluate(segmenter: &Segmenter, data: &Data, scored: &[usize], device: tch::Device, dice_weight: f64) -> anyhow::Result<(PixelCounts, f64)> {
+fn evaluate(segmenter: &Segmenter, frames: &Frames, scored: &[usize], device: tch::Device, dice_weight: f64) -> anyhow::Result<(PixelCounts, f64)> {
     tch::no_grad(|| {
         let mut counts = PixelCounts::new();
         let mut loss = 0.0;
-        for frames in scored.chunks(CHUNK) {
-            let logits = (segmenter.forward)(frames, false);
-            loss += dice_bce_loss(&logits, &data.targets(frames, device), dice_weight).double_value(&[]) * frames.len() as f64;
+        for batch in scored.chunks(CHUNK) {
+            let logits = (segmenter.forward)(batch, false);
+            loss += dice_bce_loss(&logits, &frames.masks(batch, device), dice_weight).double_value(&[]) * batch.len() as f64;
             let predicted = Vec::<f32>::try_from(logits.sigmoid().to_device(tch::Device::Cpu).flatten(0, -1))?;
-            for (i, &f) in frames.iter().enumerate() {
-                let n = data.frame_bytes();
-                counts.add(&predicted[i * n..(i + 1) * n], data.mask(f));
+            let n = (frames.side * frames.side) as usize;
+            for (i, &f) in batch.iter().enumerate() {
+                counts.add(&predicted[i * n..(i + 1) * n], frames.mask(f));
             }
         }
         Ok((counts, loss / scored.len() as f64))
@@ -242,79 +202,44 @@ fn evaluate(segmenter: &Segmenter, data: &Data, scored: &[usize], device: tch::D
 type Rollout<'a> = (&'a [usize], &'a dyn Fn(&[usize]) -> Tensor);
 
 fn train(
-    s: &Schedule,
+    t: &Training,
+    segmentation: &Segmentation,
     ctx: &mut Context,
     data: &Data,
     device: tch::Device,
     segmenter: Segmenter,
     rollout: Option<Rollout>,
-    generator: Value,
 ) -> anyhow::Result<Outcome> {
-    let batch = s.batch as usize;
-    let steps_per_epoch = (data.train.len() / batch) as u64;
-    if steps_per_epoch == 0 {
-        bail!("batch {batch} is larger than the {} training frames; lower `batch`", data.train.len());
-    }
-    let total = s.epochs * steps_per_epoch;
-    let warmup = (s.warmup_epochs * steps_per_epoch as f64).round() as u64;
-    let mut opt = AdamW::new(&segmenter.vs, (0.9, 0.999), 1e-8, s.weight_decay);
-    let mut log = restore_checkpoint(&segmenter.vs, &mut opt, &ctx.checkpoint_dir)?;
-    if !log.is_empty() {
-        ctx.event("resumed", json!({"epoch": log.len()}));
-    }
-    let progress = ctx.progress(total, "steps");
-    progress.set_position(opt.steps() as u64);
-    for epoch in log.len() as u64..s.epochs {
-        let clock = Instant::now();
-        let mut order = data.train.clone();
-        order.shuffle(&mut epoch_rng(ctx.seed, epoch));
-        let mut losses = Vec::with_capacity(steps_per_epoch as usize);
-        for (step, frames) in order.chunks_exact(batch).enumerate() {
-            let global = epoch * steps_per_epoch + step as u64;
-            let lr = warmup_cosine(global, total, warmup, s.warmup_lr, s.lr, s.min_lr);
-            let loss = dice_bce_loss(&(segmenter.forward)(frames, true), &data.targets(frames, device), s.dice_weight);
-            losses.push(finite(loss.double_value(&[]), global + 1, epoch + 1)?);
-            let grads = opt.gradients(&loss);
-            AdamW::clip_grad_norm(&grads, s.clip_norm);
-            opt.step(&grads, lr);
-            progress.set_position(global + 1);
-            progress.set_message(format!("epoch {}/{} loss {:.3}", epoch + 1, s.epochs, losses[losses.len() - 1]));
-        }
-        let (counts, validation_loss) = evaluate(&segmenter, data, &data.validation, device, s.dice_weight)?;
+    let frames = &data.frames;
+    let batch_loss = |batch: &[usize], _: &mut EpochRng| -> anyhow::Result<Step> {
+        Ok(dice_bce_loss(&(segmenter.forward)(batch, true), &frames.masks(batch, device), segmentation.dice_weight).into())
+    };
+    let validation = || -> anyhow::Result<Figures> {
+        let (counts, loss) = evaluate(&segmenter, frames, &data.split.validation, device, segmentation.dice_weight)?;
         let m = counts.metrics();
-        let line = json!({
-            "epoch": epoch + 1, "step": (epoch + 1) * steps_per_epoch,
-            "loss": losses.iter().sum::<f64>() / losses.len() as f64,
-            "lr": warmup_cosine((epoch + 1) * steps_per_epoch - 1, total, warmup, s.warmup_lr, s.lr, s.min_lr),
-            "validation_loss": validation_loss, "validation_iou": m.iou, "validation_ap": m.ap,
-        });
-        let mut event = line.clone();
-        event["seconds"] = clock.elapsed().as_secs_f64().into();
-        ctx.event("epoch", event);
-        log.push(line);
-        save_checkpoint(&segmenter.vs, &opt, &log, &ctx.checkpoint_dir)?;
-    }
-    progress.finish();
-    let metrics = evaluate(&segmenter, data, &data.test, device, s.dice_weight)?.0.metrics();
-    write_artifact(s, ctx, data, &segmenter, rollout, &log, total, metrics, generator)
+        Ok(vec![("validation_loss", loss), ("validation_iou", m.iou), ("validation_ap", m.ap)])
+    };
+    let fitted = fit(&segmenter.vs, Fit { training: t, frames: &data.split.train, per_batch: false }, ctx, batch_loss, validation)?;
+    let metrics = evaluate(&segmenter, frames, &data.split.test, device, segmentation.dice_weight)?.0.metrics();
+    write_artifact(t, segmentation, ctx, data, &segmenter, rollout, fitted, metrics)
 }
 
 #[allow(clippy::too_many_arguments)]
 fn write_artifact(
-    s: &Schedule,
+    t: &Training,
+    segmentation: &Segmentation,
     ctx: &Context,
     data: &Data,
     segmenter: &Segmenter,
     rollout: Option<Rollout>,
-    log: &[Value],
-    steps: u64,
+    Fitted { log, steps }: Fitted,
     metrics: SegMetrics,
-    generator: Value,
 ) -> anyhow::Result<Outcome> {
     let out = &ctx.output_dir;
-    let n = s.samples.min(data.test.len());
-    let samples: Vec<usize> = (0..n).map(|i| data.test[i * data.test.len() / n]).collect();
-    let side = data.side as usize;
+    let test = &data.split.test;
+    let n = segmentation.samples.min(test.len());
+    let samples: Vec<usize> = (0..n).map(|i| test[i * test.len() / n]).collect();
+    let side = data.frames.side as usize;
     let mut writer = NpyWriter::create(&out.join(segment::SAMPLES), Dtype::U8, n, &[side, side])?;
     if n > 0 {
         let predicted = tch::no_grad(|| (segmenter.forward)(&samples, false).sigmoid());
@@ -338,16 +263,16 @@ fn write_artifact(
     let summary = segment::Summary {
         format: segment::FORMAT,
         operator: segmenter.name.into(),
-        train_frames: data.train.len() as u64,
-        test_frames: data.test.len() as u64,
+        train_frames: data.split.train.len() as u64,
+        test_frames: test.len() as u64,
         hygiene: data.hygiene.clone(),
-        epochs: s.epochs,
+        epochs: t.epochs,
         steps,
         metrics: metrics.clone(),
-        log: log.to_vec(),
+        log,
         sample_frames: samples.iter().map(|&f| f as u64).collect(),
         rollout_blocks: blocks,
-        generator,
+        generator: segmentation.generator.clone(),
     };
     std::fs::write(out.join(segment::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
     let m = &metrics;
@@ -355,7 +280,7 @@ fn write_artifact(
         metrics: json!({"precision": m.precision, "recall": m.recall, "iou": m.iou, "dice": m.dice, "peak_iou": m.peak_iou, "ap": m.ap, "positive_rate": m.positive_rate}),
         summary: format!(
             "{} test frames: IoU {:.3} Dice {:.3} peak IoU {:.3} AP {:.3} (positive rate {:.3})",
-            data.test.len(),
+            test.len(),
             m.iou,
             m.dice,
             m.peak_iou,

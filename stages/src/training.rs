@@ -1,0 +1,124 @@
+//! The settings every training operator shares, typed and checked once.
+//!
+//! [`Training`] is flattened into each torch operator's settings struct (`#[serde(flatten)]`),
+//! so `pipeline.toml` keeps flat keys (`epochs`, `lr`, `device`, ...) with the same meaning and
+//! bounds everywhere; each operator's `Default` picks its own values. The loop that reads them
+//! is `rlmflow_nn::train::fit`.
+
+use serde::{Deserialize, Serialize};
+
+use crate::{Device, Resources, SettingError};
+
+/// One training run's schedule, optimiser and placement.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Training {
+    /// 0..=10,000; 0 leaves the model untrained (a random-init sanity row).
+    pub epochs: u64,
+    /// Frames per step, 1..=65,536.
+    pub batch: u64,
+    /// Peak learning rate, (0, 1].
+    pub lr: f64,
+    /// Linear warmup from `warmup_lr` to `lr`, in epochs (fractions allowed), 0..=epochs.
+    pub warmup_epochs: f64,
+    /// The warmup's first rate, [0, lr].
+    pub warmup_lr: f64,
+    /// The cosine schedule ends here, [0, lr].
+    pub min_lr: f64,
+    /// AdamW's moment decay rates, each in [0, 1).
+    pub betas: [f64; 2],
+    /// AdamW's denominator term, (0, 1].
+    pub eps: f64,
+    /// AdamW decay on matrices and kernels only, 0..=1.
+    pub weight_decay: f64,
+    /// Global gradient-norm clip, (0, 1e6].
+    pub clip_norm: f64,
+    /// `auto` (CUDA when present), `cpu`, `cuda` or `cuda:N`. With `auto` the result depends on
+    /// the machine's device, so a pipeline that must reproduce bit for bit everywhere names `cpu`.
+    pub device: Device,
+    /// CPU threads libtorch uses, 1..=256. Part of the result: libtorch's parallel reductions
+    /// add in an order that depends on the thread count, so the same key must mean the same
+    /// count, whatever the scheduler grants.
+    pub threads: usize,
+}
+
+impl Default for Training {
+    fn default() -> Self {
+        Training {
+            epochs: 6,
+            batch: 64,
+            lr: 1e-3,
+            warmup_epochs: 0.5,
+            warmup_lr: 1e-6,
+            min_lr: 1e-5,
+            betas: [0.9, 0.999],
+            eps: 1e-8,
+            weight_decay: 0.01,
+            clip_norm: 4.0,
+            device: Device::Auto,
+            threads: 2,
+        }
+    }
+}
+
+impl Training {
+    /// The bounds in the field docs; errors name the key.
+    pub fn check(&self) -> Result<(), SettingError> {
+        SettingError::check_range("epochs", self.epochs, 0..=10_000)?;
+        if self.epochs == 0 && self.warmup_epochs > 0.0 {
+            let message = format!("0 leaves the model untrained, with no room for the {} warmup epochs; set `warmup_epochs = 0.0` too", self.warmup_epochs);
+            return Err(SettingError::new("epochs", message));
+        }
+        SettingError::check_range("batch", self.batch, 1..=65_536)?;
+        SettingError::check_positive("lr", self.lr, 1.0)?;
+        SettingError::check_range("warmup_epochs", self.warmup_epochs, 0.0..=self.epochs as f64)?;
+        SettingError::check_range("warmup_lr", self.warmup_lr, 0.0..=self.lr)?;
+        SettingError::check_range("min_lr", self.min_lr, 0.0..=self.lr)?;
+        for (i, b) in self.betas.iter().enumerate() {
+            if !(0.0..1.0).contains(b) {
+                return Err(SettingError::new(format!("betas.{i}"), format!("must be in [0, 1), not {b}")));
+            }
+        }
+        SettingError::check_positive("eps", self.eps, 1.0)?;
+        SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
+        SettingError::check_positive("clip_norm", self.clip_norm, 1e6)?;
+        SettingError::check_range("threads", self.threads, 1..=256)
+    }
+
+    /// What a training stage asks of the machine: its threads, a GPU unless it names the CPU,
+    /// and a CUDA device when it names one.
+    pub fn resources(&self) -> Resources {
+        Resources { threads: self.threads, gpu: self.device != Device::Cpu, needs_cuda: matches!(self.device, Device::Cuda(_)) }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bounds_name_their_key() {
+        let key = |t: Training| t.check().unwrap_err().key;
+        assert!(Training::default().check().is_ok());
+        assert!(Training { epochs: 0, warmup_epochs: 0.0, ..Training::default() }.check().is_ok(), "0 epochs: untrained");
+        assert_eq!(key(Training { epochs: 0, ..Training::default() }), "epochs", "an untrained model with a warmup");
+        assert_eq!(key(Training { batch: 0, ..Training::default() }), "batch");
+        assert_eq!(key(Training { lr: f64::NAN, ..Training::default() }), "lr");
+        assert_eq!(key(Training { epochs: 2, warmup_epochs: 3.0, ..Training::default() }), "warmup_epochs");
+        assert_eq!(key(Training { min_lr: 1.0, ..Training::default() }), "min_lr");
+        assert_eq!(key(Training { betas: [0.9, 1.0], ..Training::default() }), "betas.1");
+        assert_eq!(key(Training { eps: 0.0, ..Training::default() }), "eps");
+        assert_eq!(key(Training { threads: 0, ..Training::default() }), "threads");
+    }
+
+    #[test]
+    fn a_device_is_a_string_in_settings() {
+        let t: Training = serde_json::from_value(serde_json::json!({
+            "epochs": 1, "batch": 2, "lr": 0.1, "warmup_epochs": 0.0, "warmup_lr": 0.0, "min_lr": 0.0, "betas": [0.9, 0.99],
+            "eps": 1e-8, "weight_decay": 0.0, "clip_norm": 1.0, "device": "cuda:1", "threads": 1
+        }))
+        .unwrap();
+        assert_eq!(t.device, Device::Cuda(1));
+        assert_eq!(serde_json::to_value(&t).unwrap()["device"], "cuda:1");
+        assert_eq!(t.resources(), Resources { threads: 1, gpu: true, needs_cuda: true });
+    }
+}
