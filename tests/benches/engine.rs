@@ -65,8 +65,8 @@ fn planning() {
     let times: Vec<f64> = (0..5)
         .map(|_| {
             let t0 = Instant::now();
-            let pipeline = rlmflow::config::parse(Path::new("plan10k.toml"), &text, &registry).unwrap();
-            let plan = rlmflow::plan::plan(&pipeline);
+            let pipeline = rlmflow_engine::config::parse(Path::new("plan10k.toml"), &text, &registry).unwrap();
+            let plan = rlmflow_engine::plan::plan(&pipeline);
             // Every instance's key, with every upstream output known.
             let outputs: Vec<Option<Digest>> = (0..plan.instances.len()).map(|i| Some(Digest::of(&i.to_le_bytes()))).collect();
             let keys: Vec<Digest> = (0..plan.instances.len()).map(|i| plan.preimage(i, &registry, &outputs).unwrap().key()).collect();

@@ -20,5 +20,5 @@ fn registry() -> Registry {
 }
 
 fn main() -> ExitCode {
-    rlmflow::cli::main(registry())
+    rlmflow_engine::cli::main(registry())
 }

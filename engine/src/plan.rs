@@ -5,7 +5,7 @@ use std::collections::{BTreeMap, HashMap};
 
 use anyhow::bail;
 use rlmflow_cache::{ActionRecord, Change, Digest, InputDigest, Preimage, Store};
-use rlmflow_stages::{Arity, Part, Registry};
+use rlmflow_stages::{Arity, InstanceId, Part, Registry};
 use serde_json::Value;
 
 use crate::config::{Pipeline, SEED_DIMENSION, suggest};
@@ -194,6 +194,18 @@ impl Plan<'_> {
     pub fn input_labels(&self, i: usize) -> BTreeMap<String, String> {
         let one = self.instances[i].inputs.iter().filter(|input| input.arity == Arity::One);
         one.filter_map(|input| Some((input.slot.to_owned(), self.instances[*input.providers.first()?].label.clone()))).collect()
+    }
+
+    /// Every input provider of instance `i` as data, by label (`{"stage", "variant"}`).
+    pub fn input_instances(&self, i: usize) -> BTreeMap<String, Value> {
+        let providers = self.instances[i].inputs.iter().flat_map(|input| input.providers.iter());
+        providers
+            .map(|&p| {
+                let provider = &self.instances[p];
+                let id = InstanceId { stage: self.pipeline.stages[provider.stage].name.clone(), variant: provider.assignment.clone() };
+                (provider.label.clone(), serde_json::to_value(id).expect("an instance serialises"))
+            })
+            .collect()
     }
 
     /// The preimage of instance `i`, once every input's output digest is known.

@@ -45,7 +45,8 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
             Freshness::Pending { reason } => bail!("{}: {reason}", inst.label),
         };
         let input_labels = plan.input_labels(i);
-        store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone(), input_labels })?;
+        let input_instances = plan.input_instances(i);
+        store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone(), input_labels, input_instances })?;
         println!("check-determinism {} (key {})", inst.label, key.short());
         let exe = crate::exec::executable(registry.get(&inst.operator).expect("validated operator"))?;
         let mut attempts: Vec<(PathBuf, Digest)> = Vec::new();

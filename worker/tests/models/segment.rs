@@ -4,9 +4,9 @@
 //! U-Net runs once rather than per encoder variant, the artifact holds the sample masks and
 //! the rollout maps, and every result is the same bytes in fresh processes.
 
-mod common;
 
-use common::rlmflow;
+
+use crate::common::rlmflow;
 use rlmflow_stages::npy::Npy;
 use rlmflow_stages::segment::{self, read_summary};
 
@@ -37,24 +37,21 @@ batch = 32
 channels = [8, 16, 32]
 "#;
 
-/// The data stages with masks drawn twice the paper's relative size, so 32 px frames hold
-/// blobs of a few pixels.
 fn pipeline() -> String {
-    let data =
-        common::data_stages("segment", 5, 1000, 2).replace("operator = \"ego-grid\"\n", "operator = \"ego-grid\"\nmask = { reference_size = 64 }\n");
-    format!("{data}{MODELS}")
+    format!("{}{MODELS}", crate::common::data_stages("segment"))
 }
 
 #[test]
 fn pup_and_unet_learn_keep_samples_and_rollouts_and_reproduce_in_fresh_processes() {
-    let dir = common::scratch("segment", &pipeline());
+    let _turn = crate::common::one_at_a_time();
+    let dir = crate::common::scratch("segment", &pipeline());
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--json"]);
     assert!(ok, "{out}");
     let unet_runs = out.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains("\"stage\":\"unet")).count();
     assert_eq!(unet_runs, 1, "the U-Net reads no encoder, so it runs once, not per encoder variant");
 
     for (label, rollout) in [("pup[clip]", true), ("pup[random]", true), ("unet", false)] {
-        let object = common::output(&dir, "segment", label);
+        let object = crate::common::output(&dir, "segment", label);
         let summary = read_summary(&object).unwrap();
         let m = &summary.metrics;
         let (first, last) = (&summary.log[0], &summary.log[summary.log.len() - 1]);

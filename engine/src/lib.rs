@@ -2,8 +2,9 @@
 //! ([`run`]) and how it starts actions ([`dispatch`]: child processes or HyperQueue tasks), the
 //! child-process entry point ([`exec`]), the determinism check ([`determinism`]) and the command
 //! line ([`cli`]).
-//! It knows no machine learning: operators come from the registry a binary passes to
-//! [`cli::main`].
+//! It knows no machine learning and depends on no operator: operators come from the registry a
+//! binary passes to [`cli::main`] (`rlmflow` registers the shipped ones, `rlmflow-torch` the
+//! libtorch ones, the end-to-end tests their own).
 
 pub mod cli;
 pub mod config;

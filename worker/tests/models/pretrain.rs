@@ -3,53 +3,55 @@
 //! learns (retrieval well above chance and above the same model untrained), a run killed
 //! between epochs resumes to the same weights, and two fresh processes give the same bytes.
 
-mod common;
+
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use common::{rlmflow, rlmflow_exe, scratch};
+use crate::common::{rlmflow, rlmflow_exe, scratch};
 
-/// The data stages, then `pretrain` as given.
-fn pipeline(pretrain: &str) -> String {
-    format!("{}\n[stages.pretrain]\noperator = \"clip\"\ndevice = \"cpu\"\nbatch = 64\n{pretrain}\n", common::data_stages("pretrain", 3, 1200, 3))
+/// Pipeline `name`: the data stages, then `pretrain` as given.
+fn pipeline(name: &str, pretrain: &str) -> String {
+    format!("{}\n[stages.pretrain]\noperator = \"clip\"\ndevice = \"cpu\"\nbatch = 64\n{pretrain}\n", crate::common::data_stages(name))
 }
 
-/// The Encoder artifact of `label`.
-fn encoder(dir: &Path, label: &str) -> PathBuf {
-    common::output(dir, "pretrain", label)
+/// The Encoder artifact of `label` in the last run of pipeline `name`.
+fn encoder(dir: &Path, name: &str, label: &str) -> PathBuf {
+    crate::common::output(dir, name, label)
 }
 
-fn summary(dir: &Path, label: &str) -> serde_json::Value {
-    serde_json::from_slice(&std::fs::read(encoder(dir, label).join("encoder.json")).unwrap()).unwrap()
+fn summary(dir: &Path, name: &str, label: &str) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(encoder(dir, name, label).join("encoder.json")).unwrap()).unwrap()
 }
 
 #[test]
 fn the_ci_size_model_learns_retrieval_above_chance_and_above_random_init() {
+    let _turn = crate::common::one_at_a_time();
     let dir = scratch(
         "learns",
         &pipeline(
+            "learns",
             "epochs = 12\nwarmup_epochs = 1.0\n[stages.pretrain.variants]\nclip = {}\nsgclip = { objective = \"sg-clip\", alpha = 4.0 }\nrandom = { epochs = 0, warmup_epochs = 0.0 }",
         ),
     );
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
-    let random = summary(&dir, "pretrain[random]");
+    let random = summary(&dir, "learns", "pretrain[random]");
     for label in ["pretrain[clip]", "pretrain[sgclip]"] {
-        let s = summary(&dir, label);
+        let s = summary(&dir, "learns", label);
         let top5 = s["last"]["top5"].as_f64().unwrap();
         let chance = s["chance_top5"].as_f64().unwrap();
         assert!(top5 >= 3.0 * chance, "{label}: top-5 {top5} vs chance {chance}");
         assert!(top5 > random["last"]["top5"].as_f64().unwrap(), "{label}: top-5 {top5} vs random init {}", random["last"]);
-        let log = std::fs::read_to_string(encoder(&dir, label).join("train.jsonl")).unwrap();
+        let log = std::fs::read_to_string(encoder(&dir, "learns", label).join("train.jsonl")).unwrap();
         let losses: Vec<f64> = log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["loss"].as_f64().unwrap()).collect();
         assert_eq!(losses.len(), 12);
         assert!(losses[11] < losses[0], "{label}: loss {losses:?}");
     }
     // SG-CLIP logs its soft targets' mass off the diagonal per batch (CLIP's is 0).
     for (label, positive) in [("pretrain[sgclip]", true), ("pretrain[clip]", false)] {
-        let log = std::fs::read_to_string(encoder(&dir, label).join("train.jsonl")).unwrap();
+        let log = std::fs::read_to_string(encoder(&dir, "learns", label).join("train.jsonl")).unwrap();
         for line in log.lines() {
             let line: serde_json::Value = serde_json::from_str(line).unwrap();
             let per_batch = line["batch_off_diagonal"].as_array().unwrap();
@@ -58,20 +60,22 @@ fn the_ci_size_model_learns_retrieval_above_chance_and_above_random_init() {
             assert!(masses.iter().all(|&m| (0.0..1.0).contains(&m)), "{label}: {line}");
             assert_eq!(masses.iter().any(|&m| m > 0.0), positive, "{label}: {line}");
         }
-        assert!(summary(&dir, label)["last"].get("batch_loss").is_none(), "the summary keeps the epoch figures only");
+        assert!(summary(&dir, "learns", label)["last"].get("batch_loss").is_none(), "the summary keeps the epoch figures only");
     }
 }
 
 #[test]
 fn a_run_killed_between_epochs_resumes_to_the_weights_of_an_uninterrupted_one() {
+    let _turn = crate::common::one_at_a_time();
     use std::os::unix::process::CommandExt;
-    let text = pipeline("epochs = 4\nwarmup_epochs = 1.0");
+    let text = pipeline("resumes", "epochs = 4\nwarmup_epochs = 1.0");
     let reference = scratch("reference", &text);
     let (ok, out) = rlmflow(&reference, &["run", "p.toml"]);
     assert!(ok, "{out}");
-    let expected = std::fs::read(encoder(&reference, "pretrain").join("model.safetensors")).unwrap();
+    let expected = std::fs::read(encoder(&reference, "resumes", "pretrain").join("model.safetensors")).unwrap();
 
-    let dir = scratch("killed", &text);
+    // Its own store: the reference's record would make the killed run a cache hit.
+    let dir = crate::common::scratch_alone("killed", &text);
     let mut run =
         Command::new(rlmflow_exe()).current_dir(&dir).args(["run", "p.toml"]).stdout(std::process::Stdio::null()).process_group(0).spawn().unwrap();
     let epochs_done = |dir: &Path| -> usize {
@@ -96,13 +100,14 @@ fn a_run_killed_between_epochs_resumes_to_the_weights_of_an_uninterrupted_one() 
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--json"]);
     assert!(ok, "{out}");
     assert!(out.contains("\"name\":\"resumed\""), "the rerun resumed from the checkpoint: {out}");
-    let resumed = std::fs::read(encoder(&dir, "pretrain").join("model.safetensors")).unwrap();
+    let resumed = std::fs::read(encoder(&dir, "resumes", "pretrain").join("model.safetensors")).unwrap();
     assert!(resumed == expected, "resumed after {done} epochs, the weights differ");
 }
 
 #[test]
 fn pretraining_gives_the_same_bytes_in_fresh_processes() {
-    let dir = scratch("determinism", &pipeline("epochs = 1\nwarmup_epochs = 0.5\nobjective = \"sg-clip\""));
+    let _turn = crate::common::one_at_a_time();
+    let dir = scratch("determinism", &pipeline("determinism", "epochs = 1\nwarmup_epochs = 0.5\nobjective = \"sg-clip\""));
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--check-determinism", "pretrain"]);
     assert!(ok, "{out}");
     assert!(out.contains("same bytes"), "{out}");

@@ -85,6 +85,13 @@ pub trait Dispatch {
         true
     }
 
+    /// Whether an action may find a CUDA device where it runs. `false` only where it surely
+    /// will not (locally, without the driver's device nodes or `--device cuda`): a stage that
+    /// needs one is then refused before anything runs.
+    fn cuda_possible(&self) -> bool {
+        true
+    }
+
     /// For the run's header and first event, e.g. `local` or `hyperqueue (local cluster, 2 workers x 1 cores)`.
     fn describe(&self) -> String;
 }

@@ -96,7 +96,10 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
             store.lock_action(&key)?
         }
     };
-    if store.fresh(&key)?.is_some() {
+    let fresh = store.fresh(&key)?.is_some();
+    // Into the stage's log: a damaged record read here is a miss, and the action runs again.
+    crate::cli::print_warnings(Some(&store));
+    if fresh {
         send(&Message::Reused);
         return Ok(0);
     }
@@ -177,7 +180,11 @@ fn inputs(store: &Store, request: &ActionRequest) -> anyhow::Result<Result<BTree
             (true, Some(label)) => label.clone(),
             _ => input.label.clone(),
         };
-        inputs.entry(input.slot.clone()).or_default().push(Input { label, path });
+        let mut one = Input::new(label, path);
+        if let Some(id) = request.input_instances.get(&one.label) {
+            one.instance = serde_json::from_value(id.clone()).with_context(|| format!("the request's instance of input `{}`", one.label))?;
+        }
+        inputs.entry(input.slot.clone()).or_default().push(one);
     }
     Ok(Ok(inputs))
 }

@@ -545,6 +545,8 @@ impl Checker {
             }
         }
         let mut checked = Vec::new();
+        // A bad setting the variants inherit is one error, not one per variant.
+        let mut reported = std::collections::BTreeSet::new();
         for (variant, merged) in variants {
             match op.settings(Value::Object(merged)) {
                 Ok(settings) => checked.push(Variant { name: variant.map(|v| v.0), settings, shards: Vec::new() }),
@@ -566,7 +568,9 @@ impl Checker {
                         }
                         Some(format!("valid keys: {}{}", valid.join(", "), suggest(leaf, &valid)))
                     };
-                    self.error(self.line(&key), &key, e.message, help);
+                    if reported.insert((key.clone(), e.message.clone())) {
+                        self.error(self.line(&key), &key, e.message, help);
+                    }
                 }
             }
         }

@@ -3,11 +3,11 @@
 //! counts back better than a trivial predictor (each frame given the training split's mean
 //! counts, rounded), and the pixel baseline does not fan out over the encoder's variants.
 
-mod common;
+
 
 use std::path::{Path, PathBuf};
 
-use common::rlmflow;
+use crate::common::rlmflow;
 use rlmflow_stages::grid::CELLS;
 use rlmflow_stages::labels::{Labels, Split};
 use rlmflow_stages::probe::score;
@@ -34,12 +34,13 @@ inputs = { encoder = [] }
 "#;
 
 fn object(dir: &Path, label: &str) -> PathBuf {
-    common::output(dir, "probe", label)
+    crate::common::output(dir, "probe", label)
 }
 
 #[test]
 fn ridge_on_encoder_features_and_on_pixels_beats_a_trivial_predictor() {
-    let dir = common::scratch("probe-linear", &format!("{}{MODELS}", common::data_stages("probe", 5, 1000, 2)));
+    let _turn = crate::common::one_at_a_time();
+    let dir = crate::common::scratch("probe-linear", &format!("{}{MODELS}", crate::common::data_stages("probe")));
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--json"]);
     assert!(ok, "{out}");
     let pixel_runs = out.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains("\"stage\":\"pixels")).count();
@@ -83,21 +84,22 @@ lr = 3e-3
 
 #[test]
 fn clipcap_learns_to_caption_and_true_captions_score_perfectly() {
-    let dir = common::scratch("probe-clipcap", &format!("{}{CAPTIONER}", common::data_stages("clipcap", 5, 1000, 2)));
+    let _turn = crate::common::one_at_a_time();
+    let dir = crate::common::scratch("probe-clipcap", &format!("{}{CAPTIONER}", crate::common::data_stages("clipcap")));
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
-    let labels = Labels::open(&common::output(&dir, "clipcap", "labels")).unwrap();
+    let labels = Labels::open(&crate::common::output(&dir, "clipcap", "labels")).unwrap();
     let test: Vec<u64> = labels.split(Split::Test).map(|f| f.frame).collect();
     let truth: Vec<[u32; CELLS]> = labels.split(Split::Test).map(|f| f.grid.counts).collect();
 
     // The scoring path itself: the true template captions parse back to precision = recall = 1.
-    let captions = rlmflow_stages::captions::Captions::open(&common::output(&dir, "clipcap", "captions")).unwrap();
+    let captions = rlmflow_stages::captions::Captions::open(&crate::common::output(&dir, "clipcap", "captions")).unwrap();
     let first: Vec<String> =
         test.iter().map(|&f| captions.captions.iter().find(|c| c.frame == f).expect("every frame has captions").caption.clone()).collect();
     let (_, perfect) = rlmflow_probe_torch::score_captions(&first, &truth);
     assert_eq!((perfect.overall.precision, perfect.overall.recall), (1.0, 1.0));
 
-    let object = common::output(&dir, "clipcap", "clipcap");
+    let object = crate::common::output(&dir, "clipcap", "clipcap");
     let summary = rlmflow_stages::probe::read_summary(&object).unwrap();
     let row = &summary.rows[0];
     let log = row.details["log"].as_array().unwrap();

@@ -127,6 +127,35 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
     Ok(ex.summary())
 }
 
+/// Refuses a local run, before anything starts, in which a stage that must run needs a CUDA
+/// device this machine does not have: a config error with the stage's line and what is valid.
+pub fn refuse_cuda_stages(plan: &Plan, registry: &Registry, store: Option<&Store>, selected: &[bool]) -> anyhow::Result<()> {
+    let states = assess(plan, registry, store)?;
+    let mut stages = std::collections::BTreeSet::new();
+    for (i, inst) in plan.instances.iter().enumerate() {
+        let op = registry.get(&inst.operator).expect("validated operator");
+        if selected[i] && !matches!(states[i], Freshness::Cached(_)) && op.resources(&inst.settings).needs_cuda {
+            stages.insert(inst.stage);
+        }
+    }
+    if stages.is_empty() {
+        return Ok(());
+    }
+    let diagnostics = stages
+        .into_iter()
+        .map(|s| {
+            let stage = &plan.pipeline.stages[s];
+            crate::config::Diagnostic {
+                line: stage.line,
+                key: format!("stages.{}", stage.name),
+                message: "needs a CUDA device (its `device` names one), and this machine has none: no CUDA driver device nodes, and the run did not say `--device cuda`".into(),
+                help: Some("valid here: device = \"auto\" (CUDA where there is one) or \"cpu\"".into()),
+            }
+        })
+        .collect();
+    Err(crate::config::ConfigError { file: plan.pipeline.file.clone(), diagnostics }.into())
+}
+
 /// The pipeline's dispatcher. An existing HyperQueue server is checked here, before anything runs.
 fn dispatcher(plan: &Plan, store: &Store, run: &str, device: Device, ui: &Ui) -> anyhow::Result<Box<dyn Dispatch>> {
     match plan.pipeline.executor {
@@ -383,7 +412,8 @@ impl Executor<'_> {
     fn write_request(&self, i: usize, key: Digest, preimage: Preimage) -> anyhow::Result<()> {
         let inst = &self.plan.instances[i];
         let input_labels = self.plan.input_labels(i);
-        self.store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone(), input_labels })
+        let input_instances = self.plan.input_instances(i);
+        self.store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone(), input_labels, input_instances })
     }
 
     fn write_plan_if_dirty(&mut self) -> anyhow::Result<()> {

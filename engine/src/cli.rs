@@ -178,6 +178,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             if dry_run {
                 let store = Store::open_existing(&root)?;
                 print_status(&plan, registry, store.as_ref(), &selected, json)?;
+                print_warnings(store.as_ref());
                 return Ok(ExitCode::SUCCESS);
             }
             let jobs = jobs
@@ -186,13 +187,18 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                     config::Executor::HyperQueue => p.hyperqueue.workers * p.hyperqueue.cores(),
                 })
                 .max(1);
+            if p.executor == config::Executor::Local && !crate::dispatch::Dispatch::cuda_possible(&crate::dispatch::Local::new(device)) {
+                crate::run::refuse_cuda_stages(&plan, registry, Store::open_existing(&root)?.as_ref(), &selected)?;
+            }
             let store = Store::open(&root)?;
             let opts = RunOptions { jobs, json, device, verify_inputs };
             if !check_determinism.is_empty() {
                 let same = crate::determinism::check(&plan, registry, &store, &check_determinism, &opts)?;
+                print_warnings(Some(&store));
                 return Ok(if same { ExitCode::SUCCESS } else { ExitCode::FAILURE });
             }
             let summary = run(&plan, registry, &store, &selected, &opts)?;
+            print_warnings(Some(&store));
             Ok(if summary.failed > 0 { ExitCode::FAILURE } else { ExitCode::SUCCESS })
         }
         Command::Status { pipeline, json, store } => {
@@ -200,6 +206,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let plan = plan(&p);
             let store = Store::open_existing(&store_root(&p, &store))?;
             print_status(&plan, registry, store.as_ref(), &vec![true; plan.instances.len()], json)?;
+            print_warnings(store.as_ref());
             Ok(ExitCode::SUCCESS)
         }
         Command::Explain { pipeline, stage, store } => explain(registry, &pipeline, &stage, &store),
@@ -222,6 +229,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 report.bytes() as f64 / 1e6,
                 report.kept_objects
             );
+            print_warnings(Some(&store));
             Ok(ExitCode::SUCCESS)
         }
         Command::Verify { pipeline, store } => {
@@ -233,6 +241,9 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             }
             for f in &report.files {
                 println!("  damaged {}: {} (quarantined to {})", f.path.display(), f.problem, f.quarantined.display());
+            }
+            for (key, output) in &report.records_without_output {
+                println!("  record {} needs object {}, which is gone: its action reruns when needed", key.short(), output.short());
             }
             println!("verify: {n} objects, {} damaged; {} damaged store files", report.objects.len(), report.files.len());
             Ok(if report.is_clean() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
@@ -253,6 +264,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 .collect();
             let path = store.pin(&name, &keys)?;
             println!("pinned {} cached stage instances in {}", keys.len(), path.display());
+            print_warnings(Some(&store));
             Ok(ExitCode::SUCCESS)
         }
         Command::Parse { file } => parse_captions(file.as_deref()),
@@ -290,6 +302,13 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             };
             Ok(ExitCode::from(code as u8))
         }
+    }
+}
+
+/// What the store met and treated as absent (damaged records, refs, plans), on stderr.
+pub(crate) fn print_warnings(store: Option<&Store>) {
+    for warning in store.map(Store::take_warnings).unwrap_or_default() {
+        eprintln!("warning: {warning}");
     }
 }
 
@@ -356,6 +375,7 @@ fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> any
             }
         }
     }
+    print_warnings(store.as_ref());
     Ok(ExitCode::SUCCESS)
 }
 
@@ -385,6 +405,7 @@ fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow
             (Freshness::Cached(_), None) => unreachable!("cached without a store"),
         }
     }
+    print_warnings(store.as_ref());
     Ok(ExitCode::SUCCESS)
 }
 

@@ -61,6 +61,10 @@ impl Dispatch for Local {
         self.gpu
     }
 
+    fn cuda_possible(&self) -> bool {
+        self.gpu
+    }
+
     fn describe(&self) -> String {
         "local".into()
     }

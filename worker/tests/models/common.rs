@@ -1,0 +1,87 @@
+//! What the worker's end-to-end tests share: the real `rlmflow` beside this package's worker, a
+//! scratch pipeline directory over one store for the whole test binary, and the stored output of
+//! a stage instance.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// `rlmflow`, built beside this package's worker.
+pub fn rlmflow_exe() -> PathBuf {
+    let exe = Path::new(env!("CARGO_BIN_EXE_rlmflow-torch")).with_file_name("rlmflow");
+    assert!(exe.is_file(), "{} is missing: build the workspace (`cargo xtask test` does)", exe.display());
+    exe
+}
+
+/// Runs `rlmflow ARGS` in `dir`: success and everything it printed.
+pub fn rlmflow(dir: &Path, args: &[&str]) -> (bool, String) {
+    let out = Command::new(rlmflow_exe()).current_dir(dir).args(args).output().unwrap();
+    (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
+}
+
+/// A fresh directory holding `p.toml`, whose store (`.rlmflow`, a link) is the one every test of
+/// this process shares: stages that several tests run with the same settings and inputs (the
+/// data stages, an encoder) are computed once, by whichever run gets to them first, while the
+/// store's locks make the others wait and reuse them. Tests give their pipelines distinct names,
+/// so each finds its own run's outputs.
+pub fn scratch(name: &str, pipeline: &str) -> PathBuf {
+    let dir = scratch_alone(name, pipeline);
+    std::fs::remove_dir_all(dir.join(".rlmflow")).ok();
+    let shared = std::env::temp_dir().join(format!("rlmflow-worker-store-{}", std::process::id()));
+    std::fs::create_dir_all(&shared).unwrap();
+    std::os::unix::fs::symlink(&shared, dir.join(".rlmflow")).unwrap();
+    dir
+}
+
+/// A fresh directory holding `p.toml`, with a store of its own.
+pub fn scratch_alone(name: &str, pipeline: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("rlmflow-worker-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("p.toml"), pipeline).unwrap();
+    dir
+}
+
+/// The output directory of stage instance `label` of pipeline `name` run in `dir`.
+pub fn output(dir: &Path, name: &str, label: &str) -> PathBuf {
+    let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
+    let record = store.record(&store.last_keys(name).unwrap()[label]).unwrap().unwrap();
+    store.object_dir(&record.output)
+}
+
+/// Pipeline `name`'s data stages, the same in every test so the shared store computes them once:
+/// 1,000 procedural scenes at 32 px, labels with masks drawn twice the paper's relative size
+/// (blobs of a few pixels at 32 px), two template captions per frame and tokens.
+pub fn data_stages(name: &str) -> String {
+    format!(
+        r#"[pipeline]
+name = "{name}"
+seed = 5
+
+[stages.scenes]
+operator = "procedural"
+frames = 1000
+radar = {{ image = 32 }}
+
+[stages.labels]
+operator = "ego-grid"
+mask = {{ reference_size = 64 }}
+
+[stages.captions]
+operator = "template"
+per_frame = 2
+
+[stages.tokens]
+operator = "bpe"
+vocab = 400
+context = 128
+"#
+    )
+}
+
+/// Held by each test while it runs: every model test keeps both cores busy (its stages take two
+/// threads), so they take turns rather than oversubscribe the machine and wait on each other's
+/// locks in the shared store.
+pub fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    static TURN: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    TURN.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
