@@ -9,7 +9,7 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use crate::digest::Digest;
-use crate::store::{Store, read_dir_sorted, read_json, remove_tree};
+use crate::store::{Store, read_dir_sorted, remove_tree};
 
 /// What `gc` removed (or would remove, with `dry_run`).
 #[derive(Debug, Default)]
@@ -34,7 +34,7 @@ impl Store {
 
         let mut live_keys: BTreeSet<Digest> = BTreeSet::new();
         for file in self.ref_files()? {
-            let keys: Option<std::collections::BTreeMap<String, Digest>> = read_json(&file)?;
+            let keys: Option<std::collections::BTreeMap<String, Digest>> = self.read_json(&file)?;
             live_keys.extend(keys.into_iter().flat_map(|k| k.into_values()));
         }
         for run in kept_runs {

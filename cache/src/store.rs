@@ -4,6 +4,7 @@ use std::io::{self, Write};
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::SystemTime;
 
 use anyhow::{Context, bail};
@@ -46,6 +47,11 @@ pub struct ActionRequest {
     /// labels stay out of the key, so renaming a stage reruns nothing).
     #[serde(default)]
     pub input_labels: BTreeMap<String, String>,
+    /// Every input's producing instance as data (its stage and variant), by label: what an
+    /// operator that gathers instances (the report) groups them by, so it never parses labels.
+    /// Out of the key, like the labels.
+    #[serde(default)]
+    pub input_instances: BTreeMap<String, Value>,
 }
 
 /// One stage instance in a run's plan.
@@ -86,6 +92,9 @@ pub struct DamagedFile {
 pub struct VerifyReport {
     pub objects: Vec<Corruption>,
     pub files: Vec<DamagedFile>,
+    /// Records (key, output) whose output was among the damaged objects: each is now a miss,
+    /// and its action reruns when a pipeline needs it.
+    pub records_without_output: Vec<(Digest, Digest)>,
 }
 
 impl VerifyReport {
@@ -98,6 +107,9 @@ impl VerifyReport {
 #[derive(Clone, Debug)]
 pub struct Store {
     root: PathBuf,
+    /// Damage met while reading (a record, request, plan or ref treated as absent), kept for the
+    /// caller to show: the store itself never prints.
+    warnings: Arc<Mutex<Vec<String>>>,
 }
 
 /// A new run id: UTC time to the millisecond and the process id, so ids sort by start time.
@@ -114,7 +126,7 @@ pub fn now_rfc3339() -> String {
 impl Store {
     /// Opens the store at `root`, creating it if needed.
     pub fn open(root: &Path) -> anyhow::Result<Store> {
-        let store = Store { root: root.to_path_buf() };
+        let store = Store { root: root.to_path_buf(), warnings: Arc::default() };
         let version = root.join("VERSION");
         match fs::read_to_string(&version) {
             Ok(v) if v == STORE_FORMAT => {}
@@ -138,6 +150,32 @@ impl Store {
 
     pub fn root(&self) -> &Path {
         &self.root
+    }
+
+    /// The warnings met since the last call, oldest first (each once, however often it recurred).
+    pub fn take_warnings(&self) -> Vec<String> {
+        std::mem::take(&mut *self.warnings.lock().unwrap_or_else(|poisoned| poisoned.into_inner()))
+    }
+
+    fn warn(&self, warning: String) {
+        let mut warnings = self.warnings.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        if !warnings.contains(&warning) {
+            warnings.push(warning);
+        }
+    }
+
+    /// Reads a record, request, plan or ref. A damaged one is treated as absent, with a warning:
+    /// each can be recomputed or rewritten, so a run always makes progress, and `verify`
+    /// quarantines it.
+    pub(crate) fn read_json<T: serde::de::DeserializeOwned>(&self, path: &Path) -> anyhow::Result<Option<T>> {
+        Ok(match read_json_checked(path)? {
+            Read::Intact(value) => Some(value),
+            Read::Absent => None,
+            Read::Damaged(why) => {
+                self.warn(format!("{} is damaged ({why}); treated as absent (`rlmflow verify` quarantines it)", path.display()));
+                None
+            }
+        })
     }
 
     // ---- objects ----
@@ -176,6 +214,9 @@ impl Store {
 
     /// Re-hashes one object. `Ok(None)` when it matches its digest.
     pub fn check_object(&self, digest: &Digest) -> anyhow::Result<Option<Corruption>> {
+        if !self.object_dir(digest).is_dir() {
+            return Ok(Some(Corruption { digest: *digest, files: vec!["the object's directory is missing".into()] }));
+        }
         let manifest = fs::read_to_string(self.manifest_path(digest)).with_context(|| format!("object {} has no manifest", digest.short()))?;
         let actual = hash_tree(&self.object_dir(digest))?;
         if actual.digest == *digest && crate::Digest::of(manifest.as_bytes()) == *digest {
@@ -230,6 +271,13 @@ impl Store {
         for (path, problem) in self.unusable_files()? {
             let moved = self.quarantine_path(&path)?;
             report.files.push(DamagedFile { path, problem, quarantined: moved });
+        }
+        for key in self.record_keys()? {
+            if let Ok(Some(record)) = self.record(&key)
+                && report.objects.iter().any(|c| c.digest == record.output)
+            {
+                report.records_without_output.push((key, record.output));
+            }
         }
         Ok(report)
     }
@@ -302,10 +350,10 @@ impl Store {
     /// The record of `key`; a damaged record (unreadable, or not the record of `key`) is a miss.
     pub fn record(&self, key: &Digest) -> anyhow::Result<Option<ActionRecord>> {
         let path = self.record_path(key);
-        Ok(read_json::<ActionRecord>(&path)?.filter(|r| {
+        Ok(self.read_json::<ActionRecord>(&path)?.filter(|r| {
             let intact = r.key == *key && r.preimage.key() == *key;
             if !intact {
-                eprintln!("warning: {} is not the record of its key; treated as absent (`rlmflow verify` quarantines it)", path.display());
+                self.warn(format!("{} is not the record of its key; treated as absent (`rlmflow verify` quarantines it)", path.display()));
             }
             intact
         }))
@@ -327,7 +375,7 @@ impl Store {
     }
 
     pub fn request(&self, key: &Digest) -> anyhow::Result<Option<ActionRequest>> {
-        read_json(&self.request_path(key))
+        self.read_json(&self.request_path(key))
     }
 
     /// Every action record's key.
@@ -421,7 +469,7 @@ impl Store {
     }
 
     pub fn plan(&self, run: &str) -> anyhow::Result<Option<RunPlan>> {
-        read_json(&self.run_dir(run).join("plan.json"))
+        self.read_json(&self.run_dir(run).join("plan.json"))
     }
 
     fn pipeline_ref(&self, pipeline: &str) -> PathBuf {
@@ -430,7 +478,7 @@ impl Store {
 
     /// The key each stage instance of `pipeline` had in its latest run.
     pub fn last_keys(&self, pipeline: &str) -> anyhow::Result<BTreeMap<String, Digest>> {
-        Ok(read_json(&self.pipeline_ref(pipeline))?.unwrap_or_default())
+        Ok(self.read_json(&self.pipeline_ref(pipeline))?.unwrap_or_default())
     }
 
     /// Records the keys a run resolved, keeping entries for instances it did not touch.
@@ -507,19 +555,6 @@ fn map_read<T, U>(read: Read<T>, f: impl FnOnce(T) -> U) -> Read<U> {
     }
 }
 
-/// Reads a record, request, plan or ref. A damaged one is treated as absent, with a warning:
-/// each can be recomputed or rewritten, so a run always makes progress, and `verify`
-/// quarantines it.
-pub(crate) fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> anyhow::Result<Option<T>> {
-    Ok(match read_json_checked(path)? {
-        Read::Intact(value) => Some(value),
-        Read::Absent => None,
-        Read::Damaged(why) => {
-            eprintln!("warning: {} is damaged ({why}); treated as absent (`rlmflow verify` quarantines it)", path.display());
-            None
-        }
-    })
-}
 
 /// Whether an atomic write's scratch file (`write-<pid>-<n>`) was abandoned: its process is gone,
 /// or it is older than any write takes (a store shared between machines cannot see the

@@ -70,7 +70,7 @@ impl Catalog {
         self.kinds.iter().find(|k| k.name == name)
     }
 
-    /// The stage kinds of the paper's pipeline (see DESIGN.md, "The stage graph").
+    /// The stage kinds of the paper's pipeline (the README's "What a stage produces" describes each).
     pub fn paper() -> Catalog {
         Catalog { kinds: PAPER_KINDS.to_vec() }
     }

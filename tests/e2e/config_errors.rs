@@ -63,6 +63,26 @@ fn bad_variant_setting_points_at_the_variant() {
 }
 
 #[test]
+fn a_bad_setting_every_variant_inherits_is_one_error() {
+    let err = error_for("[stages.source]\noperator = \"write-text\"\nsteps = \"many\"\n[stages.source.variants]\na = { text = \"a\" }\nb = { text = \"b\" }\n");
+    assert_eq!(err.matches("stages.source.steps: invalid type").count(), 1, "{err}");
+}
+
+#[test]
+fn a_stage_that_needs_cuda_is_refused_before_anything_runs_where_there_is_none() {
+    let pipeline = "[stages.source]\noperator = \"write-text\"\ncuda = true\n";
+    if std::path::Path::new("/dev/nvidiactl").exists() || std::path::Path::new("/dev/dxg").exists() {
+        // A machine with the CUDA driver: the stage may run (the test operator uses no GPU).
+        let s = Scratch::new("cuda-present");
+        s.pipeline(pipeline);
+        assert_eq!(s.run().status_of("source"), "ran");
+        return;
+    }
+    let err = error_for(pipeline);
+    assert_has(&err, &["p.toml:1: stages.source: needs a CUDA device", "valid here: device = \"auto\""]);
+}
+
+#[test]
 fn unknown_pipeline_key_and_executor() {
     let err = error_for("[pipeline]\nnmae = \"x\"\nexecutor = \"hyperqeue\"\n[stages.source]\noperator = \"write-text\"\n");
     assert_has(

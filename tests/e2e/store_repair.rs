@@ -100,6 +100,23 @@ fn verify_reports_an_object_directory_without_its_manifest() {
 }
 
 #[test]
+fn verify_reports_a_missing_object_directory_and_the_records_that_need_it() {
+    let s = Scratch::new("no-object-dir");
+    s.pipeline(CHAIN);
+    s.run();
+    let object = output_dir(&s.store(), "chain", "source");
+    fs::remove_dir_all(&object).unwrap();
+    let out = s.cli(&["verify", "p.toml"]);
+    let stdout = text(&out.stdout);
+    assert_eq!(out.status.code(), Some(1), "{stdout}{}", text(&out.stderr));
+    assert!(stdout.contains("the object's directory is missing"), "{stdout}");
+    assert!(stdout.contains("its action reruns when needed"), "{stdout}");
+    assert!(!object.with_extension("tree").exists(), "the manifest is quarantined");
+    assert_eq!(s.run().status_of("source"), "ran");
+    assert!(s.cli(&["verify", "p.toml"]).status.success());
+}
+
+#[test]
 fn a_run_sweeps_write_files_abandoned_by_a_killed_process() {
     let s = Scratch::new("abandoned-write");
     s.pipeline(CHAIN);

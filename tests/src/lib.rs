@@ -57,18 +57,20 @@ pub struct WriteTextSettings {
     pub threads: usize,
     /// Asks for a GPU (the operator never uses one): for the scheduler's GPU rule.
     pub gpu: bool,
+    /// Says it cannot run without a CUDA device (as a torch stage with `device = "cuda"`).
+    pub cuda: bool,
     /// Appends the process id to the text: the kind of bug `run --check-determinism` finds.
     pub nondeterministic: bool,
 }
 
 impl Default for WriteTextSettings {
     fn default() -> Self {
-        WriteTextSettings { text: "hello".into(), steps: 0, step_ms: 0, fail: false, panic: false, threads: 1, gpu: false, nondeterministic: false }
+        WriteTextSettings { text: "hello".into(), steps: 0, step_ms: 0, fail: false, panic: false, threads: 1, gpu: false, cuda: false, nondeterministic: false }
     }
 }
 
 impl Settings for WriteTextSettings {
-    const NON_RESULT: &'static [&'static str] = &["threads", "step_ms", "gpu"];
+    const NON_RESULT: &'static [&'static str] = &["threads", "step_ms", "gpu", "cuda"];
     fn check(&self) -> Result<(), SettingError> {
         if self.threads == 0 {
             return Err(SettingError::new("threads", "must be at least 1"));
@@ -85,7 +87,7 @@ impl Operator for WriteText {
         OperatorSpec { name: "write-text", kind: "source", version, inputs: None, summary: "writes a text" }
     }
     fn resources(&self, s: &WriteTextSettings) -> Resources {
-        Resources { threads: s.threads, gpu: s.gpu }
+        Resources { threads: s.threads, gpu: s.gpu || s.cuda, needs_cuda: s.cuda }
     }
     /// A shard writes a range of the text's characters (each with every step).
     fn sharding(&self) -> Option<Sharding<WriteTextSettings>> {

@@ -9,7 +9,7 @@
 
 use anyhow::{Context as _, bail};
 use rlmflow_stages::captions::Captions;
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settings};
+use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Settings};
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
@@ -35,10 +35,6 @@ impl Operator for ConcatCaptions {
             inputs: None,
             summary: "the captions of several Captions artifacts of disjoint frames, one after another, as one",
         }
-    }
-
-    fn resources(&self, _: &ConcatCaptionsSettings) -> Resources {
-        Resources { threads: 1, gpu: false }
     }
 
     fn run(&self, _: &ConcatCaptionsSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {

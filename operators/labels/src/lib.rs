@@ -411,7 +411,7 @@ mod tests {
         let (out, ckpt) = (root.join(name), root.join(format!("{name}-ckpt")));
         std::fs::create_dir_all(&out).unwrap();
         std::fs::create_dir_all(&ckpt).unwrap();
-        let gathered = parts.iter().enumerate().map(|(k, p)| rlmflow_stages::Input { label: format!("in{k}"), path: p.to_path_buf() }).collect();
+        let gathered = parts.iter().enumerate().map(|(k, p)| rlmflow_stages::Input::new(format!("in{k}"), p)).collect();
         let inputs = std::collections::BTreeMap::from([("scenes".to_string(), gathered)]);
         let mut ctx = Context::new("mix".into(), inputs, out.clone(), ckpt, 1, 1, rlmflow_stages::Device::Cpu, Arc::new(Silent));
         Operator::run(&Concat, &ConcatSettings::default(), &mut ctx).unwrap();

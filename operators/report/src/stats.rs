@@ -83,9 +83,10 @@ mod tests {
 
     #[test]
     fn seeds_of_one_variant_share_a_row() {
-        let items: Vec<Instance> = ["clipcap[pretrain=a,seed=1]", "clipcap[pretrain=a,seed=2]", "clipcap[pretrain=b,seed=1]", "pixels[seed=1]"]
+        let items: Vec<Instance> = [("clipcap", "a", "1"), ("clipcap", "a", "2"), ("clipcap", "b", "1")]
             .iter()
-            .map(|l| Instance::parse(l))
+            .map(|(stage, encoder, seed)| crate::study::tests::id(stage, &[("pretrain", encoder), ("seed", seed)]))
+            .chain([crate::study::tests::id("pixels", &[("seed", "1")])])
             .collect();
         let rows = rows(&items, |i| i);
         let shape: Vec<(String, usize)> = rows.iter().map(|(r, g)| (name(r), g.len())).collect();

@@ -8,7 +8,7 @@ use anyhow::{Context as _, bail};
 use rlmflow_stages::encoder::{self, Encoder};
 use rlmflow_stages::labels::Labels;
 use rlmflow_stages::scenes::Scenes;
-use rlmflow_stages::{Context, probe, segment};
+use rlmflow_stages::{Context, InstanceId, probe, segment};
 use serde_json::Value;
 
 use crate::paper::Method;
@@ -16,29 +16,21 @@ use crate::paper::Method;
 /// The variant dimension the engine fans seeds out on.
 pub const SEED: &str = "seed";
 
-/// A stage instance as its label names it: `pretrain`, `pretrain[alpha4]` or
-/// `clipcap[pretrain=alpha4,seed=2]`. A bare value (one dimension) has the empty dimension name.
+/// A stage instance as the engine names it (`rlmflow_stages::InstanceId`): its stage and, per
+/// variant dimension (the stage that declared the variants, or `seed`), its variant.
 #[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub struct Instance {
     pub stage: String,
     pub assignment: BTreeMap<String, String>,
 }
 
-impl Instance {
-    pub fn parse(label: &str) -> Instance {
-        let Some((stage, rest)) = label.strip_suffix(']').and_then(|l| l.split_once('[')) else {
-            return Instance { stage: label.to_owned(), assignment: BTreeMap::new() };
-        };
-        let assignment = rest
-            .split(',')
-            .map(|part| match part.split_once('=') {
-                Some((dim, value)) => (dim.to_owned(), value.to_owned()),
-                None => (String::new(), part.to_owned()),
-            })
-            .collect();
-        Instance { stage: stage.to_owned(), assignment }
+impl From<&InstanceId> for Instance {
+    fn from(id: &InstanceId) -> Instance {
+        Instance { stage: id.stage.clone(), assignment: id.variant.clone() }
     }
+}
 
+impl Instance {
     /// The seed this instance ran with, when seeds fan out.
     pub fn seed(&self) -> Option<&str> {
         self.assignment.get(SEED).map(String::as_str)
@@ -59,11 +51,9 @@ impl Instance {
     }
 
     /// Whether `upstream` (an encoder) is the instance this one read: every dimension of the
-    /// upstream has this one's value (a bare value matches any dimension holding it). A row,
-    /// which has no seed, reads every seed of its encoder.
+    /// upstream has this one's value. A row, which has no seed, reads every seed of its encoder.
     pub fn reads(&self, upstream: &Instance) -> bool {
         upstream.assignment.iter().all(|(d, v)| match d.as_str() {
-            "" => self.assignment.values().any(|x| x == v),
             SEED if self.seed().is_none() => true,
             _ => self.assignment.get(d) == Some(v),
         })
@@ -160,7 +150,7 @@ impl Study {
         for input in ctx.gathered("encoder") {
             let encoder = Encoder::open(&input.path)?;
             let log = read_log(&input.path.join(encoder::LOG))?;
-            encoders.push(EncoderRun { label: input.label.clone(), instance: Instance::parse(&input.label), encoder, log });
+            encoders.push(EncoderRun { label: input.label.clone(), instance: Instance::from(&input.instance), encoder, log });
         }
         let probes = ctx
             .gathered("probe")
@@ -168,7 +158,7 @@ impl Study {
             .map(|i| {
                 Ok(ProbeRun {
                     label: i.label.clone(),
-                    instance: Instance::parse(&i.label),
+                    instance: Instance::from(&i.instance),
                     summary: probe::read_summary(&i.path)?,
                     dir: i.path.clone(),
                 })
@@ -180,7 +170,7 @@ impl Study {
             .map(|i| {
                 Ok(SegRun {
                     label: i.label.clone(),
-                    instance: Instance::parse(&i.label),
+                    instance: Instance::from(&i.instance),
                     summary: segment::read_summary(&i.path)?,
                     dir: i.path.clone(),
                 })
@@ -227,23 +217,28 @@ fn read_log(path: &Path) -> anyhow::Result<Vec<Value>> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
+    /// An instance of `stage` with these variants.
+    pub fn id(stage: &str, variant: &[(&str, &str)]) -> Instance {
+        Instance { stage: stage.into(), assignment: variant.iter().map(|(d, v)| (d.to_string(), v.to_string())).collect() }
+    }
+
     #[test]
-    fn labels_parse_into_stage_and_assignment() {
-        let plain = Instance::parse("unet");
+    fn instances_relate_by_stage_and_variant() {
+        let plain = id("unet", &[]);
         assert_eq!((plain.stage.as_str(), plain.assignment.len(), plain.variant()), ("unet", 0, String::new()));
-        let one = Instance::parse("clipcap[alpha4]");
+        let one = id("clipcap", &[("pretrain", "alpha4")]);
         assert_eq!(one.variant(), "alpha4");
-        assert!(one.reads(&Instance::parse("pretrain[alpha4]")));
-        assert!(!one.reads(&Instance::parse("pretrain[alpha1]")));
-        let two = Instance::parse("clipcap[pretrain=alpha4,seed=2]");
+        assert!(one.reads(&id("pretrain", &[("pretrain", "alpha4")])));
+        assert!(!one.reads(&id("pretrain", &[("pretrain", "alpha1")])));
+        let two = id("clipcap", &[("pretrain", "alpha4"), ("seed", "2")]);
         assert_eq!(two.seed(), Some("2"));
         assert_eq!(two.row().variant(), "alpha4");
-        assert_eq!(two.row(), Instance::parse("clipcap[pretrain=alpha4,seed=3]").row());
-        assert!(two.reads(&Instance::parse("pretrain[pretrain=alpha4,seed=2]")));
-        assert!(!two.reads(&Instance::parse("pretrain[pretrain=alpha4,seed=3]")));
-        assert!(two.row().reads(&Instance::parse("pretrain[pretrain=alpha4,seed=3]")));
+        assert_eq!(two.row(), id("clipcap", &[("pretrain", "alpha4"), ("seed", "3")]).row());
+        assert!(two.reads(&id("pretrain", &[("pretrain", "alpha4"), ("seed", "2")])));
+        assert!(!two.reads(&id("pretrain", &[("pretrain", "alpha4"), ("seed", "3")])));
+        assert!(two.row().reads(&id("pretrain", &[("pretrain", "alpha4"), ("seed", "3")])));
     }
 }

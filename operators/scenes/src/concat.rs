@@ -14,7 +14,7 @@
 
 use anyhow::{Context as _, bail};
 use rlmflow_stages::scenes::Scenes;
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, SettingError, Settings};
+use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, SettingError, Settings};
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
@@ -55,10 +55,6 @@ impl Operator for Concat {
             inputs: None,
             summary: "the frames of several Scenes artifacts, one after another, as one Scenes artifact",
         }
-    }
-
-    fn resources(&self, _: &ConcatSettings) -> Resources {
-        Resources { threads: 1, gpu: false }
     }
 
     fn run(&self, s: &ConcatSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
@@ -198,7 +194,7 @@ mod tests {
 
     fn concat(name: &str, inputs: &[&Path], s: &ConcatSettings) -> anyhow::Result<PathBuf> {
         let (out, ckpt) = (dir(&format!("{name}-out")), dir(&format!("{name}-ckpt")));
-        let gathered = inputs.iter().enumerate().map(|(k, p)| Input { label: format!("in{k}"), path: p.to_path_buf() }).collect();
+        let gathered = inputs.iter().enumerate().map(|(k, p)| Input::new(format!("in{k}"), p)).collect();
         let inputs = BTreeMap::from([("scenes".to_string(), gathered)]);
         let mut ctx = Context::new("mix".into(), inputs, out.clone(), ckpt, 1, 1, Device::Cpu, Arc::new(Silent));
         Operator::run(&Concat, s, &mut ctx)?;

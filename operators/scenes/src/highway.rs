@@ -148,7 +148,7 @@ impl Operator for HighwayEnv {
     }
 
     fn resources(&self, _: &HighwaySettings) -> Resources {
-        Resources { threads: usize::MAX, gpu: false }
+        Resources { threads: usize::MAX, ..Resources::default() }
     }
 
     fn run(&self, s: &HighwaySettings, ctx: &mut Context) -> anyhow::Result<Outcome> {

@@ -73,7 +73,7 @@ impl Operator for Bpe {
     }
 
     fn resources(&self, _: &BpeSettings) -> Resources {
-        Resources { threads: usize::MAX, gpu: false }
+        Resources { threads: usize::MAX, ..Resources::default() }
     }
 
     fn run(&self, s: &BpeSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
