@@ -11,8 +11,8 @@
 //!   [`identity`]: frame identities, the split rule and the train/test overlap check.
 //! * [`scenes`], [`labels`], [`captions`], [`tokens`], [`encoder`], [`probe`]: each artifact's directory layout, its
 //!   writer-side line formats and its reader; [`npy`] for their dense arrays.
-//! * [`training`]: the settings every training operator shares; [`item_seed`]: the seed rule of
-//!   every per-item draw.
+//! * [`training`]: the settings every training operator shares; [`weights`]: the check of a
+//!   weights file a setting names; [`item_seed`]: the seed rule of every per-item draw.
 //!
 //! Nothing here knows about scheduling, caching or processes, and nothing links a tensor
 //! library: model shapes and training settings are plain data here, computed on elsewhere.
@@ -31,6 +31,7 @@ pub mod scenes;
 pub mod segment;
 pub mod tokens;
 pub mod training;
+pub mod weights;
 
 pub use context::{Context, Device, Input, InstanceId, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};

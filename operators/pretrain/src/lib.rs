@@ -17,6 +17,7 @@
 
 use rlmflow_stages::encoder::{Distance, Head, ModelConfig, Stem, TextConfig, VisionConfig};
 use rlmflow_stages::grid::CELLS;
+use rlmflow_stages::weights::{Expected, check_init};
 use rlmflow_stages::{Device, InWorker, OperatorSpec, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
@@ -25,6 +26,13 @@ pub const WORKER: &str = "rlmflow-torch";
 
 pub const ENCODERS: [&str; 3] = ["conv-tiny", "conv-small", "vit-b16"];
 pub const TEXTS: [&str; 2] = ["tiny", "paper"];
+
+/// What an `init` file must hold: a CLIP ViT-B/16 vision tower, by open_clip's or Hugging
+/// Face's names.
+const CLIP_WEIGHTS: Expected = Expected {
+    model: "CLIP ViT-B/16 (open_clip `visual.*` or Hugging Face `vision_model.*` names)",
+    names: &["visual.conv1.weight", "vision_model.embeddings.patch_embedding.weight"],
+};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -110,6 +118,9 @@ impl Settings for ClipSettings {
         if !self.init.is_empty() && self.encoder != "vit-b16" {
             return Err(SettingError::new("init", "CLIP weights fit only encoder = \"vit-b16\""));
         }
+        if !self.init.is_empty() {
+            check_init("init", &self.init, &CLIP_WEIGHTS)?;
+        }
         Ok(())
     }
 }
@@ -194,5 +205,8 @@ mod tests {
         assert_eq!(key(serde_json::json!({"device": "tpu"})), "device");
         assert_eq!(key(serde_json::json!({"init": "/clip.safetensors"})), "init");
         assert_eq!(key(serde_json::json!({"batch": 1})), "batch");
+        let e = op.settings(serde_json::json!({"encoder": "vit-b16", "init": "/nowhere/clip.safetensors"})).unwrap_err();
+        assert_eq!(e.key, "init");
+        assert!(e.message.contains("cannot open `/nowhere/clip.safetensors`") && e.message.contains("CLIP ViT-B/16"), "{}", e.message);
     }
 }

@@ -24,6 +24,7 @@
 //! or length-normalised beam search, to the end token), read back by the LLM-free parser and
 //! scored per cell like `linear`.
 
+use rlmflow_stages::weights::{Expected, check_init};
 use rlmflow_stages::{InWorker, OperatorSpec, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
@@ -91,6 +92,9 @@ pub enum Decode {
     Beam,
 }
 
+/// What an `init` file must hold: GPT-2's blocks, by Hugging Face's names.
+const GPT2_WEIGHTS: Expected = Expected { model: "GPT-2 (Hugging Face names)", names: &["h.0.attn.c_attn.weight", "transformer.h.0.attn.c_attn.weight"] };
+
 /// Decoder sizes: `tiny` (laptop) and `gpt2` (GPT-2 small, which `init` weights fit).
 pub const DECODERS: [&str; 2] = ["tiny", "gpt2"];
 
@@ -147,6 +151,9 @@ impl Settings for ClipcapSettings {
         }
         if !self.init.is_empty() && self.decoder != "gpt2" {
             return Err(SettingError::new("init", "GPT-2 weights fit only decoder = \"gpt2\""));
+        }
+        if !self.init.is_empty() {
+            check_init("init", &self.init, &GPT2_WEIGHTS)?;
         }
         SettingError::check_range("prefix", self.prefix, 1..=64)?;
         SettingError::check_range("mapper_layers", self.mapper_layers, 1..=24)?;
@@ -215,6 +222,14 @@ mod tests {
         assert_eq!(key(serde_json::json!({"init": "/w/gpt2.safetensors"})), "init");
         assert_eq!(key(serde_json::json!({"decode": "sample"})), "decode");
         assert_eq!(key(serde_json::json!({"beam": 0})), "beam");
-        assert!(clipcap().settings(serde_json::json!({"decoder": "gpt2", "init": "/w/gpt2.safetensors"})).is_ok());
+        let dir = std::env::temp_dir().join(format!("rlmflow-probe-init-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let gpt2 = dir.join("gpt2.safetensors");
+        let zeros = [0u8; 16];
+        let tensor = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![2, 2], &zeros).unwrap();
+        safetensors::serialize_to_file([("h.0.attn.c_attn.weight", tensor)], &None, &gpt2).unwrap();
+        assert!(clipcap().settings(serde_json::json!({"decoder": "gpt2", "init": gpt2})).is_ok());
+        assert_eq!(key(serde_json::json!({"decoder": "gpt2", "init": dir.join("absent.safetensors")})), "init");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

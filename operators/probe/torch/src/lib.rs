@@ -7,13 +7,13 @@ mod ridge;
 use std::path::Path;
 
 use anyhow::bail;
-use rlmflow_nn::clip::{self, images_from_u8};
+use rlmflow_nn::clip;
+use rlmflow_nn::data::{Frames, Need, Splits};
 use rlmflow_nn::tch::{self, Kind, Tensor};
 use rlmflow_probe::{LinearSettings, Source};
 use rlmflow_stages::grid::CELLS;
-use rlmflow_stages::labels::{Labels, Split};
+use rlmflow_stages::labels::Split;
 use rlmflow_stages::probe::{self, Row, Summary, score};
-use rlmflow_stages::scenes::Scenes;
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources};
 use serde_json::json;
 
@@ -36,26 +36,24 @@ impl Operator for Linear {
     fn run(&self, s: &LinearSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         faer::set_global_parallelism(faer::Par::Seq);
         tch::set_num_threads(s.threads as i32);
-        let scenes = Scenes::open(ctx.input("scenes")?)?;
-        let labels = Labels::open(ctx.input("labels")?)?;
-        labels.check_scenes(scenes.len())?;
+        let data = Frames::load(ctx, Need::default())?;
+        let labels = &data.labels;
         let hygiene = rlmflow_stages::identity::check_inputs(ctx, &labels.ids(Split::Test), s.allow_test_overlap)?;
         let encoder = ctx.optional_input("encoder").map(Path::to_path_buf);
+        let all: Vec<usize> = (0..data.len()).collect();
         let features: Vec<(&str, Vec<f64>, usize)> = match (s.source, &encoder) {
             (Source::Pixels, _) => {
-                let side = scenes.summary.images[0].size;
-                let pixels = (0..scenes.len()).map(|i| scenes.heatmap(i)).collect::<anyhow::Result<Vec<_>>>()?;
-                vec![("pixels", pixels.concat().into_iter().map(f64::from).collect(), side * side)]
+                let side = data.side as usize;
+                vec![("pixels", data.pixels(&all).into_iter().map(f64::from).collect(), side * side)]
             }
-            (Source::Encoder, Some(dir)) => encoder_features(dir, &scenes, ctx)?,
+            (Source::Encoder, Some(dir)) => encoder_features(dir, &data, &all, ctx)?,
             (Source::Encoder, None) => bail!("source = \"encoder\" needs an encoder input; use source = \"pixels\" for the pixel baseline"),
         };
         let counts: Vec<f64> = labels.frames.iter().flat_map(|f| f.grid.counts.iter().map(|&c| f64::from(c))).collect();
+        // The strength is chosen fitting `fit` and scoring `validate`; the chosen ridge is then
+        // refitted on the whole training split.
+        let Splits { train: fit, validation: validate, test } = data.splits(s.holdout, false);
         let train: Vec<usize> = labels.split(Split::Train).map(|f| f.frame as usize).collect();
-        let test: Vec<usize> = labels.split(Split::Test).map(|f| f.frame as usize).collect();
-        let (fit, validate) = labels.train_validation(s.holdout);
-        let frames = |labels: Vec<&rlmflow_stages::labels::FrameLabel>| labels.into_iter().map(|f| f.frame as usize).collect::<Vec<_>>();
-        let (fit, validate) = (frames(fit), frames(validate));
         if fit.is_empty() || validate.is_empty() || test.is_empty() {
             bail!(
                 "{} training, {} validation and {} test frames are too few for a validated strength choice (raise `holdout` or the frame count)",
@@ -128,16 +126,13 @@ fn round(predictions: &[f64]) -> Vec<[u32; CELLS]> {
 
 /// Every frame's projected CLS embedding, mean patch token and patch tokens in grid order (the
 /// spatial layout kept) from the frozen encoder.
-fn encoder_features(dir: &Path, scenes: &Scenes, ctx: &Context) -> anyhow::Result<Vec<(&'static str, Vec<f64>, usize)>> {
+fn encoder_features(dir: &Path, data: &Frames, all: &[usize], ctx: &Context) -> anyhow::Result<Vec<(&'static str, Vec<f64>, usize)>> {
     let device = rlmflow_nn::train::resolve_device(ctx.device, rlmflow_stages::Device::Cpu)?;
-    let side = scenes.summary.images[0].size as i64;
-    let (_vs, model) = clip::load(dir, device, side)?;
+    let (_vs, model) = clip::load(dir, device, data.side)?;
     let (mut cls, mut means, mut patches) = (Vec::new(), Vec::new(), Vec::new());
     tch::no_grad(|| -> anyhow::Result<()> {
-        for start in (0..scenes.len()).step_by(256) {
-            let frames: Vec<u64> = (start..(start + 256).min(scenes.len())).collect();
-            let pixels = frames.iter().map(|&i| scenes.heatmap(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
-            let out = model.encode_image(&images_from_u8(&pixels, frames.len() as i64, side, device), false);
+        for frames in all.chunks(256) {
+            let out = model.encode_image(&data.images(frames, device), false);
             let tokens = out.tokens.narrow(1, 1, out.tokens.size()[1] - 1);
             let mean = tokens.mean_dim([1].as_slice(), false, Kind::Float);
             cls.push(out.embedding.to_kind(Kind::Double).to_device(tch::Device::Cpu));
