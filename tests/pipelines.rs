@@ -63,6 +63,43 @@ fn settings_that_would_exhaust_memory_or_never_finish_are_config_errors() {
     }
 }
 
+/// Settings that do not fit what their inputs will be are config errors before anything runs,
+/// with the stage's file, line and key: a batch larger than the scenes, an image a ViT patch or
+/// the U-Net's levels do not divide, scenes of two sizes mixed.
+#[test]
+fn settings_that_do_not_fit_their_inputs_are_config_errors() {
+    const BASE: &str = "[pipeline]\nname = \"fit\"\n[stages.scenes]\noperator = \"procedural\"\nframes = 100\nradar = { image = 32 }\n\
+                        [stages.labels]\noperator = \"ego-grid\"\n[stages.captions]\noperator = \"template\"\n[stages.tokens]\noperator = \"bpe\"\n";
+    let dir = std::env::temp_dir().join(format!("rlmflow-fit-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let cases = [
+        ("[stages.pretrain]\noperator = \"clip\"\nbatch = 128\n", "p.toml:16: stages.pretrain.batch: 128 is more than the 100 frames its scenes hold"),
+        (
+            "[stages.pretrain]\noperator = \"clip\"\nencoder = \"vit-b16\"\nbatch = 16\n",
+            "stages.pretrain.encoder: `vit-b16` needs an image side divisible by 16; the scenes have 40",
+        ),
+        (
+            "[stages.unet]\nkind = \"segment\"\noperator = \"unet\"\nbatch = 8\nchannels = [4, 4, 4, 4, 4, 4, 4]\n",
+            "stages.unet.channels: 7 levels need an image side divisible by 64; the scenes have 32",
+        ),
+        (
+            "[stages.big]\nkind = \"scenes\"\noperator = \"procedural\"\nradar = { image = 64 }\n[stages.mixed]\nkind = \"mix\"\noperator = \"concat\"\ninputs = { scenes = [\"scenes\", \"big\"] }\n",
+            "stages.mixed.inputs.scenes: mixes scenes of 32 px and 64 px; a mix needs one image size",
+        ),
+    ];
+    for (stage, expected) in cases {
+        let mut text = BASE.replace("[stages.labels]\noperator = \"ego-grid\"\n", "[stages.labels]\noperator = \"ego-grid\"\ninputs = { scenes = \"scenes\" }\n");
+        if stage.contains("vit-b16") {
+            text = text.replace("image = 32", "image = 40");
+        }
+        std::fs::write(dir.join("p.toml"), format!("{text}{stage}")).unwrap();
+        let out = Command::new(env!("CARGO_BIN_EXE_rlmflow")).current_dir(&dir).args(["run", "p.toml", "--dry-run"]).output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{stage}: {stderr}");
+        assert!(stderr.contains(expected), "{stage}: expected `{expected}` in {stderr}");
+    }
+}
+
 #[test]
 fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     let dir = std::env::temp_dir().join(format!("rlmflow-ci-pipeline-{}", std::process::id()));

@@ -10,7 +10,7 @@ use std::fmt;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
-use rlmflow_stages::{Arity, DynOperator, ItemCount, Need, Part, Registry, Share, StageKind};
+use rlmflow_stages::{Arity, DynOperator, InputOutlines, ItemCount, Need, Outline, Part, Registry, Share, StageKind};
 
 use crate::dispatch::HyperQueueSettings;
 use serde_json::{Map, Value};
@@ -416,7 +416,36 @@ impl Checker {
             return None;
         }
         let stages = self.topological(stages)?;
+        self.outlines(&stages, registry);
+        if !self.errors.is_empty() {
+            return None;
+        }
         Some(Pipeline { file: file.to_path_buf(), name, seed, seeds, cache, executor, hyperqueue, stages })
+    }
+
+    /// Checks each stage's settings against what its inputs will be (image side, frames), as far
+    /// as their settings tell, in dependency order: an image a ViT patch does not divide or scenes
+    /// of two sizes mixed are config errors here, not failures an hour into the run.
+    fn outlines(&mut self, stages: &[Stage], registry: &Registry) {
+        let mut outlines: Vec<Outline> = Vec::with_capacity(stages.len());
+        for stage in stages {
+            let op = registry.get(&stage.operator).expect("validated operator");
+            let inputs: InputOutlines = stage.bindings.iter().map(|b| (b.slot, b.providers.iter().map(|&p| outlines[p]).collect())).collect();
+            let mut outline: Option<Outline> = None;
+            let mut reported = std::collections::BTreeSet::new();
+            for variant in &stage.variants {
+                match op.outline(&variant.settings, &inputs) {
+                    Ok(o) => outline = Some(outline.map_or(o, |known| known.common(o))),
+                    Err(e) => {
+                        let key = if e.key.is_empty() { format!("stages.{}", stage.name) } else { format!("stages.{}.{}", stage.name, e.key) };
+                        if reported.insert(key.clone()) {
+                            self.error(self.line(&key), &key, e.message, None);
+                        }
+                    }
+                }
+            }
+            outlines.push(outline.unwrap_or_default());
+        }
     }
 
     /// `[pipeline.hyperqueue]`, its `server_dir` made absolute against the pipeline file.

@@ -36,7 +36,8 @@ pub mod weights;
 pub use context::{Context, Device, Input, InstanceId, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};
 pub use operator::{
-    DynOperator, InWorker, ItemCount, Items, Operator, OperatorSpec, Outcome, Part, Registry, Resources, SettingError, Settings, Sharding, Share,
+    DynOperator, InWorker, InputOutlines, ItemCount, Items, Operator, OperatorSpec, Outcome, Outline, Part, Registry, Resources, SettingError, Settings,
+    Sharding, Share,
 };
 pub use training::Training;
 

@@ -96,6 +96,39 @@ impl Default for Resources {
     }
 }
 
+/// What a stage's output will be, as far as settings tell before anything runs: what checks
+/// across stages read (an image side a ViT patch must divide, frames a batch must not exceed).
+/// `None`: not known from settings.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Outline {
+    /// The side of the frames' primary image, in pixels.
+    pub image: Option<u64>,
+    /// The frames the artifact holds.
+    pub frames: Option<u64>,
+}
+
+impl Outline {
+    /// What two outlines (a stage's variants) agree on.
+    pub fn common(self, other: Outline) -> Outline {
+        let same = |a: Option<u64>, b: Option<u64>| if a == b { a } else { None };
+        Outline { image: same(self.image, other.image), frames: same(self.frames, other.frames) }
+    }
+
+    /// The outline a stage passes on by default: that of the scenes it reads, else of its first
+    /// input.
+    pub fn passed_on(inputs: &InputOutlines) -> Outline {
+        inputs.get("scenes").or_else(|| inputs.values().next()).and_then(|v| v.first()).copied().unwrap_or_default()
+    }
+
+    /// [`Outline::passed_on`] as an [`InWorker`]'s outline check, for settings that read nothing of it.
+    pub fn pass_on<S>(_: &S, inputs: &InputOutlines) -> Result<Outline, SettingError> {
+        Ok(Outline::passed_on(inputs))
+    }
+}
+
+/// The outlines of a stage's inputs, by slot (a gathered slot's in order).
+pub type InputOutlines<'a> = std::collections::BTreeMap<&'a str, Vec<Outline>>;
+
 /// What a finished operator reports besides its output files.
 #[derive(Clone, Debug, Default)]
 pub struct Outcome {
@@ -125,6 +158,12 @@ pub trait Operator: Send + Sync + 'static {
     /// Whether a stage of this operator can run as shards (`shards = N` in `pipeline.toml`).
     fn sharding(&self) -> Option<Sharding<Self::Settings>> {
         None
+    }
+
+    /// Its output's outline given its inputs', or the setting that cannot fit them: checked when
+    /// the pipeline is validated. By default it passes on its scenes' outline.
+    fn outline(&self, _settings: &Self::Settings, inputs: &InputOutlines) -> Result<Outline, SettingError> {
+        Ok(Outline::passed_on(inputs))
     }
 
     fn run(&self, settings: &Self::Settings, ctx: &mut Context) -> anyhow::Result<Outcome>;
@@ -192,6 +231,8 @@ pub struct InWorker<S: Settings> {
     pub spec: OperatorSpec,
     pub worker: &'static str,
     pub resources: fn(&S) -> Resources,
+    /// Its settings checked against its inputs' outlines (see [`Operator::outline`]).
+    pub outline: fn(&S, &InputOutlines) -> Result<Outline, SettingError>,
 }
 
 impl<S: Settings> Operator for InWorker<S> {
@@ -207,6 +248,10 @@ impl<S: Settings> Operator for InWorker<S> {
 
     fn worker(&self) -> Option<&'static str> {
         Some(self.worker)
+    }
+
+    fn outline(&self, settings: &S, inputs: &InputOutlines) -> Result<Outline, SettingError> {
+        (self.outline)(settings, inputs)
     }
 
     fn run(&self, _: &S, _: &mut Context) -> anyhow::Result<Outcome> {
@@ -230,6 +275,8 @@ pub trait DynOperator: Send + Sync {
     fn items(&self, settings: &Value) -> Option<(ItemCount, &'static str)>;
     /// The settings of the shard computing `part`, when the operator can be sharded that way.
     fn part(&self, settings: &Value, part: &Part) -> Option<Value>;
+    /// The output's outline for valid `settings` and the inputs' outlines.
+    fn outline(&self, settings: &Value, inputs: &InputOutlines) -> Result<Outline, SettingError>;
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome>;
 }
 
@@ -279,6 +326,10 @@ impl<O: Operator> DynOperator for O {
             _ => return None,
         };
         Some(serde_json::to_value(&settings).expect("settings serialise to JSON"))
+    }
+
+    fn outline(&self, settings: &Value, inputs: &InputOutlines) -> Result<Outline, SettingError> {
+        Operator::outline(self, &parse_settings::<O::Settings>(settings.clone())?, inputs)
     }
 
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome> {

@@ -7,7 +7,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::{Device, Resources, SettingError};
+use crate::{Device, InputOutlines, Outline, Resources, SettingError};
 
 /// One training run's schedule, optimiser and placement.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -84,6 +84,18 @@ impl Training {
         SettingError::check_range("threads", self.threads, 1..=256)
     }
 
+    /// A training stage's outline check: a batch no larger than the frames its scenes hold (it
+    /// trains on a share of them), which it passes on.
+    pub fn outline(&self, inputs: &InputOutlines) -> Result<Outline, SettingError> {
+        let outline = Outline::passed_on(inputs);
+        if let Some(frames) = outline.frames
+            && self.batch > frames
+        {
+            return Err(SettingError::new("batch", format!("{} is more than the {frames} frames its scenes hold (it trains on a share of them)", self.batch)));
+        }
+        Ok(outline)
+    }
+
     /// What a training stage asks of the machine: its threads, a GPU unless it names the CPU,
     /// and a CUDA device when it names one.
     pub fn resources(&self) -> Resources {
@@ -108,6 +120,16 @@ mod tests {
         assert_eq!(key(Training { betas: [0.9, 1.0], ..Training::default() }), "betas.1");
         assert_eq!(key(Training { eps: 0.0, ..Training::default() }), "eps");
         assert_eq!(key(Training { threads: 0, ..Training::default() }), "threads");
+    }
+
+    #[test]
+    fn a_batch_larger_than_the_scenes_is_refused_by_its_key() {
+        let inputs: InputOutlines = [("scenes", vec![Outline { image: Some(32), frames: Some(100) }])].into_iter().collect();
+        let t = Training { batch: 128, ..Training::default() };
+        let e = t.outline(&inputs).unwrap_err();
+        assert_eq!((e.key.as_str(), e.message.as_str()), ("batch", "128 is more than the 100 frames its scenes hold (it trains on a share of them)"));
+        assert_eq!(Training::default().outline(&inputs).unwrap(), inputs["scenes"][0]);
+        assert!(t.outline(&InputOutlines::new()).is_ok(), "unknown frames: nothing to check");
     }
 
     #[test]

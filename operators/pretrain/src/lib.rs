@@ -18,7 +18,7 @@
 use rlmflow_stages::encoder::{Distance, Head, ModelConfig, Stem, TextConfig, VisionConfig};
 use rlmflow_stages::grid::CELLS;
 use rlmflow_stages::weights::{Expected, check_init};
-use rlmflow_stages::{Device, InWorker, OperatorSpec, Resources, SettingError, Settings, Training};
+use rlmflow_stages::{Device, InWorker, InputOutlines, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
 /// The binary the torch operators run in.
@@ -139,9 +139,19 @@ pub fn resources(s: &ClipSettings) -> Resources {
     s.training.resources()
 }
 
+/// The settings against the scenes: the batch fits their frames, and the encoder's patch divides
+/// their image (the model built for a stand-in text vocabulary: only the vision side is checked).
+fn outline(s: &ClipSettings, inputs: &InputOutlines) -> Result<Outline, SettingError> {
+    let outline = s.training.outline(inputs)?;
+    if let Some(image) = outline.image {
+        model_config(s, image as i64, 8, 259, 1)?;
+    }
+    Ok(outline)
+}
+
 /// The operator as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn operator() -> InWorker<ClipSettings> {
-    InWorker { spec: spec(), worker: WORKER, resources }
+    InWorker { spec: spec(), worker: WORKER, resources, outline }
 }
 
 /// The model the settings name, for images of `image` pixels and the tokens stage's `context`,

@@ -25,7 +25,7 @@
 //! scored per cell like `linear`.
 
 use rlmflow_stages::weights::{Expected, check_init};
-use rlmflow_stages::{InWorker, OperatorSpec, Resources, SettingError, Settings, Training};
+use rlmflow_stages::{InWorker, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
 /// The binary the probes run in.
@@ -182,7 +182,7 @@ pub fn clipcap_resources(s: &ClipcapSettings) -> Resources {
 
 /// `clipcap` as `rlmflow` registers it.
 pub fn clipcap() -> InWorker<ClipcapSettings> {
-    InWorker { spec: clipcap_spec(), worker: WORKER, resources: clipcap_resources }
+    InWorker { spec: clipcap_spec(), worker: WORKER, resources: clipcap_resources, outline: |s, inputs| s.training.outline(inputs) }
 }
 
 pub fn linear_spec() -> OperatorSpec {
@@ -201,7 +201,7 @@ pub fn linear_resources(s: &LinearSettings) -> Resources {
 
 /// `linear` as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn linear() -> InWorker<LinearSettings> {
-    InWorker { spec: linear_spec(), worker: WORKER, resources: linear_resources }
+    InWorker { spec: linear_spec(), worker: WORKER, resources: linear_resources, outline: Outline::pass_on }
 }
 
 #[cfg(test)]

@@ -14,7 +14,7 @@
 
 use anyhow::{Context as _, bail};
 use rlmflow_stages::scenes::Scenes;
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, SettingError, Settings};
+use rlmflow_stages::{Context, InputOutlines, Operator, OperatorSpec, Outcome, Outline, SettingError, Settings};
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
@@ -55,6 +55,18 @@ impl Operator for Concat {
             inputs: None,
             summary: "the frames of several Scenes artifacts, one after another, as one Scenes artifact",
         }
+    }
+
+    /// One image size for every input, the frames of all of them.
+    fn outline(&self, _: &ConcatSettings, inputs: &InputOutlines) -> Result<Outline, SettingError> {
+        let parts = inputs.get("scenes").map(Vec::as_slice).unwrap_or_default();
+        let sizes: std::collections::BTreeSet<u64> = parts.iter().filter_map(|o| o.image).collect();
+        if sizes.len() > 1 {
+            let sizes: Vec<String> = sizes.iter().map(|s| format!("{s} px")).collect();
+            return Err(SettingError::new("inputs.scenes", format!("mixes scenes of {}; a mix needs one image size (set each input's `radar.image` alike)", sizes.join(" and "))));
+        }
+        let image = if parts.iter().all(|o| o.image.is_some()) { sizes.first().copied() } else { None };
+        Ok(Outline { image, frames: parts.iter().map(|o| o.frames).sum() })
     }
 
     fn run(&self, s: &ConcatSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {

@@ -21,7 +21,7 @@ use rand_chacha::ChaCha8Rng;
 use rlmflow_python::embed::{self, pyo3};
 use rlmflow_radar::{RadarConfig, Segment, VehicleBox};
 use rlmflow_stages::grid::{CELLS, GridRule};
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, SettingError, Settings};
+use rlmflow_stages::{Context, InputOutlines, Operator, OperatorSpec, Outcome, Outline, Resources, SettingError, Settings};
 use serde::{Deserialize, Serialize};
 
 use pyo3::prelude::*;
@@ -149,6 +149,10 @@ impl Operator for HighwayEnv {
 
     fn resources(&self, _: &HighwaySettings) -> Resources {
         Resources { threads: usize::MAX, ..Resources::default() }
+    }
+
+    fn outline(&self, s: &HighwaySettings, _: &InputOutlines) -> Result<Outline, SettingError> {
+        Ok(Outline { image: Some(s.radar.image as u64), frames: Some(s.frames) })
     }
 
     fn run(&self, s: &HighwaySettings, ctx: &mut Context) -> anyhow::Result<Outcome> {

@@ -8,7 +8,7 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rlmflow_radar::{RadarConfig, VehicleBox};
 use rlmflow_stages::grid::{CELLS, Cell, GridRule, SECTORS};
-use rlmflow_stages::{Context, Items, Operator, OperatorSpec, Outcome, Resources, SettingError, Settings, Sharding};
+use rlmflow_stages::{Context, InputOutlines, Items, Operator, OperatorSpec, Outcome, Outline, Resources, SettingError, Settings, Sharding};
 use serde::{Deserialize, Serialize};
 
 use crate::layout::{LAYOUTS, Layout};
@@ -153,6 +153,10 @@ impl Operator for Procedural {
             },
             merge: "concat",
         })
+    }
+
+    fn outline(&self, s: &ProceduralSettings, _: &InputOutlines) -> Result<Outline, SettingError> {
+        Ok(Outline { image: Some(s.radar.image as u64), frames: Some(s.frames) })
     }
 
     fn run(&self, s: &ProceduralSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {

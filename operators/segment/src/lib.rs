@@ -12,7 +12,7 @@
 //! Training: AdamW, warmup then cosine, global-norm clipping, loss `dice_weight` * soft Dice +
 //! (1 - `dice_weight`) * BCE against the labels' soft masks; one checkpoint per epoch.
 
-use rlmflow_stages::{InWorker, OperatorSpec, Resources, SettingError, Settings, Training};
+use rlmflow_stages::{InWorker, InputOutlines, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
 /// The binary the segmenters run in.
@@ -126,14 +126,27 @@ pub fn unet_resources(s: &UnetSettings) -> Resources {
     s.training.resources()
 }
 
+/// The U-Net against its scenes: the batch fits their frames and its levels halve their image
+/// evenly.
+fn unet_outline(s: &UnetSettings, inputs: &InputOutlines) -> Result<Outline, SettingError> {
+    let outline = s.training.outline(inputs)?;
+    let divisor = 1u64 << (s.channels.len() - 1);
+    if let Some(image) = outline.image
+        && image % divisor != 0
+    {
+        return Err(SettingError::new("channels", format!("{} levels need an image side divisible by {divisor}; the scenes have {image}", s.channels.len())));
+    }
+    Ok(outline)
+}
+
 /// `pup` as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn pup() -> InWorker<PupSettings> {
-    InWorker { spec: pup_spec(), worker: WORKER, resources: pup_resources }
+    InWorker { spec: pup_spec(), worker: WORKER, resources: pup_resources, outline: |s, inputs| s.training.outline(inputs) }
 }
 
 /// `unet` as `rlmflow` registers it.
 pub fn unet() -> InWorker<UnetSettings> {
-    InWorker { spec: unet_spec(), worker: WORKER, resources: unet_resources }
+    InWorker { spec: unet_spec(), worker: WORKER, resources: unet_resources, outline: unet_outline }
 }
 
 #[cfg(test)]

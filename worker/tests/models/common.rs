@@ -78,6 +78,14 @@ context = 128
     )
 }
 
+/// The encoder the probe and segmenter tests read (`clip`, four epochs at batch 64 on the CPU),
+/// with its untrained twin as a second variant when `random`: the same stage in every test, so
+/// the shared store trains it once.
+pub fn encoders(random: bool) -> String {
+    let variants = if random { "[stages.pretrain.variants]\nclip = {}\nrandom = { epochs = 0, warmup_epochs = 0.0 }\n" } else { "" };
+    format!("\n[stages.pretrain]\noperator = \"clip\"\ndevice = \"cpu\"\nbatch = 64\nepochs = 4\n{variants}")
+}
+
 /// Held by each test while it runs: every model test keeps both cores busy (its stages take two
 /// threads), so they take turns rather than oversubscribe the machine and wait on each other's
 /// locks in the shared store.

@@ -12,16 +12,7 @@ use rlmflow_stages::grid::CELLS;
 use rlmflow_stages::labels::{Labels, Split};
 use rlmflow_stages::probe::score;
 
-const MODELS: &str = r#"
-[stages.pretrain]
-operator = "clip"
-device = "cpu"
-batch = 64
-epochs = 4
-[stages.pretrain.variants]
-clip = {}
-random = { epochs = 0, warmup_epochs = 0.0 }
-
+const LINEAR: &str = r#"
 [stages.linear]
 kind = "probe"
 operator = "linear"
@@ -40,7 +31,7 @@ fn object(dir: &Path, label: &str) -> PathBuf {
 #[test]
 fn ridge_on_encoder_features_and_on_pixels_beats_a_trivial_predictor() {
     let _turn = crate::common::one_at_a_time();
-    let dir = crate::common::scratch("probe-linear", &format!("{}{MODELS}", crate::common::data_stages("probe")));
+    let dir = crate::common::scratch("probe-linear", &format!("{}{}{LINEAR}", crate::common::data_stages("probe"), crate::common::encoders(true)));
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--json"]);
     assert!(ok, "{out}");
     let pixel_runs = out.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains("\"stage\":\"pixels")).count();
@@ -67,12 +58,6 @@ fn ridge_on_encoder_features_and_on_pixels_beats_a_trivial_predictor() {
 }
 
 const CAPTIONER: &str = r#"
-[stages.pretrain]
-operator = "clip"
-device = "cpu"
-batch = 64
-epochs = 4
-
 [stages.clipcap]
 kind = "probe"
 operator = "clipcap"
@@ -85,7 +70,7 @@ lr = 3e-3
 #[test]
 fn clipcap_learns_to_caption_and_true_captions_score_perfectly() {
     let _turn = crate::common::one_at_a_time();
-    let dir = crate::common::scratch("probe-clipcap", &format!("{}{CAPTIONER}", crate::common::data_stages("clipcap")));
+    let dir = crate::common::scratch("probe-clipcap", &format!("{}{}{CAPTIONER}", crate::common::data_stages("clipcap"), crate::common::encoders(false)));
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
     let labels = Labels::open(&crate::common::output(&dir, "clipcap", "labels")).unwrap();

@@ -10,16 +10,7 @@ use crate::common::rlmflow;
 use rlmflow_stages::npy::Npy;
 use rlmflow_stages::segment::{self, read_summary};
 
-const MODELS: &str = r#"
-[stages.pretrain]
-operator = "clip"
-device = "cpu"
-batch = 64
-epochs = 4
-[stages.pretrain.variants]
-clip = {}
-random = { epochs = 0, warmup_epochs = 0.0 }
-
+const SEGMENTERS: &str = r#"
 [stages.pup]
 kind = "segment"
 operator = "pup"
@@ -38,7 +29,7 @@ channels = [8, 16, 32]
 "#;
 
 fn pipeline() -> String {
-    format!("{}{MODELS}", crate::common::data_stages("segment"))
+    format!("{}{}{SEGMENTERS}", crate::common::data_stages("segment"), crate::common::encoders(true))
 }
 
 #[test]
