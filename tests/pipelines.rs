@@ -501,6 +501,33 @@ fn a_sharded_llm_stage_gives_the_bytes_of_the_unsharded_one() {
     assert!(ok && out.contains("three#2"), "{out}");
 }
 
+/// An `llm` stage keeps its answers in the store: `verify` quarantines a damaged one, and `gc
+/// --responses` clears them.
+#[test]
+fn llm_answers_live_in_the_store_where_verify_and_gc_see_them() {
+    let url = fake_llm();
+    let pipeline = format!(
+        "[pipeline]\nname = \"llm-store\"\nseed = 3\n[stages.scenes]\noperator = \"procedural\"\nframes = 6\nradar = {{ image = 32 }}\n[stages.labels]\noperator = \"ego-grid\"\ntest_fraction = 0.2\n\
+         [stages.captions]\noperator = \"llm\"\nbase_url = \"{url}\"\nmodel = \"fake\"\napi_key_env = \"\"\nn = 2\nregenerate = 0\non_mismatch = \"keep\"\n"
+    );
+    let dir = scratch("llm-store", &pipeline);
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
+    assert!(ok, "{out}");
+    let answers = dir.join(".rlmflow/responses/llm");
+    let mut stored: Vec<PathBuf> = std::fs::read_dir(&answers).unwrap().map(|e| e.unwrap().path()).collect();
+    stored.sort();
+    assert!(!stored.is_empty() && stored.iter().all(|p| p.extension().is_some_and(|e| e == "json")), "{stored:?}");
+    let (ok, out) = rlmflow(&dir, &["verify", "p.toml"]);
+    assert!(ok, "{out}");
+    std::fs::write(&stored[0], b"{\"half").unwrap();
+    let (ok, out) = rlmflow(&dir, &["verify", "p.toml"]);
+    assert!(!ok && out.contains(stored[0].file_name().unwrap().to_str().unwrap()), "{out}");
+    assert!(!stored[0].exists(), "the damaged answer is quarantined");
+    let (ok, out) = rlmflow(&dir, &["gc", "p.toml", "--responses"]);
+    assert!(ok && out.contains("1 responses"), "{out}");
+    assert!(!answers.exists());
+}
+
 /// Every scenario, each attempt a fresh process (fresh hash seeds, allocator addresses and
 /// Python interpreter) with a different thread count: the same bytes.
 #[test]

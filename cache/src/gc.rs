@@ -9,7 +9,7 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use crate::digest::Digest;
-use crate::store::{Store, read_dir_sorted, remove_tree};
+use crate::store::{RESPONSES, Store, read_dir_sorted, remove_tree};
 
 /// What `gc` removed (or would remove, with `dry_run`).
 #[derive(Debug, Default)]
@@ -26,8 +26,10 @@ impl GcReport {
 }
 
 impl Store {
-    /// Sweeps what no root reaches. Takes the store lock exclusively, so it waits for runs.
-    pub fn gc(&self, keep_runs: usize, dry_run: bool) -> anyhow::Result<GcReport> {
+    /// Sweeps what no root reaches, and with `responses` the stored answers of outside services
+    /// too (a stage that needs one asks again). Takes the store lock exclusively, so it waits for
+    /// runs.
+    pub fn gc(&self, keep_runs: usize, dry_run: bool, responses: bool) -> anyhow::Result<GcReport> {
         let _lock = self.lock_exclusive()?;
         let runs = self.runs()?;
         let (old_runs, kept_runs) = runs.split_at(runs.len().saturating_sub(keep_runs));
@@ -97,6 +99,11 @@ impl Store {
         for entry in read_dir_sorted(&self.root().join("tmp"))? {
             remove("orphaned work dir", entry)?;
         }
+        if responses {
+            for entry in read_dir_sorted(&self.root().join(RESPONSES))? {
+                remove("responses", entry)?;
+            }
+        }
         for entry in read_dir_sorted(&self.root().join("locks"))? {
             if entry.file_name().is_some_and(|n| n != "store.lock") {
                 remove("lock file", entry)?;
@@ -129,11 +136,11 @@ mod tests {
         let dropped = record_for(&store, 2, b"dropped");
         store.update_last_keys("p", &BTreeMap::from([("s".to_owned(), kept.key)])).unwrap();
 
-        let dry = store.gc(10, true).unwrap();
+        let dry = store.gc(10, true, false).unwrap();
         assert!(dry.removed.iter().any(|r| r.0 == "object"));
         assert!(store.fresh(&dropped.key).unwrap().is_some(), "dry run removes nothing");
 
-        let report = store.gc(10, false).unwrap();
+        let report = store.gc(10, false, false).unwrap();
         assert_eq!(report.kept_objects, 1);
         assert!(store.fresh(&kept.key).unwrap().is_some());
         assert!(store.record(&dropped.key).unwrap().is_none());

@@ -103,6 +103,9 @@ impl VerifyReport {
     }
 }
 
+/// The store's directory of outside answers (see [`Store::responses_dir`]).
+pub(crate) const RESPONSES: &str = "responses";
+
 /// A content-addressed store rooted at one directory. See the crate docs for the layout.
 #[derive(Clone, Debug)]
 pub struct Store {
@@ -283,8 +286,8 @@ impl Store {
     }
 
     /// Store files that cannot be used as they are: unreadable JSON, a record or request not of
-    /// its key, an object directory without its manifest (an interrupted commit) or a manifest
-    /// without its directory.
+    /// its key, a stored answer that is no answer, an object directory without its manifest (an
+    /// interrupted commit) or a manifest without its directory.
     fn unusable_files(&self) -> anyhow::Result<Vec<(PathBuf, String)>> {
         let mut found = Vec::new();
         // Each file read, then checked against what its name promises.
@@ -312,6 +315,17 @@ impl Store {
             let path = self.run_dir(&run).join("plan.json");
             let read = read_json_checked::<RunPlan>(&path)?;
             check(path, map_read(read, |_| Ok(())));
+        }
+        for operator in read_dir_sorted(&self.root.join(RESPONSES))? {
+            for path in read_dir_sorted(&operator)? {
+                let named = path.file_stem().and_then(|s| s.to_str()).is_some_and(|s| s.parse::<Digest>().is_ok());
+                if !named || path.extension().is_none_or(|e| e != "json") {
+                    check(path, Read::Intact(Err("not a stored answer (`<request digest>.json`)".into())));
+                    continue;
+                }
+                let read = read_json_checked::<Value>(&path)?;
+                check(path, map_read(read, |_| Ok(())));
+            }
         }
         for shard in read_dir_sorted(&self.root.join("objects"))? {
             for entry in read_dir_sorted(&shard)? {
@@ -391,6 +405,13 @@ impl Store {
 
     pub fn checkpoint_dir(&self, key: &Digest) -> PathBuf {
         self.root.join("checkpoints").join(key.hex())
+    }
+
+    /// Where operator `operator` keeps the answers of an outside service (an LLM endpoint), one
+    /// JSON file per request digest: shared by every action of the store, so a resumed or
+    /// repeated one asks nothing twice. `verify` checks them; `gc --responses` removes them.
+    pub fn responses_dir(&self, operator: &str) -> PathBuf {
+        self.root.join(RESPONSES).join(file_safe(operator))
     }
 
     /// A fresh work directory for one attempt at `key`. Its name starts with the key, so the

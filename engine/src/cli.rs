@@ -92,6 +92,10 @@ enum Command {
         dry_run: bool,
         #[arg(long, default_value_t = 10)]
         keep_runs: usize,
+        /// Also remove the stored answers of outside services (an `llm` stage then asks its
+        /// endpoint again).
+        #[arg(long)]
+        responses: bool,
         #[command(flatten)]
         store: StoreArg,
     },
@@ -211,9 +215,9 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         }
         Command::Explain { pipeline, stage, store } => explain(registry, &pipeline, &stage, &store),
         Command::Show { pipeline, stage, store } => show(registry, &pipeline, &stage, &store),
-        Command::Gc { pipeline, dry_run, keep_runs, store } => {
+        Command::Gc { pipeline, dry_run, keep_runs, responses, store } => {
             let store = existing_store(registry, pipeline.as_deref(), &store)?;
-            let report = store.gc(keep_runs, dry_run)?;
+            let report = store.gc(keep_runs, dry_run, responses)?;
             let verb = if dry_run { "would remove" } else { "removed" };
             let mut counts: std::collections::BTreeMap<&str, usize> = Default::default();
             for (what, path, _) in &report.removed {

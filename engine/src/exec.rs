@@ -7,7 +7,7 @@
 use std::collections::BTreeMap;
 use std::io::Write;
 use std::panic::{AssertUnwindSafe, catch_unwind};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -114,7 +114,8 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
     let checkpoint_dir = store.checkpoint_dir(&key);
     let started = now_rfc3339();
     let clock = Instant::now();
-    let outcome = match run_operator(op, &request, inputs, &output_dir, &checkpoint_dir, threads, device)? {
+    let dirs = Dirs { output: output_dir.clone(), checkpoint: checkpoint_dir.clone(), responses: store.responses_dir(&request.preimage.operator) };
+    let outcome = match run_operator(op, &request, inputs, dirs, threads, device)? {
         Ok(outcome) => outcome,
         Err(message) => return Ok(fail(message)),
     };
@@ -150,7 +151,8 @@ pub fn exec_scratch(registry: &Registry, store: &Path, key: Digest, threads: usi
         Err(code) => return Ok(code),
     };
     let output_dir = scratch.join("out");
-    match run_operator(op, &request, inputs, &output_dir, &scratch.join("checkpoint"), threads, device)? {
+    let dirs = Dirs { output: output_dir.clone(), checkpoint: scratch.join("checkpoint"), responses: store.responses_dir(&request.preimage.operator) };
+    match run_operator(op, &request, inputs, dirs, threads, device)? {
         Ok(_) => {
             send(&Message::Done { output: hash_tree(&output_dir)?.digest });
             Ok(0)
@@ -191,27 +193,27 @@ fn inputs(store: &Store, request: &ActionRequest) -> anyhow::Result<Result<BTree
 
 /// Runs the operator with its output and checkpoint directories; `Ok(Err(message))` when it
 /// fails or panics.
+/// Where one attempt at an action writes: its output, its checkpoints, and the store's
+/// directory of its operator's outside answers.
+struct Dirs {
+    output: PathBuf,
+    checkpoint: PathBuf,
+    responses: PathBuf,
+}
+
 fn run_operator(
     op: &dyn DynOperator,
     request: &ActionRequest,
     inputs: BTreeMap<String, Vec<Input>>,
-    output_dir: &Path,
-    checkpoint_dir: &Path,
+    dirs: Dirs,
     threads: usize,
     device: Device,
 ) -> anyhow::Result<Result<Outcome, String>> {
-    std::fs::create_dir_all(output_dir)?;
-    std::fs::create_dir_all(checkpoint_dir)?;
-    let mut ctx = Context::new(
-        request.stage.clone(),
-        inputs,
-        output_dir.to_path_buf(),
-        checkpoint_dir.to_path_buf(),
-        request.preimage.seed,
-        threads.max(1),
-        device,
-        Arc::new(StdoutReporter),
-    );
+    std::fs::create_dir_all(&dirs.output)?;
+    std::fs::create_dir_all(&dirs.checkpoint)?;
+    let mut ctx =
+        Context::new(request.stage.clone(), inputs, dirs.output, dirs.checkpoint, request.preimage.seed, threads.max(1), device, Arc::new(StdoutReporter));
+    ctx.responses = Some(dirs.responses);
     Ok(match catch_unwind(AssertUnwindSafe(|| op.run(&request.settings, &mut ctx))) {
         Ok(Ok(outcome)) => Ok(outcome),
         Ok(Err(e)) => Err(format!("{e:#}")),

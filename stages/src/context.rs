@@ -112,6 +112,9 @@ pub struct Context {
     /// action key; removed once the action commits.
     pub checkpoint_dir: PathBuf,
     pub seed: u64,
+    /// The store's directory for this operator's answers from outside services (an LLM
+    /// endpoint), kept across actions and runs; `None` when it runs outside a store.
+    pub responses: Option<PathBuf>,
     /// Threads the scheduler granted; use no more.
     pub threads: usize,
     pub device: Device,
@@ -130,7 +133,7 @@ impl Context {
         device: Device,
         reporter: Arc<dyn Reporter>,
     ) -> Context {
-        Context { stage, inputs, output_dir, checkpoint_dir, seed, threads, device, reporter }
+        Context { stage, inputs, output_dir, checkpoint_dir, seed, responses: None, threads, device, reporter }
     }
 
     /// A context for running an operator on its own (tests, benchmarks): one artifact per named

@@ -11,8 +11,9 @@
 //!   answers are retried up to `retries` times with exponential backoff from `backoff_s`
 //!   (a `Retry-After` header wins); any other 4xx stops the stage with the server's message.
 //! * Every answer is stored under the digest of its request (endpoint, model, body, and the
-//!   attempt number) in `response_cache`, so an interrupted or repeated run, or one that only
-//!   changes how answers are judged, never asks twice for the same captions.
+//!   attempt number) in the store's `responses/llm/` (or `response_cache`), so an interrupted or
+//!   repeated run, or one that only changes how answers are judged, never asks twice for the
+//!   same captions.
 //! * Fidelity: each caption is parsed back; captions whose grid differs from the frame's are
 //!   asked for again up to `regenerate` times, then dropped or kept (`on_mismatch`). The
 //!   first-answer fidelity rate, regenerations, drops and token counts are reported.
@@ -73,8 +74,9 @@ pub struct LlmSettings {
     pub retries: u32,
     /// Seconds before the first retry, 0..=60; doubled each time, at most a minute.
     pub backoff_s: f64,
-    /// Where answers are kept by request digest; empty: `$XDG_CACHE_HOME/rlmflow/llm`
-    /// (`~/.cache/rlmflow/llm`).
+    /// Where answers are kept by request digest; empty: the store's `responses/llm/`, which
+    /// `rlmflow verify` checks and `rlmflow gc --responses` clears. A path shares answers
+    /// between stores.
     pub response_cache: String,
     /// Captions only this share of the labelled frames (set by `shards = N` on the stage).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -233,7 +235,7 @@ impl Operator for Llm {
 
     fn run(&self, s: &LlmSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         let labels = Labels::open(ctx.input("labels")?)?;
-        let client = Client::new(s, &ctx.stage)?;
+        let client = Client::new(s, ctx)?;
         let frames = match s.shard {
             Some(share) => {
                 let range = share.range(labels.frames.len() as u64);
@@ -479,7 +481,8 @@ enum Failure {
 }
 
 impl Client {
-    fn new(s: &LlmSettings, stage: &str) -> anyhow::Result<Client> {
+    fn new(s: &LlmSettings, ctx: &Context) -> anyhow::Result<Client> {
+        let stage = &ctx.stage;
         let auth = if s.api_key_env.is_empty() {
             None
         } else {
@@ -491,7 +494,11 @@ impl Client {
             })?;
             Some(format!("Bearer {key}"))
         };
-        let cache = if s.response_cache.is_empty() { default_cache_dir()? } else { PathBuf::from(&s.response_cache) };
+        let cache = match (&ctx.responses, s.response_cache.is_empty()) {
+            (_, false) => PathBuf::from(&s.response_cache),
+            (Some(store), true) => store.clone(),
+            (None, true) => bail!("stage {stage} runs outside a store, which would keep its answers: set `response_cache`"),
+        };
         std::fs::create_dir_all(&cache).with_context(|| format!("creating the response cache {}", cache.display()))?;
         let config = ureq::Agent::config_builder().timeout_global(Some(Duration::from_secs_f64(s.timeout_s))).http_status_as_error(false).build();
         Ok(Client {
@@ -627,14 +634,6 @@ fn server_message(text: &str) -> String {
         .ok()
         .and_then(|v| v["error"]["message"].as_str().map(str::to_owned))
         .unwrap_or_else(|| text.chars().take(300).collect())
-}
-
-fn default_cache_dir() -> anyhow::Result<PathBuf> {
-    let base = match std::env::var_os("XDG_CACHE_HOME").filter(|v| !v.is_empty()) {
-        Some(dir) => PathBuf::from(dir),
-        None => Path::new(&std::env::var_os("HOME").context("neither XDG_CACHE_HOME nor HOME is set; set response_cache")?).join(".cache"),
-    };
-    Ok(base.join("rlmflow").join("llm"))
 }
 
 #[cfg(test)]
