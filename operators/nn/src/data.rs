@@ -134,6 +134,19 @@ impl Frames {
     }
 }
 
+impl Splits {
+    /// An error naming the empty roles unless every role `user` needs has frames (`validation`
+    /// only when it holds a slice).
+    pub fn require(&self, user: &str, validation: bool) -> anyhow::Result<()> {
+        let (t, v, e) = (self.train.len(), self.validation.len(), self.test.len());
+        if t == 0 || e == 0 || (validation && v == 0) {
+            let counts = if validation { format!("{t} training, {v} validation and {e} test frames") } else { format!("{t} training and {e} test frames") };
+            bail!("{counts}: {user} needs frames in each (raise the frame count{})", if validation { " or the validation share" } else { "" });
+        }
+        Ok(())
+    }
+}
+
 impl Captions {
     fn load(tokens: Tokens, frames: usize) -> anyhow::Result<Captions> {
         let ids = tokens.ids.all_u32().context("reading the token ids")?.into_iter().map(i64::from).collect();
@@ -146,5 +159,20 @@ impl Captions {
         let c = self.context as usize;
         let ids: Vec<i64> = rows.iter().flat_map(|&r| self.ids[r * c..(r + 1) * c].iter().copied()).collect();
         Tensor::from_slice(&ids).view([rows.len() as i64, self.context]).to_device(device)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_empty_role_is_an_error_naming_the_counts_and_who_needs_them() {
+        let split = Splits { train: vec![0, 1], validation: Vec::new(), test: vec![2] };
+        assert!(split.require("the encoder", false).is_ok(), "no validation slice asked for");
+        let e = split.require("segmentation", true).unwrap_err().to_string();
+        assert_eq!(e, "2 training, 0 validation and 1 test frames: segmentation needs frames in each (raise the frame count or the validation share)");
+        let none = Splits { train: Vec::new(), validation: Vec::new(), test: vec![2] };
+        assert_eq!(none.require("the encoder", false).unwrap_err().to_string(), "0 training and 1 test frames: the encoder needs frames in each (raise the frame count)");
     }
 }

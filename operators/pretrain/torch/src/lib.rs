@@ -50,9 +50,7 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     let frames = Frames::load(ctx, Need { captions: true, masks: false })?;
     let captions = frames.captions.as_ref().context("pretraining reads the tokens stage")?;
     let split = frames.splits(0.0, text);
-    if split.train.is_empty() || split.test.is_empty() {
-        bail!("{} training and {} test frames with captions: the encoder needs both", split.train.len(), split.test.len());
-    }
+    split.require(if text { "the encoder (frames with captions)" } else { "the encoder" }, false)?;
     let summary = &captions.tokens.summary;
     let config = rlmflow_pretrain::model_config(s, frames.side, captions.context, i64::from(summary.vocab), i64::from(summary.special.end))
         .map_err(|e| anyhow::anyhow!("setting `{e}`"))?;

@@ -7,7 +7,6 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::bail;
 use rand::RngExt;
 use rlmflow_nn::clip;
 use rlmflow_nn::data::{Captions, Frames, Need, Splits};
@@ -99,14 +98,7 @@ fn load(s: &ClipcapSettings, ctx: &Context, device: tch::Device) -> anyhow::Resu
     });
     progress.finish();
     let split = frames.splits(s.validation, true);
-    if split.train.is_empty() || split.validation.is_empty() || split.test.is_empty() {
-        bail!(
-            "{} training, {} validation and {} test frames with captions: the caption probe needs all three (raise `validation` or the frame count)",
-            split.train.len(),
-            split.validation.len(),
-            split.test.len()
-        );
-    }
+    split.require("the caption probe (frames with captions)", true)?;
     Ok((Data { frames, embeddings: Tensor::cat(&parts, 0), split, hygiene }, encoder.config))
 }
 

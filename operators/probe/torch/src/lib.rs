@@ -52,16 +52,10 @@ impl Operator for Linear {
         let counts: Vec<f64> = labels.frames.iter().flat_map(|f| f.grid.counts.iter().map(|&c| f64::from(c))).collect();
         // The strength is chosen fitting `fit` and scoring `validate`; the chosen ridge is then
         // refitted on the whole training split.
-        let Splits { train: fit, validation: validate, test } = data.splits(s.holdout, false);
+        let split = data.splits(s.holdout, false);
+        split.require("a validated strength choice (`holdout` is the validation share)", true)?;
+        let Splits { train: fit, validation: validate, test } = split;
         let train: Vec<usize> = labels.split(Split::Train).map(|f| f.frame as usize).collect();
-        if fit.is_empty() || validate.is_empty() || test.is_empty() {
-            bail!(
-                "{} training, {} validation and {} test frames are too few for a validated strength choice (raise `holdout` or the frame count)",
-                fit.len(),
-                validate.len(),
-                test.len()
-            );
-        }
         let (fit, validate) = (fit.as_slice(), validate.as_slice());
         let truth = |frames: &[usize]| -> Vec<[u32; CELLS]> { frames.iter().map(|&f| labels.frames[f].grid.counts).collect() };
 

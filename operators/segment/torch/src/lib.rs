@@ -116,14 +116,7 @@ fn prepare(t: &Training, ctx: &Context, allow_test_overlap: bool) -> anyhow::Res
     let frames = Frames::load(ctx, Need { captions: false, masks: true })?;
     let hygiene = rlmflow_stages::identity::check_inputs(ctx, &frames.labels.ids(Split::Test), allow_test_overlap)?;
     let split = frames.splits(VALIDATION_SHARE, false);
-    if split.train.is_empty() || split.validation.is_empty() || split.test.is_empty() {
-        bail!(
-            "{} training, {} validation and {} test frames: segmentation needs all three",
-            split.train.len(),
-            split.validation.len(),
-            split.test.len()
-        );
-    }
+    split.require("segmentation", true)?;
     Ok((device, Data { frames, split, hygiene }))
 }
 
