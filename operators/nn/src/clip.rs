@@ -7,6 +7,7 @@ use tch::nn::{self, Module};
 use tch::{Kind, Tensor};
 
 use crate::text::TextTower;
+use crate::train::Backward;
 use crate::vision::{VisionOutput, VisionTower};
 
 #[derive(Debug)]
@@ -52,6 +53,42 @@ impl Clip {
     }
 }
 
+/// A contrastive batch's loss and the gradients of every trained variable, embedded `chunk`
+/// frames at a time (gradient caching, Gao et al. 2021): both towers embed the whole batch in
+/// chunks without autograd; `loss_of` (of the radar and text embeddings, reading the live logit
+/// scale) and its gradient with respect to the embeddings are taken over the full batch; then
+/// each chunk is embedded again with autograd and back-propagates its share of those gradients.
+/// The same loss and gradients as the whole batch at once, up to float rounding, at the memory of
+/// one chunk, for towers without batch statistics (no BatchNorm: the patch stem).
+pub fn cached_contrastive(
+    model: &Clip,
+    images: &Tensor,
+    tokens: &Tensor,
+    chunk: i64,
+    loss_of: impl Fn(&Tensor, &Tensor) -> Tensor,
+    backward: &Backward,
+) -> (f64, Vec<Tensor>) {
+    let n = images.size()[0];
+    let chunks: Vec<(i64, i64)> = (0..n).step_by(chunk as usize).map(|start| (start, chunk.min(n - start))).collect();
+    let embed = |(start, len): (i64, i64)| (model.encode_image(&images.narrow(0, start, len), true).embedding, model.encode_text(&tokens.narrow(0, start, len)));
+    let (images_cut, texts_cut): (Vec<Tensor>, Vec<Tensor>) = tch::no_grad(|| chunks.iter().map(|&c| embed(c)).unzip());
+    let image = Tensor::cat(&images_cut, 0).set_requires_grad(true);
+    let text = Tensor::cat(&texts_cut, 0).set_requires_grad(true);
+    let loss = loss_of(&image, &text);
+    let value = loss.double_value(&[]);
+    let (mut gradients, cached) = backward.gradients(&loss, &[&image, &text]);
+    for &(start, len) in &chunks {
+        let (image, text) = embed((start, len));
+        let share = (image * cached[0].narrow(0, start, len)).sum(Kind::Float) + (text * cached[1].narrow(0, start, len)).sum(Kind::Float);
+        for (total, part) in gradients.iter_mut().zip(backward.gradients(&share, &[]).0) {
+            if part.defined() {
+                *total = if total.defined() { &*total + part } else { part };
+            }
+        }
+    }
+    (value, gradients)
+}
+
 /// Cosine similarities times `scale`: rows are radar embeddings, columns texts.
 pub fn logits(image: &Tensor, text: &Tensor, scale: &Tensor) -> Tensor {
     let unit = |x: &Tensor| x / x.norm_scalaropt_dim(2, [-1].as_slice(), true).clamp_min(1e-12);
@@ -77,4 +114,51 @@ pub fn load(dir: &std::path::Path, device: tch::Device, side: i64) -> anyhow::Re
     vs.freeze();
     vs.read_safetensors(&weights).with_context(|| format!("loading {}", weights.display()))?;
     Ok((vs, model))
+}
+
+#[cfg(test)]
+mod tests {
+    use rlmflow_stages::encoder::{Head, Stem, TextConfig, VisionConfig};
+
+    use super::*;
+    use crate::loss::{Distance, clip_loss, soft_clip_loss, soft_targets};
+    use crate::optim::AdamW;
+
+    #[test]
+    fn a_batch_embedded_in_chunks_has_the_whole_batchs_loss_and_gradients() {
+        tch::manual_seed(7);
+        let vs = nn::VarStore::new(tch::Device::Cpu);
+        let vision = VisionConfig { image: 16, stem: Stem::Patch { size: 8 }, width: 32, layers: 2, heads: 2, mlp: 64, head: Head::Mlp };
+        let text = TextConfig { context: 8, vocab: 40, group: 1, token_width: 32, width: 32, layers: 2, heads: 2, mlp: 64, end_token: 1 };
+        let config = ModelConfig { embed: 16, vision, text: Some(text), counts_head: 0 };
+        let model = Clip::new(&vs.root(), &config, 0.07, true);
+        let opt = AdamW::new(&vs, (0.9, 0.98), 1e-8, 0.0);
+        let backward = Backward::new(&opt);
+        let batch = 10;
+        let images = Tensor::randn([batch, 1, 16, 16], (Kind::Float, tch::Device::Cpu));
+        let tokens = Tensor::randint_low(2, 40, [batch, 8], (Kind::Int64, tch::Device::Cpu));
+        let counts = Tensor::randint(3, [batch, 48], (Kind::Float, tch::Device::Cpu));
+        let targets = soft_targets(&counts, 1.0, Distance::Raw);
+        let objectives: [(&str, Box<dyn Fn(&Tensor, &Tensor) -> Tensor>); 2] = [
+            ("clip", Box::new(|image: &Tensor, text: &Tensor| clip_loss(&logits(image, text, &model.scale())))),
+            ("sg-clip", Box::new(|image: &Tensor, text: &Tensor| soft_clip_loss(&logits(image, text, &model.scale()), &targets))),
+        ];
+        for (name, loss_of) in objectives {
+            let whole = loss_of(&model.encode_image(&images, true).embedding, &model.encode_text(&tokens));
+            let expected = backward.gradients(&whole, &[]).0;
+            for chunk in [3, 4] {
+                let (value, gradients) = cached_contrastive(&model, &images, &tokens, chunk, &loss_of, &backward);
+                assert!((value - whole.double_value(&[])).abs() < 1e-5, "{name}, chunks of {chunk}: loss {value} vs {}", whole.double_value(&[]));
+                assert_eq!(gradients.len(), expected.len());
+                for (got, want) in gradients.iter().zip(&expected) {
+                    assert_eq!(got.defined(), want.defined(), "{name}: the same variables get gradients");
+                    if want.defined() {
+                        // Float rounding, relative to the gradient's own scale.
+                        let (gap, scale) = ((got - want).abs().max().double_value(&[]), want.abs().max().double_value(&[]));
+                        assert!(gap <= 1e-4 * scale + 1e-7, "{name}, chunks of {chunk}: gradients differ by {gap} at scale {scale}");
+                    }
+                }
+            }
+        }
+    }
 }

@@ -34,8 +34,13 @@ impl AdamW {
     /// as in PyTorch's default step (`zero_grad(set_to_none=True)`; PyTorch measured 8 % slower
     /// here when it zeroes and accumulates instead).
     pub fn gradients(&self, loss: &Tensor) -> Vec<Tensor> {
-        let params: Vec<&Tensor> = self.params.iter().map(|(_, p)| p).collect();
-        Tensor::run_backward(&[loss], &params, false, false)
+        self.gradients_with(loss, &[])
+    }
+
+    /// [`AdamW::gradients`], followed by those of `extra` inputs of the loss.
+    pub fn gradients_with(&self, loss: &Tensor, extra: &[&Tensor]) -> Vec<Tensor> {
+        let inputs: Vec<&Tensor> = self.params.iter().map(|(_, p)| p).chain(extra.iter().copied()).collect();
+        Tensor::run_backward(&[loss], &inputs, false, false)
     }
 
     /// Scales `grads` so their global L2 norm is at most `max`; returns the norm before.

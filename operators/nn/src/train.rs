@@ -64,13 +64,42 @@ fn finite(loss: f64, step: u64, epoch: u64) -> anyhow::Result<f64> {
 
 /// One batch's loss, and figures logged beside it (an epoch's line holds each one's mean).
 pub struct Step {
-    pub loss: Tensor,
+    pub loss: Loss,
     pub figures: Vec<(&'static str, f64)>,
+}
+
+/// A batch's loss as [`fit`] receives it.
+pub enum Loss {
+    /// A tensor `fit` differentiates.
+    Tensor(Tensor),
+    /// Its value and the trained variables' gradients, which the operator computed itself with
+    /// [`Backward`] (a batch embedded in chunks: `clip::cached_contrastive`).
+    Computed { value: f64, gradients: Vec<Tensor> },
 }
 
 impl From<Tensor> for Step {
     fn from(loss: Tensor) -> Step {
-        Step { loss, figures: Vec::new() }
+        Step { loss: Loss::Tensor(loss), figures: Vec::new() }
+    }
+}
+
+/// Gradients of a loss for an operator that computes a batch's gradients itself: those of every
+/// trained variable, in the optimiser's order, and those of any `extra` inputs.
+pub struct Backward<'a> {
+    opt: &'a AdamW,
+}
+
+impl<'a> Backward<'a> {
+    pub fn new(opt: &'a AdamW) -> Backward<'a> {
+        Backward { opt }
+    }
+
+    /// The gradients of `loss` for the trained variables (undefined where it does not reach one)
+    /// and for `extra`.
+    pub fn gradients(&self, loss: &Tensor, extra: &[&Tensor]) -> (Vec<Tensor>, Vec<Tensor>) {
+        let mut grads = self.opt.gradients_with(loss, extra);
+        let extra = grads.split_off(grads.len() - extra.len());
+        (grads, extra)
     }
 }
 
@@ -101,7 +130,7 @@ pub fn fit(
     vs: &nn::VarStore,
     fit: Fit,
     ctx: &mut Context,
-    mut loss: impl FnMut(&[usize], &mut EpochRng) -> anyhow::Result<Step>,
+    mut loss: impl FnMut(&[usize], &mut EpochRng, &Backward) -> anyhow::Result<Step>,
     mut evaluate: impl FnMut() -> anyhow::Result<Figures>,
 ) -> anyhow::Result<Fitted> {
     let t = fit.training;
@@ -130,15 +159,21 @@ pub fn fit(
         let mut figures: Vec<(&'static str, Vec<f64>)> = Vec::new();
         for (step, frames) in order.chunks_exact(batch).enumerate() {
             let global = epoch * steps_per_epoch + step as u64;
-            let Step { loss: value, figures: batch_figures } = loss(frames, &mut rng)?;
-            losses.push(finite(value.double_value(&[]), global + 1, epoch + 1)?);
+            let Step { loss: batch_loss, figures: batch_figures } = loss(frames, &mut rng, &Backward::new(&opt))?;
+            let (value, grads) = match batch_loss {
+                Loss::Tensor(loss) => {
+                    let value = finite(loss.double_value(&[]), global + 1, epoch + 1)?;
+                    (value, opt.gradients(&loss))
+                }
+                Loss::Computed { value, gradients } => (finite(value, global + 1, epoch + 1)?, gradients),
+            };
+            losses.push(value);
             for (i, (name, figure)) in batch_figures.into_iter().enumerate() {
                 match figures.get_mut(i) {
                     Some((_, series)) => series.push(figure),
                     None => figures.push((name, vec![figure])),
                 }
             }
-            let grads = opt.gradients(&value);
             AdamW::clip_grad_norm(&grads, t.clip_norm);
             opt.step(&grads, lr(global));
             progress.set_position(global + 1);

@@ -62,6 +62,11 @@ pub struct ClipSettings {
     /// A CLIP ViT-B/16 safetensors file (open_clip or Hugging Face names) to start the radar
     /// tower from; empty: random. Only for `encoder = "vit-b16"`.
     pub init: String,
+    /// Frames embedded at a time in a contrastive batch (gradient caching): the loss and
+    /// gradients of the whole `batch` at the memory of `chunk` frames, so one GPU runs the
+    /// paper's batch of 640 exactly. 0: the whole batch at once. Only for towers without
+    /// BatchNorm (`vit-b16`: a conv stem's batch statistics would differ per chunk).
+    pub chunk: u64,
     /// The schedule, optimiser and device (`rlmflow_stages::training`).
     #[serde(flatten)]
     pub training: Training,
@@ -79,6 +84,7 @@ impl Default for ClipSettings {
             tau: 0.07,
             learn_tau: false,
             init: String::new(),
+            chunk: 0,
             training: Training {
                 epochs: 10,
                 batch: 128,
@@ -121,6 +127,16 @@ impl Settings for ClipSettings {
         if !self.init.is_empty() {
             check_init("init", &self.init, &CLIP_WEIGHTS)?;
         }
+        SettingError::check_range("chunk", self.chunk, 0..=65_536)?;
+        if self.chunk > 0 && self.objective == Objective::Counts {
+            return Err(SettingError::new("chunk", "embeds a contrastive batch in chunks; the `counts` objective has none"));
+        }
+        if self.chunk > 0 && self.encoder != "vit-b16" {
+            return Err(SettingError::new(
+                "chunk",
+                format!("needs a tower without BatchNorm (encoder = \"vit-b16\"): `{}`'s conv stem normalises by batch, which chunks would change", self.encoder),
+            ));
+        }
         Ok(())
     }
 }
@@ -129,7 +145,7 @@ pub fn spec() -> OperatorSpec {
     OperatorSpec {
         name: "clip",
         kind: "pretrain",
-        version: 3,
+        version: 4,
         inputs: None,
         summary: "radar and text towers trained with CLIP, SG-CLIP (alpha) or on the counts (libtorch, in rlmflow-torch)",
     }
@@ -215,6 +231,9 @@ mod tests {
         assert_eq!(key(serde_json::json!({"device": "tpu"})), "device");
         assert_eq!(key(serde_json::json!({"init": "/clip.safetensors"})), "init");
         assert_eq!(key(serde_json::json!({"batch": 1})), "batch");
+        assert_eq!(key(serde_json::json!({"chunk": 40})), "chunk", "conv-tiny has BatchNorm");
+        assert_eq!(key(serde_json::json!({"encoder": "vit-b16", "chunk": 40, "objective": "counts"})), "chunk");
+        assert!(op.settings(serde_json::json!({"encoder": "vit-b16", "chunk": 40, "batch": 640})).is_ok());
         let e = op.settings(serde_json::json!({"encoder": "vit-b16", "init": "/nowhere/clip.safetensors"})).unwrap_err();
         assert_eq!(e.key, "init");
         assert!(e.message.contains("cannot open `/nowhere/clip.safetensors`") && e.message.contains("CLIP ViT-B/16"), "{}", e.message);

@@ -13,11 +13,11 @@ use std::path::Path;
 
 use anyhow::{Context as _, bail};
 use rand::RngExt;
-use rlmflow_nn::clip::{Clip as Model, logits};
+use rlmflow_nn::clip::{Clip as Model, cached_contrastive, logits};
 use rlmflow_nn::data::{Frames, Need, Splits};
 use rlmflow_nn::loss;
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
-use rlmflow_nn::train::{EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
+use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Loss, Step, fit, resolve_device, write_weights};
 use rlmflow_pretrain::{ClipSettings, Objective};
 use rlmflow_stages::encoder::{self, ModelConfig};
 use rlmflow_stages::identity::FrameSet;
@@ -62,23 +62,31 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         load_clip_vision(&vs, Path::new(&s.init))?;
     }
 
-    let batch_loss = |batch: &[usize], rng: &mut EpochRng| -> anyhow::Result<Step> {
+    let chunked = s.chunk > 0 && s.chunk < s.training.batch;
+    let batch_loss = |batch: &[usize], rng: &mut EpochRng, backward: &Backward| -> anyhow::Result<Step> {
         let counts = frames.counts(batch, device);
-        let image = model.encode_image(&frames.images(batch, device), true).embedding;
-        let (loss, off_diagonal) = match s.objective {
-            Objective::Counts => (model.counts(&image).mse_loss(&counts, tch::Reduction::Mean), 0.0),
-            objective => {
-                let rows: Vec<usize> = batch.iter().map(|&f| captions.rows[f][rng.random_range(0..captions.rows[f].len())]).collect();
-                let logits = logits(&image, &model.encode_text(&captions.ids(&rows, device)), &model.scale());
-                if objective == Objective::SgClip {
-                    let targets = loss::soft_targets(&counts, s.alpha, s.distance);
-                    (loss::soft_clip_loss(&logits, &targets), loss::off_diagonal_mass(&targets))
-                } else {
-                    (loss::clip_loss(&logits), 0.0)
-                }
+        let images = frames.images(batch, device);
+        if s.objective == Objective::Counts {
+            let predicted = model.counts(&model.encode_image(&images, true).embedding);
+            return Ok(Step { loss: Loss::Tensor(predicted.mse_loss(&counts, tch::Reduction::Mean)), figures: vec![("off_diagonal", 0.0)] });
+        }
+        let rows: Vec<usize> = batch.iter().map(|&f| captions.rows[f][rng.random_range(0..captions.rows[f].len())]).collect();
+        let tokens = captions.ids(&rows, device);
+        let targets = (s.objective == Objective::SgClip).then(|| loss::soft_targets(&counts, s.alpha, s.distance));
+        let loss_of = |image: &Tensor, text: &Tensor| {
+            let logits = logits(image, text, &model.scale());
+            match &targets {
+                Some(targets) => loss::soft_clip_loss(&logits, targets),
+                None => loss::clip_loss(&logits),
             }
         };
-        Ok(Step { loss, figures: vec![("off_diagonal", off_diagonal)] })
+        let loss = if chunked {
+            let (value, gradients) = cached_contrastive(&model, &images, &tokens, s.chunk as i64, loss_of, backward);
+            Loss::Computed { value, gradients }
+        } else {
+            Loss::Tensor(loss_of(&model.encode_image(&images, true).embedding, &model.encode_text(&tokens)))
+        };
+        Ok(Step { loss, figures: vec![("off_diagonal", targets.as_ref().map_or(0.0, loss::off_diagonal_mass))] })
     };
     let after_epoch = || -> anyhow::Result<Figures> {
         let mut figures = vec![("tau", 1.0 / model.scale().double_value(&[]))];

@@ -13,7 +13,7 @@ use rlmflow_nn::data::{Captions, Frames, Need, Splits};
 use rlmflow_nn::decode::{beam_search, greedy};
 use rlmflow_nn::gpt::{Gpt, GptConfig, Mapper, Steps, caption_loss};
 use rlmflow_nn::tch::{self, Tensor, nn};
-use rlmflow_nn::train::{EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
+use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
 use rlmflow_probe::{ClipcapSettings, Decode};
 use rlmflow_stages::grid::{CELLS, Grid};
 use rlmflow_stages::labels::Split;
@@ -123,7 +123,7 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     }
 
     let loss = |frames: &[usize], rows: &[usize]| caption_loss(&gpt, &mapper.forward(&data.embedding(frames)), &captions.ids(rows, device), pad, LENGTH_GROUPS);
-    let batch_loss = |frames: &[usize], rng: &mut EpochRng| -> anyhow::Result<Step> {
+    let batch_loss = |frames: &[usize], rng: &mut EpochRng, _: &Backward| -> anyhow::Result<Step> {
         let rows: Vec<usize> = frames.iter().map(|&f| captions.rows[f][rng.random_range(0..captions.rows[f].len())]).collect();
         Ok(loss(frames, &rows).into())
     };

@@ -15,7 +15,7 @@ use rlmflow_nn::clip::{self, Clip as Model};
 use rlmflow_nn::data::{Frames, Need, Splits};
 use rlmflow_nn::segment::{Pup as PupHead, UNet, dice_bce_loss, pup_widths};
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
-use rlmflow_nn::train::{EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
+use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
 use rlmflow_segment::{PupSettings, UnetSettings};
 use rlmflow_stages::labels::Split;
 use rlmflow_stages::npy::{Dtype, NpyWriter};
@@ -204,7 +204,7 @@ fn train(
     rollout: Option<Rollout>,
 ) -> anyhow::Result<Outcome> {
     let frames = &data.frames;
-    let batch_loss = |batch: &[usize], _: &mut EpochRng| -> anyhow::Result<Step> {
+    let batch_loss = |batch: &[usize], _: &mut EpochRng, _: &Backward| -> anyhow::Result<Step> {
         Ok(dice_bce_loss(&(segmenter.forward)(batch, true), &frames.masks(batch, device), segmentation.dice_weight).into())
     };
     let validation = || -> anyhow::Result<Figures> {
