@@ -130,13 +130,22 @@ pub fn unet_resources(s: &UnetSettings) -> Resources {
 /// evenly.
 fn unet_outline(s: &UnetSettings, inputs: &InputOutlines) -> Result<Outline, SettingError> {
     let outline = s.training.outline(inputs)?;
-    let divisor = 1u64 << (s.channels.len() - 1);
-    if let Some(image) = outline.image
-        && image % divisor != 0
-    {
-        return Err(SettingError::new("channels", format!("{} levels need an image side divisible by {divisor}; the scenes have {image}", s.channels.len())));
+    if let Some(image) = outline.image {
+        s.check_depth(image)?;
     }
     Ok(outline)
+}
+
+impl UnetSettings {
+    /// Whether its levels halve an image of `image` pixels evenly: checked when the pipeline is
+    /// validated, and again by the worker on the scenes it reads.
+    pub fn check_depth(&self, image: u64) -> Result<(), SettingError> {
+        let divisor = 1u64 << (self.channels.len() - 1);
+        if image % divisor != 0 {
+            return Err(SettingError::new("channels", format!("{} levels need an image side divisible by {divisor}; the scenes have {image}", self.channels.len())));
+        }
+        Ok(())
+    }
 }
 
 /// `pup` as `rlmflow` registers it: validated and planned here, run by the worker.

@@ -10,7 +10,6 @@
 //! encoder's tokens are computed once for every frame when they fit in [`TOKEN_CACHE_BYTES`],
 //! else per batch.
 
-use anyhow::bail;
 use rlmflow_nn::clip::{self, Clip as Model};
 use rlmflow_nn::data::{Frames, Need, Splits};
 use rlmflow_nn::segment::{Pup as PupHead, UNet, dice_bce_loss, pup_widths};
@@ -78,10 +77,7 @@ impl Operator for Unet {
 
     fn run(&self, s: &UnetSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         let (device, data) = prepare(&s.training, ctx, false)?;
-        let divisor = 1i64 << (s.channels.len() - 1);
-        if data.frames.side % divisor != 0 {
-            bail!("setting `channels`: {} levels need an image side divisible by {divisor}; the scenes have {}", s.channels.len(), data.frames.side);
-        }
+        s.check_depth(data.frames.side as u64).map_err(|e| anyhow::anyhow!("setting `{}`: {}", e.key, e.message))?;
         let vs = nn::VarStore::new(device);
         tch::manual_seed(ctx.seed as i64);
         let unet = UNet::new(&vs.root(), &s.channels);
