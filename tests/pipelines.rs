@@ -21,13 +21,125 @@ fn root() -> PathBuf {
 fn every_shipped_pipeline_validates() {
     let mut files = vec![root().join("pipeline.toml")];
     files.extend(
-        std::fs::read_dir(root().join("examples")).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|e| e == "toml")),
+        std::fs::read_dir(root().join("examples"))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|e| e == "toml") && !p.ends_with("paper.toml")),
     );
     for file in files {
         // --dry-run validates everything and writes nothing.
         let (ok, out) = rlmflow(&root(), &["run", file.to_str().unwrap(), "--dry-run"]);
         assert!(ok, "{}: {out}", file.display());
     }
+}
+
+/// A safetensors file at `path` holding one f32 scalar per name.
+fn write_safetensors(path: &Path, names: &[&str]) {
+    let header: serde_json::Map<String, serde_json::Value> = names
+        .iter()
+        .enumerate()
+        .map(|(i, n)| (n.to_string(), serde_json::json!({"dtype": "F32", "shape": [], "data_offsets": [4 * i, 4 * i + 4]})))
+        .collect();
+    let header = serde_json::to_vec(&header).unwrap();
+    let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
+    bytes.extend(header);
+    bytes.extend(vec![0u8; 4 * names.len()]);
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    std::fs::write(path, bytes).unwrap();
+}
+
+/// `examples/paper.toml` starts from the public checkpoints: without them it says which setting
+/// names which file and where the README converts it; with files of the right models where its
+/// `init` lines point, it validates and shows each training stage's size and memory.
+#[test]
+fn the_paper_pipeline_names_its_checkpoints_and_shows_what_each_stage_costs() {
+    let dir = scratch("paper-validates", &std::fs::read_to_string(root().join("examples/paper.toml")).unwrap());
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--dry-run"]);
+    assert!(!ok, "{out}");
+    assert!(out.contains("stages.pretrain.init: cannot open `weights/clip-vit-b16-openai.safetensors`") && out.contains("\"Pretrained weights\""), "{out}");
+    assert!(out.contains("stages.clipcap.init: cannot open `weights/gpt2.safetensors`"), "{out}");
+
+    write_safetensors(&dir.join("weights/clip-vit-b16-openai.safetensors"), &["visual.conv1.weight"]);
+    write_safetensors(&dir.join("weights/gpt2.safetensors"), &["h.0.attn.c_attn.weight"]);
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--dry-run"]);
+    assert!(ok, "{out}");
+    // CLIP ViT-B/16 (one input channel) and the paper's text tower with MLP heads: 125.99 M.
+    assert_eq!(out.matches("126.0 M parameters, peak ~ 17.4 GiB (CUDA device:").count(), 4, "the four trained encoders, 640 in chunks of 40: {out}");
+    assert!(out.contains("126.0 M parameters, peak ~ 0.5 GiB (CUDA device:"), "the untrained encoder: {out}");
+    assert!(!out.contains("DOES NOT FIT"), "{out}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A stage whose estimate exceeds its device's memory is refused before anything runs, with the
+/// settings that lower it; the same batch in chunks fits.
+#[test]
+fn a_stage_that_would_not_fit_its_device_is_refused_with_the_setting_to_change() {
+    let pipeline = |chunk: u64| {
+        format!(
+            "[pipeline]\nname = \"big\"\n[stages.scenes]\noperator = \"procedural\"\nframes = 10000\nradar = {{ image = 224 }}\n\
+             [stages.labels]\noperator = \"ego-grid\"\n[stages.captions]\noperator = \"template\"\n\
+             [stages.tokens]\noperator = \"bpe\"\ncontext = 400\n\
+             [stages.pretrain]\noperator = \"clip\"\nencoder = \"vit-b16\"\ntext = \"paper\"\nbatch = 8192\nchunk = {chunk}\ndevice = \"cpu\"\n"
+        )
+    };
+    let dir = scratch("too-big", &pipeline(0));
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--dry-run"]);
+    assert!(!ok, "{out}");
+    assert!(out.contains("DOES NOT FIT") && out.contains("stages.pretrain: `pretrain` would not fit: 125.1 M parameters, peak ~"), "{out}");
+    assert!(out.contains("lower it with `chunk` (gradient caching, the same loss) or `batch`"), "{out}");
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
+    assert!(!ok && out.contains("would not fit") && !dir.join(".rlmflow/objects").exists(), "refused before anything ran: {out}");
+    std::fs::write(dir.join("p.toml"), pipeline(2)).unwrap();
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--dry-run"]);
+    assert!(ok && !out.contains("DOES NOT FIT"), "{out}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `examples/paper-smoke.toml`: the paper's model shapes (ViT-B/16 at 224 px with MLP heads and
+/// gradient caching, the text tower at context 400, ClipCap into GPT-2 small's shape with
+/// accumulated micro-batches, PUP on 768 x 14 x 14 tokens, the U-Net) through the report on the
+/// CPU, by the real binary.
+#[test]
+fn the_paper_shapes_run_end_to_end_on_cpu() {
+    let dir = scratch("paper-smoke", &std::fs::read_to_string(root().join("examples/paper-smoke.toml")).unwrap());
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--json"]);
+    assert!(ok, "{out}");
+    let ran = out.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains("\"status\":\"ran\"")).count();
+    assert_eq!(ran, 11, "{out}");
+    let objects = dir.join(".rlmflow/objects");
+    let only = |file: &str| {
+        let found = artifacts(&objects, file);
+        assert_eq!(found.len(), 1, "{file}: {found:?}");
+        found[0].join(file)
+    };
+    let encoder: serde_json::Value = serde_json::from_slice(&std::fs::read(only("config.json")).unwrap()).unwrap();
+    let (vision, text) = (&encoder["vision"], &encoder["text"]);
+    assert_eq!((vision["image"].as_i64(), vision["width"].as_i64(), vision["layers"].as_i64()), (Some(224), Some(768), Some(12)));
+    assert_eq!((vision["head"].as_str(), vision["quick_gelu"].as_bool()), (Some("mlp"), Some(true)));
+    assert_eq!((text["context"].as_i64(), text["width"].as_i64(), text["layers"].as_i64(), text["head"].as_str()), (Some(400), Some(512), Some(12), Some("mlp")));
+    assert!(encoder["open_clip"].as_str().unwrap().starts_with("open_clip cannot build this model"), "MLP heads: {encoder}");
+    // pup's and the U-Net's heads share a file name; pup's has the stages.
+    let heads: Vec<_> = artifacts(&objects, "head.safetensors").iter().map(|a| safetensors_shapes(&a.join("head.safetensors"))).collect();
+    let pup = heads.iter().find(|h| h.contains_key("stages.0.conv.weight")).expect("pup's head");
+    assert_eq!(pup["stages.0.conv.weight"], [256, 768, 3, 3], "the paper's PUP table on 768-wide tokens");
+    assert_eq!(pup["stages.3.conv.weight"], [64, 128, 3, 3]);
+    let clipcap = safetensors_shapes(&only("clipcap.safetensors"));
+    assert_eq!(clipcap["gpt.transformer.resblocks.11.mlp.c_fc.weight"], [3072, 768], "GPT-2 small's blocks");
+    assert_eq!(clipcap.keys().filter(|k| k.starts_with("mapper.transformer.resblocks.") && k.ends_with(".ln_1.weight")).count(), 8);
+    only("report.md");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Each tensor's shape in a safetensors file, from its JSON header.
+fn safetensors_shapes(path: &Path) -> std::collections::BTreeMap<String, Vec<u64>> {
+    let bytes = std::fs::read(path).unwrap();
+    let length = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Map<String, serde_json::Value> = serde_json::from_slice(&bytes[8..8 + length]).unwrap();
+    header
+        .into_iter()
+        .filter(|(name, _)| name != "__metadata__")
+        .map(|(name, t)| (name, t["shape"].as_array().unwrap().iter().map(|d| d.as_u64().unwrap()).collect()))
+        .collect()
 }
 
 /// Settings that once validated and then exhausted memory, overflowed or ran forever inside the

@@ -179,10 +179,15 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let plan = plan(&p);
             let selected = plan.select(&only)?;
             let root = store_root(&p, &store);
+            let existing = Store::open_existing(&root)?;
+            let runs = crate::run::will_run(&plan, registry, existing.as_ref(), &selected)?;
+            let fits = crate::footprint::fits(&plan, registry, device, &runs);
             if dry_run {
-                let store = Store::open_existing(&root)?;
-                print_status(&plan, registry, store.as_ref(), &selected, json)?;
-                print_warnings(store.as_ref());
+                print_status(&plan, registry, existing.as_ref(), &selected, &fits, json)?;
+                print_warnings(existing.as_ref());
+                if p.executor == config::Executor::Local {
+                    crate::footprint::refuse_oversized(&plan, &fits)?;
+                }
                 return Ok(ExitCode::SUCCESS);
             }
             let jobs = jobs
@@ -192,7 +197,10 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 })
                 .max(1);
             if p.executor == config::Executor::Local && !crate::dispatch::Dispatch::cuda_possible(&crate::dispatch::Local::new(device)) {
-                crate::run::refuse_cuda_stages(&plan, registry, Store::open_existing(&root)?.as_ref(), &selected)?;
+                crate::run::refuse_cuda_stages(&plan, registry, &runs)?;
+            }
+            if p.executor == config::Executor::Local {
+                crate::footprint::refuse_oversized(&plan, &fits)?;
             }
             let store = Store::open(&root)?;
             let opts = RunOptions { jobs, json, device, verify_inputs };
@@ -209,7 +217,10 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let p = config::load(&pipeline, registry)?;
             let plan = plan(&p);
             let store = Store::open_existing(&store_root(&p, &store))?;
-            print_status(&plan, registry, store.as_ref(), &vec![true; plan.instances.len()], json)?;
+            let all = vec![true; plan.instances.len()];
+            let runs = crate::run::will_run(&plan, registry, store.as_ref(), &all)?;
+            let fits = crate::footprint::fits(&plan, registry, rlmflow_stages::Device::Auto, &runs);
+            print_status(&plan, registry, store.as_ref(), &all, &fits, json)?;
             print_warnings(store.as_ref());
             Ok(ExitCode::SUCCESS)
         }

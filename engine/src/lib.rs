@@ -1,5 +1,5 @@
 //! The rlmflow engine: pipeline files ([`config`]), plans and freshness ([`plan`]), the executor
-//! ([`run`]) and how it starts actions ([`dispatch`]: child processes or HyperQueue tasks), the
+//! ([`run`]), the memory check before it ([`footprint`]), how it starts actions ([`dispatch`]: child processes or HyperQueue tasks), the
 //! child-process entry point ([`exec`]), the determinism check ([`determinism`]) and the command
 //! line ([`cli`]).
 //! It knows no machine learning and depends on no operator: operators come from the registry a
@@ -11,5 +11,6 @@ pub mod config;
 pub mod determinism;
 pub mod dispatch;
 pub mod exec;
+pub mod footprint;
 pub mod plan;
 pub mod run;

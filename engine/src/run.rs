@@ -18,6 +18,7 @@ use serde_json::{Value, json};
 use crate::config::Executor as ExecutorKind;
 use crate::dispatch::{Dispatch, Exit, Launch, Local, Report};
 use crate::exec::{EXIT_CORRUPT_INPUT, Message};
+use crate::footprint::Fit;
 use crate::plan::{Freshness, Plan, assess, why};
 
 #[derive(Clone, Debug)]
@@ -40,17 +41,21 @@ pub struct Summary {
     pub skipped: usize,
 }
 
-/// Prints where each selected instance stands (`status`, `run --dry-run`).
-pub fn print_status(plan: &Plan, registry: &Registry, store: Option<&Store>, selected: &[bool], json: bool) -> anyhow::Result<()> {
+/// Prints where each selected instance stands (`status`, `run --dry-run`), with the memory
+/// estimate of each that will run.
+pub fn print_status(plan: &Plan, registry: &Registry, store: Option<&Store>, selected: &[bool], fits: &[Option<Fit>], json: bool) -> anyhow::Result<()> {
     let states = assess(plan, registry, store)?;
     let width = plan.instances.iter().map(|i| i.label.len()).max().unwrap_or(0);
     for (i, state) in states.iter().enumerate().filter(|(i, _)| selected[*i]) {
         let label = &plan.instances[i].label;
         if json {
+            let memory = fits[i].as_ref().map(|f| {
+                json!({"parameters": f.footprint.parameters, "peak_bytes": f.footprint.peak_bytes, "capacity_bytes": f.capacity, "fits": !f.exceeds()})
+            });
             let line = match state {
                 Freshness::Cached(r) => json!({"stage": label, "state": "cached", "key": r.key, "output": r.output}),
-                Freshness::Stale { key, reasons, .. } => json!({"stage": label, "state": "will run", "key": key, "reasons": reasons}),
-                Freshness::Pending { reason } => json!({"stage": label, "state": "pending", "reasons": [reason]}),
+                Freshness::Stale { key, reasons, .. } => json!({"stage": label, "state": "will run", "key": key, "reasons": reasons, "memory": memory}),
+                Freshness::Pending { reason } => json!({"stage": label, "state": "pending", "reasons": [reason], "memory": memory}),
             };
             println!("{line}");
             continue;
@@ -59,6 +64,10 @@ pub fn print_status(plan: &Plan, registry: &Registry, store: Option<&Store>, sel
             Freshness::Cached(r) => println!("  cached    {label:width$}  (ran {:.1}s, {})", r.duration_s, r.started),
             Freshness::Stale { reasons, .. } => println!("  will run  {label:width$}  {}", reasons.join("; ")),
             Freshness::Pending { reason } => println!("  pending   {label:width$}  {reason}"),
+        }
+        if let (false, Some(fit)) = (matches!(state, Freshness::Cached(_)), &fits[i]) {
+            let verdict = if fit.exceeds() { "  DOES NOT FIT" } else { "" };
+            println!("            {:width$}  {}{verdict}", "", fit.describe());
         }
     }
     Ok(())
@@ -127,14 +136,18 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
     Ok(ex.summary())
 }
 
+/// Which instances are selected and will run (not reused from the store).
+pub fn will_run(plan: &Plan, registry: &Registry, store: Option<&Store>, selected: &[bool]) -> anyhow::Result<Vec<bool>> {
+    Ok(assess(plan, registry, store)?.iter().zip(selected).map(|(state, &s)| s && !matches!(state, Freshness::Cached(_))).collect())
+}
+
 /// Refuses a local run, before anything starts, in which a stage that must run needs a CUDA
 /// device this machine does not have: a config error with the stage's line and what is valid.
-pub fn refuse_cuda_stages(plan: &Plan, registry: &Registry, store: Option<&Store>, selected: &[bool]) -> anyhow::Result<()> {
-    let states = assess(plan, registry, store)?;
+pub fn refuse_cuda_stages(plan: &Plan, registry: &Registry, runs: &[bool]) -> anyhow::Result<()> {
     let mut stages = std::collections::BTreeSet::new();
     for (i, inst) in plan.instances.iter().enumerate() {
         let op = registry.get(&inst.operator).expect("validated operator");
-        if selected[i] && !matches!(states[i], Freshness::Cached(_)) && op.resources(&inst.settings).needs_cuda {
+        if runs[i] && op.resources(&inst.settings).needs_cuda {
             stages.insert(inst.stage);
         }
     }

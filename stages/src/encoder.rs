@@ -4,7 +4,10 @@
 //! model.safetensors  the weights, named as open_clip's CLIP where shapes allow
 //!                    (visual.*, token_embedding, positional_embedding, transformer.*,
 //!                    ln_final, text_projection, logit_scale)
-//! config.json        the ModelConfig (towers, sizes) the weights belong to
+//! config.json        the ModelConfig (towers, sizes) the weights belong to, and under
+//!                    `open_clip` either the file below or why open_clip cannot build the model
+//! open_clip.json     where open_clip can build it: its model config (`embed_dim`,
+//!                    `quick_gelu`, `vision_cfg`, `text_cfg`), for `open_clip.CLIP(**config)`
 //! train.jsonl        one line per epoch: loss, lr, tau, soft-target mass off the diagonal,
 //!                    test-split radar->text retrieval top-1 / top-5, and per batch the loss
 //!                    and the off-diagonal mass (`batch_loss`, `batch_off_diagonal`)
@@ -20,12 +23,15 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::memory::{Blocks, linear};
+
 pub const WEIGHTS: &str = "model.safetensors";
 pub const CONFIG: &str = "config.json";
 pub const LOG: &str = "train.jsonl";
 pub const SUMMARY: &str = "encoder.json";
 pub const TRAINED: &str = "trained_frames.txt";
 pub const TOKENIZER_FRAMES: &str = "tokenizer_frames.txt";
+pub const OPEN_CLIP: &str = "open_clip.json";
 pub const FORMAT: u32 = 2;
 
 /// How the radar image becomes a sequence of tokens.
@@ -39,11 +45,12 @@ pub enum Stem {
     Conv { channels: Vec<i64> },
 }
 
-/// What maps the radar tower's CLS token into the shared space.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+/// What maps a tower's pooled token (the radar CLS, the text end token) into the shared space.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Head {
-    /// A matrix without bias (open_clip's `proj`).
+    /// A matrix without bias (open_clip's `proj`, `text_projection`).
+    #[default]
     Linear,
     /// Linear, GELU, linear.
     Mlp,
@@ -71,6 +78,10 @@ pub struct VisionConfig {
     pub heads: i64,
     pub mlp: i64,
     pub head: Head,
+    /// The blocks' activation is QuickGELU (OpenAI's CLIP weights were trained with it), not
+    /// GELU (configs written before it existed: GELU).
+    #[serde(default)]
+    pub quick_gelu: bool,
 }
 
 impl VisionConfig {
@@ -99,6 +110,9 @@ pub struct TextConfig {
     pub mlp: i64,
     /// The id whose first position is pooled (the end token).
     pub end_token: i64,
+    /// Into the shared space (configs written before it existed: linear).
+    #[serde(default)]
+    pub head: Head,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -110,6 +124,118 @@ pub struct ModelConfig {
     pub text: Option<TextConfig>,
     /// Outputs of the counts head (48) when trained on the counts; 0 otherwise.
     pub counts_head: i64,
+}
+
+impl VisionConfig {
+    fn blocks(&self) -> Blocks {
+        Blocks { width: self.width as u64, layers: self.layers as u64, mlp: self.mlp as u64, quick_gelu: self.quick_gelu }
+    }
+
+    /// Its parameters, projecting into `embed` dimensions.
+    pub fn parameters(&self, embed: i64) -> u64 {
+        let w = self.width as u64;
+        let stem = match &self.stem {
+            Stem::Patch { size } => (size * size) as u64 * w,
+            Stem::Conv { channels } => channels.iter().fold((1, 0), |(input, n), &c| (c as u64, n + 9 * input * c as u64 + 2 * c as u64)).1,
+        };
+        let tokens = (self.grid() * self.grid() + 1) as u64;
+        stem + w + tokens * w + 4 * w + self.blocks().parameters() + head_parameters(self.head, w, embed as u64)
+    }
+
+    /// Floats a training step keeps per image: the stem's outputs, the tokens and the blocks.
+    pub fn activations(&self) -> u64 {
+        let stem = match &self.stem {
+            Stem::Patch { .. } => 0,
+            Stem::Conv { channels } => {
+                let mut side = self.image as u64;
+                channels.iter().map(|&c| {
+                    side = side.div_ceil(2);
+                    3 * c as u64 * side * side
+                }).sum()
+            }
+        };
+        let tokens = (self.grid() * self.grid() + 1) as u64;
+        (self.image * self.image) as u64 + stem + 3 * tokens * self.width as u64 + self.blocks().activations(tokens)
+    }
+}
+
+impl TextConfig {
+    fn positions(&self) -> u64 {
+        (self.context / self.group) as u64
+    }
+
+    /// Its parameters, projecting into `embed` dimensions.
+    pub fn parameters(&self, embed: i64) -> u64 {
+        let (w, tw) = (self.width as u64, self.token_width as u64);
+        let group = if self.group > 1 { linear(self.group as u64 * tw, w) } else { 0 };
+        let blocks = Blocks { width: w, layers: self.layers as u64, mlp: self.mlp as u64, quick_gelu: true };
+        self.vocab as u64 * tw + group + self.positions() * w + blocks.parameters() + 2 * w + head_parameters(self.head, w, embed as u64)
+    }
+
+    /// Floats a training step keeps per caption: the token embeddings and the blocks.
+    pub fn activations(&self) -> u64 {
+        let blocks = Blocks { width: self.width as u64, layers: self.layers as u64, mlp: self.mlp as u64, quick_gelu: true };
+        (self.context * self.token_width) as u64 + 3 * self.positions() * self.width as u64 + blocks.activations(self.positions())
+    }
+}
+
+fn head_parameters(head: Head, width: u64, embed: u64) -> u64 {
+    match head {
+        Head::Linear => width * embed,
+        Head::Mlp => linear(width, width) + linear(width, embed),
+    }
+}
+
+impl ModelConfig {
+    /// Every parameter: both towers, the logit scale, the counts head.
+    pub fn parameters(&self) -> u64 {
+        let text = self.text.as_ref().map_or(0, |t| t.parameters(self.embed));
+        let counts = if self.counts_head > 0 { linear(self.embed as u64, self.counts_head as u64) } else { 0 };
+        self.vision.parameters(self.embed) + text + 1 + counts
+    }
+
+    /// Floats a training step keeps per frame (its image and, with a text tower, one caption).
+    pub fn activations(&self) -> u64 {
+        self.vision.activations() + self.text.as_ref().map_or(0, TextConfig::activations)
+    }
+
+    /// open_clip's model config for this model (3.3's `CLIP(**config)`), or why it has none.
+    /// Two differences stay the loader's, and the README shows both lines: open_clip's patch
+    /// embedding takes 3 channels (spread the one radar channel's kernel over them, divided by
+    /// 3, and repeat the image), and it builds one activation for both towers (with
+    /// `quick_gelu = false` the radar tower is GELU and the text tower QuickGELU, so the text
+    /// blocks' `mlp.gelu` becomes `QuickGELU`).
+    pub fn open_clip(&self) -> Result<serde_json::Value, String> {
+        let v = &self.vision;
+        let Stem::Patch { size } = v.stem else {
+            return Err("the convolutional stem has no open_clip equivalent (open_clip's ViT embeds patches)".into());
+        };
+        let Some(t) = &self.text else {
+            return Err("no text tower (a `counts` encoder)".into());
+        };
+        if v.head != Head::Linear || t.head != Head::Linear {
+            return Err("open_clip's ViT and text tower project linearly; this model has an MLP head".into());
+        }
+        if t.group != 1 {
+            return Err(format!("the text tower embeds {} tokens per position, which open_clip's does not", t.group));
+        }
+        if self.counts_head > 0 {
+            return Err("a counts head, which open_clip's CLIP has not".into());
+        }
+        Ok(serde_json::json!({
+            "embed_dim": self.embed,
+            "quick_gelu": v.quick_gelu,
+            "vision_cfg": {
+                "image_size": v.image, "patch_size": size, "width": v.width, "layers": v.layers,
+                "head_width": v.width / v.heads, "mlp_ratio": v.mlp as f64 / v.width as f64,
+            },
+            "text_cfg": {
+                "context_length": t.context, "vocab_size": t.vocab, "width": t.width, "heads": t.heads,
+                "layers": t.layers, "mlp_ratio": t.mlp as f64 / t.width as f64,
+                "pool_type": "eos", "eos_id": t.end_token,
+            },
+        }))
+    }
 }
 
 /// `encoder.json`.
@@ -145,5 +271,41 @@ impl Encoder {
         let config = serde_json::from_slice(&std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?)
             .with_context(|| format!("{} is not a model config", path.display()))?;
         Ok(Encoder { config, summary, dir: dir.to_path_buf() })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The paper's towers with linear heads: ViT-B/16 at 224 px, the text tower at context 400.
+    fn paper(head: Head) -> ModelConfig {
+        let vision = VisionConfig { image: 224, stem: Stem::Patch { size: 16 }, width: 768, layers: 12, heads: 12, mlp: 3072, head, quick_gelu: true };
+        let text = TextConfig { context: 400, vocab: 2048, group: 1, token_width: 512, width: 512, layers: 12, heads: 8, mlp: 2048, end_token: 1, head };
+        ModelConfig { embed: 512, vision, text: Some(text), counts_head: 0 }
+    }
+
+    #[test]
+    fn parameters_equal_open_clips_count_of_the_same_model() {
+        // open_clip 3.3's CLIP(embed_dim=512, ViT-B/16, context 400, vocabulary 2048) holds
+        // 86,192,640 vision parameters, 393,216 of them in the two extra colour channels of
+        // conv1, and 39,345,153 others (text tower and logit scale).
+        let config = paper(Head::Linear);
+        assert_eq!(config.vision.parameters(config.embed), 86_192_640 - 2 * 16 * 16 * 768);
+        assert_eq!(config.parameters(), 86_192_640 - 2 * 16 * 16 * 768 + 39_345_153);
+        assert_eq!(paper(Head::Mlp).parameters() - config.parameters(), 768 * 768 + 768 + 512 + 512 * 512 + 512 + 512);
+    }
+
+    #[test]
+    fn open_clip_expresses_patch_towers_with_linear_heads_and_says_why_not_otherwise() {
+        let config = paper(Head::Linear).open_clip().unwrap();
+        assert_eq!(config["vision_cfg"]["head_width"], 64);
+        assert_eq!(config["text_cfg"]["pool_type"], "eos");
+        assert_eq!(config["text_cfg"]["eos_id"], 1);
+        assert_eq!(config["quick_gelu"], true);
+        assert!(paper(Head::Mlp).open_clip().unwrap_err().contains("MLP head"));
+        let mut conv = paper(Head::Linear);
+        conv.vision.stem = Stem::Conv { channels: vec![32, 64, 128] };
+        assert!(conv.open_clip().unwrap_err().contains("convolutional stem"));
     }
 }

@@ -12,7 +12,7 @@
 //! * [`scenes`], [`labels`], [`captions`], [`tokens`], [`encoder`], [`probe`]: each artifact's directory layout, its
 //!   writer-side line formats and its reader; [`npy`] for their dense arrays.
 //! * [`training`]: the settings every training operator shares; [`weights`]: the check of a
-//!   weights file a setting names; [`item_seed`]: the seed rule of every per-item draw.
+//!   weights file a setting names; [`memory`]: a training action's memory, estimated from shapes; [`item_seed`]: the seed rule of every per-item draw.
 //!
 //! Nothing here knows about scheduling, caching or processes, and nothing links a tensor
 //! library: model shapes and training settings are plain data here, computed on elsewhere.
@@ -24,6 +24,7 @@ pub mod grid;
 pub mod identity;
 pub mod kind;
 pub mod labels;
+pub mod memory;
 pub mod npy;
 pub mod operator;
 pub mod probe;
@@ -36,9 +37,10 @@ pub mod weights;
 pub use context::{Context, Device, Input, InstanceId, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};
 pub use operator::{
-    DynOperator, InWorker, InputOutlines, ItemCount, Items, Operator, OperatorSpec, Outcome, Outline, Part, Registry, Resources, SettingError, Settings,
+    DynOperator, InWorker, InputOutlines, ItemCount, Items, ModelOutline, Operator, OperatorSpec, Outcome, Outline, Part, Registry, Resources, SettingError, Settings,
     Sharding, Share,
 };
+pub use memory::Footprint;
 pub use training::Training;
 
 /// The seed of item `index` (a frame, an epoch) of a run seeded `seed`: each item's draws come

@@ -9,6 +9,7 @@ use serde_json::Value;
 
 use crate::context::Context;
 use crate::kind::{Catalog, StageKind};
+use crate::memory::Footprint;
 
 /// An operator's settings: a plain struct with defaults (`#[serde(default, deny_unknown_fields)]`).
 pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'static {
@@ -105,13 +106,44 @@ pub struct Outline {
     pub image: Option<u64>,
     /// The frames the artifact holds.
     pub frames: Option<u64>,
+    /// A tokens artifact's tokens per caption and largest vocabulary.
+    pub context: Option<u64>,
+    pub vocab: Option<u64>,
+    /// The model an encoder artifact holds.
+    pub model: Option<ModelOutline>,
+}
+
+/// An encoder's model as its consumers' memory estimates need it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ModelOutline {
+    pub parameters: u64,
+    /// The radar tower's token width and the side of its token grid.
+    pub width: u64,
+    pub grid: u64,
+    /// The shared space's width.
+    pub embed: u64,
+    /// Floats the radar tower keeps per image when trained (its forward pass costs less).
+    pub activations: u64,
 }
 
 impl Outline {
     /// What two outlines (a stage's variants) agree on.
     pub fn common(self, other: Outline) -> Outline {
-        let same = |a: Option<u64>, b: Option<u64>| if a == b { a } else { None };
-        Outline { image: same(self.image, other.image), frames: same(self.frames, other.frames) }
+        fn same<T: PartialEq>(a: Option<T>, b: Option<T>) -> Option<T> {
+            if a == b { a } else { None }
+        }
+        Outline {
+            image: same(self.image, other.image),
+            frames: same(self.frames, other.frames),
+            context: same(self.context, other.context),
+            vocab: same(self.vocab, other.vocab),
+            model: same(self.model, other.model),
+        }
+    }
+
+    /// The outline of input `slot`'s first artifact, if it is bound.
+    pub fn of<'a>(inputs: &'a InputOutlines, slot: &str) -> Option<&'a Outline> {
+        inputs.get(slot).and_then(|v| v.first())
     }
 
     /// The outline a stage passes on by default: that of the scenes it reads, else of its first
@@ -164,6 +196,12 @@ pub trait Operator: Send + Sync + 'static {
     /// the pipeline is validated. By default it passes on its scenes' outline.
     fn outline(&self, _settings: &Self::Settings, inputs: &InputOutlines) -> Result<Outline, SettingError> {
         Ok(Outline::passed_on(inputs))
+    }
+
+    /// Its estimated peak memory (see [`crate::memory`]), for operators that train models;
+    /// `None` where it is small or unknown.
+    fn footprint(&self, _settings: &Self::Settings, _inputs: &InputOutlines) -> Option<Footprint> {
+        None
     }
 
     fn run(&self, settings: &Self::Settings, ctx: &mut Context) -> anyhow::Result<Outcome>;
@@ -233,6 +271,8 @@ pub struct InWorker<S: Settings> {
     pub resources: fn(&S) -> Resources,
     /// Its settings checked against its inputs' outlines (see [`Operator::outline`]).
     pub outline: fn(&S, &InputOutlines) -> Result<Outline, SettingError>,
+    /// See [`Operator::footprint`].
+    pub footprint: fn(&S, &InputOutlines) -> Option<Footprint>,
 }
 
 impl<S: Settings> Operator for InWorker<S> {
@@ -252,6 +292,10 @@ impl<S: Settings> Operator for InWorker<S> {
 
     fn outline(&self, settings: &S, inputs: &InputOutlines) -> Result<Outline, SettingError> {
         (self.outline)(settings, inputs)
+    }
+
+    fn footprint(&self, settings: &S, inputs: &InputOutlines) -> Option<Footprint> {
+        (self.footprint)(settings, inputs)
     }
 
     fn run(&self, _: &S, _: &mut Context) -> anyhow::Result<Outcome> {
@@ -277,6 +321,7 @@ pub trait DynOperator: Send + Sync {
     fn part(&self, settings: &Value, part: &Part) -> Option<Value>;
     /// The output's outline for valid `settings` and the inputs' outlines.
     fn outline(&self, settings: &Value, inputs: &InputOutlines) -> Result<Outline, SettingError>;
+    fn footprint(&self, settings: &Value, inputs: &InputOutlines) -> Option<Footprint>;
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome>;
 }
 
@@ -330,6 +375,10 @@ impl<O: Operator> DynOperator for O {
 
     fn outline(&self, settings: &Value, inputs: &InputOutlines) -> Result<Outline, SettingError> {
         Operator::outline(self, &parse_settings::<O::Settings>(settings.clone())?, inputs)
+    }
+
+    fn footprint(&self, settings: &Value, inputs: &InputOutlines) -> Option<Footprint> {
+        Operator::footprint(self, &parse_settings::<O::Settings>(settings.clone()).ok()?, inputs)
     }
 
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome> {

@@ -16,6 +16,13 @@ pub struct Training {
     pub epochs: u64,
     /// Frames per step, 1..=65,536.
     pub batch: u64,
+    /// Micro-batches a step's batch is split into, 1..=batch, dividing it: their gradients are
+    /// averaged before the one step, so a batch larger than memory allows trains at the memory of
+    /// `batch / accumulate` frames with the gradient of the whole batch (exact for a loss that
+    /// averages over frames; BatchNorm normalises each micro-batch, as data-parallel training
+    /// normalises each GPU's share). A contrastive loss is not such a mean: `clip` embeds in
+    /// chunks instead (`chunk`).
+    pub accumulate: u64,
     /// Peak learning rate, (0, 1].
     pub lr: f64,
     /// Linear warmup from `warmup_lr` to `lr`, in epochs (fractions allowed), 0..=epochs.
@@ -46,6 +53,7 @@ impl Default for Training {
         Training {
             epochs: 6,
             batch: 64,
+            accumulate: 1,
             lr: 1e-3,
             warmup_epochs: 0.5,
             warmup_lr: 1e-6,
@@ -69,6 +77,10 @@ impl Training {
             return Err(SettingError::new("epochs", message));
         }
         SettingError::check_range("batch", self.batch, 1..=65_536)?;
+        SettingError::check_range("accumulate", self.accumulate, 1..=self.batch)?;
+        if self.batch % self.accumulate != 0 {
+            return Err(SettingError::new("accumulate", format!("must divide `batch` ({}) into equal micro-batches; {} does not", self.batch, self.accumulate)));
+        }
         SettingError::check_positive("lr", self.lr, 1.0)?;
         SettingError::check_range("warmup_epochs", self.warmup_epochs, 0.0..=self.epochs as f64)?;
         SettingError::check_range("warmup_lr", self.warmup_lr, 0.0..=self.lr)?;
@@ -82,6 +94,11 @@ impl Training {
         SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
         SettingError::check_positive("clip_norm", self.clip_norm, 1e6)?;
         SettingError::check_range("threads", self.threads, 1..=256)
+    }
+
+    /// The frames one forward and backward pass holds.
+    pub fn micro_batch(&self) -> u64 {
+        self.batch / self.accumulate
     }
 
     /// A training stage's outline check: a batch no larger than the frames its scenes hold (it
@@ -124,7 +141,7 @@ mod tests {
 
     #[test]
     fn a_batch_larger_than_the_scenes_is_refused_by_its_key() {
-        let inputs: InputOutlines = [("scenes", vec![Outline { image: Some(32), frames: Some(100) }])].into_iter().collect();
+        let inputs: InputOutlines = [("scenes", vec![Outline { image: Some(32), frames: Some(100), ..Outline::default() }])].into_iter().collect();
         let t = Training { batch: 128, ..Training::default() };
         let e = t.outline(&inputs).unwrap_err();
         assert_eq!((e.key.as_str(), e.message.as_str()), ("batch", "128 is more than the 100 frames its scenes hold (it trains on a share of them)"));

@@ -13,11 +13,13 @@ pub struct Expected<'a> {
     /// For messages: `CLIP ViT-B/16 (open_clip or Hugging Face names)`.
     pub model: &'a str,
     pub names: &'a [&'a str],
+    /// Where such a file comes from, for the error: "README: Paper scale".
+    pub source: &'a str,
 }
 
 /// Checks setting `key`'s file at `path` against `expected`; the error says what is wrong.
 pub fn check_init(key: &str, path: &str, expected: &Expected) -> Result<(), SettingError> {
-    let wrong = |what: String| Err(SettingError::new(key, format!("{what}; give a {} safetensors file", expected.model)));
+    let wrong = |what: String| Err(SettingError::new(key, format!("{what}; give a {} safetensors file ({})", expected.model, expected.source)));
     let file = match std::fs::File::open(Path::new(path)) {
         Ok(file) => file,
         Err(e) => return wrong(format!("cannot open `{path}` ({e})")),
@@ -57,7 +59,7 @@ pub(crate) mod tests {
     fn a_missing_truncated_or_other_models_file_names_the_setting_and_what_is_wrong() {
         let dir = std::env::temp_dir().join(format!("rlmflow-weights-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let expected = Expected { model: "GPT-2", names: &["h.0.attn.c_attn.weight", "transformer.h.0.attn.c_attn.weight"] };
+        let expected = Expected { model: "GPT-2", names: &["h.0.attn.c_attn.weight", "transformer.h.0.attn.c_attn.weight"], source: "see the README" };
         let check = |path: &Path| check_init("init", path.to_str().unwrap(), &expected);
 
         let good = dir.join("gpt2.safetensors");
@@ -66,7 +68,7 @@ pub(crate) mod tests {
 
         let e = check(&dir.join("absent.safetensors")).unwrap_err();
         assert_eq!(e.key, "init");
-        assert!(e.message.contains("cannot open") && e.message.ends_with("give a GPT-2 safetensors file"), "{}", e.message);
+        assert!(e.message.contains("cannot open") && e.message.ends_with("give a GPT-2 safetensors file (see the README)"), "{}", e.message);
 
         let bytes = std::fs::read(&good).unwrap();
         let truncated = dir.join("truncated.safetensors");

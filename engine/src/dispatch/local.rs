@@ -22,8 +22,13 @@ impl Local {
     /// "auto"`) when libtorch sees one, which needs the CUDA driver's device nodes. On a machine
     /// without them such stages share the CPUs like any other.
     pub fn new(device: Device) -> Local {
-        Local { gpu: device != Device::Cpu || cuda_device_nodes(Path::new("/dev")) }
+        Local { gpu: device != Device::Cpu || cuda_present() }
     }
+}
+
+/// Whether this machine has a CUDA device, as far as the driver's device nodes tell.
+pub fn cuda_present() -> bool {
+    cuda_device_nodes(Path::new("/dev"))
 }
 
 /// Whether `dev` holds a node the CUDA driver creates: `nvidiactl`, or `dxg` under WSL 2.

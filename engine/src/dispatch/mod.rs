@@ -20,7 +20,7 @@ mod local;
 
 #[cfg(feature = "python")]
 pub use hyperqueue::HyperQueue;
-pub use local::Local;
+pub use local::{Local, cuda_present};
 
 /// One action to start.
 #[derive(Clone, Debug)]

@@ -128,8 +128,8 @@ mod tests {
     fn a_batch_embedded_in_chunks_has_the_whole_batchs_loss_and_gradients() {
         tch::manual_seed(7);
         let vs = nn::VarStore::new(tch::Device::Cpu);
-        let vision = VisionConfig { image: 16, stem: Stem::Patch { size: 8 }, width: 32, layers: 2, heads: 2, mlp: 64, head: Head::Mlp };
-        let text = TextConfig { context: 8, vocab: 40, group: 1, token_width: 32, width: 32, layers: 2, heads: 2, mlp: 64, end_token: 1 };
+        let vision = VisionConfig { image: 16, stem: Stem::Patch { size: 8 }, width: 32, layers: 2, heads: 2, mlp: 64, head: Head::Mlp, quick_gelu: false };
+        let text = TextConfig { context: 8, vocab: 40, group: 1, token_width: 32, width: 32, layers: 2, heads: 2, mlp: 64, end_token: 1, head: Head::Mlp };
         let config = ModelConfig { embed: 16, vision, text: Some(text), counts_head: 0 };
         let model = Clip::new(&vs.root(), &config, 0.07, true);
         let opt = AdamW::new(&vs, (0.9, 0.98), 1e-8, 0.0);

@@ -2,7 +2,7 @@
 //! and flat in open_clip's manner and configured by the plain structs of
 //! `rlmflow_stages::encoder`: [`transformer`] (pre-LN residual attention blocks), [`vision`]
 //! (the radar ViT, patch or convolutional stem), [`text`] (the causal text tower), [`clip`]
-//! (both towers and the logit scale), [`loss`] (CLIP and SG-CLIP), [`optim`] (AdamW with saveable
+//! (both towers and the logit scale), [`projection`] (either tower's head into the shared space), [`loss`] (CLIP and SG-CLIP), [`optim`] (AdamW with saveable
 //! state, clipping, the learning-rate schedule), [`segment`] (the PUP decoder, the U-Net, Dice +
 //! BCE), [`data`] (the frames every operator trains on, in memory), [`train`] (the one training
 //! loop, `fit`: schedule, clipping, resume, checkpoints, device choice), [`gpt`] and [`decode`]
@@ -15,6 +15,7 @@ pub mod decode;
 pub mod gpt;
 pub mod loss;
 pub mod optim;
+pub mod projection;
 pub mod segment;
 pub mod text;
 pub mod train;

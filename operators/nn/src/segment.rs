@@ -27,20 +27,8 @@ fn upsample(x: &Tensor, side: i64) -> Tensor {
     x.upsample_bilinear2d([side, side], false, None, None)
 }
 
-/// The decoder widths of the paper's PUP table (768 -> 256 -> 256 -> 128 -> 64), one stage per
-/// doubling of `grid` up to `side`: the table's last stages when fewer are needed, 256 wide
-/// stages first when more are.
-pub fn pup_widths(grid: i64, side: i64) -> Vec<i64> {
-    let mut stages = 0usize;
-    while grid << stages < side {
-        stages += 1;
-    }
-    let paper = [256, 256, 128, 64];
-    let extra = stages.saturating_sub(paper.len());
-    std::iter::repeat_n(256, extra).chain(paper[paper.len() - (stages - extra)..].iter().copied()).collect()
-}
-
-/// Progressive upsampling (SETR's PUP, the paper's table): the patch tokens after `ln_post`,
+/// Progressive upsampling (SETR's PUP, the paper's table, widths from
+/// `rlmflow_segment::pup_widths`): the patch tokens after `ln_post`,
 /// CLS dropped, as a (width, grid, grid) map; per stage a conv 3x3 + BN + ReLU and a bilinear
 /// 2x upsampling; a final bilinear resize when the doublings do not land on `side`; a conv 1x1 to
 /// one channel. Names: `stages.N.{conv,bn}`, `out`.
@@ -158,15 +146,6 @@ pub fn dice_bce_loss(logits: &Tensor, target: &Tensor, dice_weight: f64) -> Tens
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn pup_widths_follow_the_paper_table() {
-        assert_eq!(pup_widths(14, 224), [256, 256, 128, 64], "vit-b16: 14 -> 224, four doublings");
-        assert_eq!(pup_widths(8, 64), [256, 128, 64]);
-        assert_eq!(pup_widths(4, 32), [256, 128, 64]);
-        assert_eq!(pup_widths(2, 64), [256, 256, 256, 128, 64]);
-        assert_eq!(pup_widths(7, 50), [256, 128, 64], "7 -> 56, resized to 50");
-    }
 
     #[test]
     fn dice_bce_is_small_for_a_confident_right_answer_and_large_for_a_wrong_one() {

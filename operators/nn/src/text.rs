@@ -1,6 +1,6 @@
 //! The text tower: a GPT-style causal transformer pooled at the end token (open_clip's text
 //! names: `token_embedding`, `positional_embedding`, `transformer`, `ln_final`,
-//! `text_projection`). With `group` > 1, `group` narrow token embeddings are concatenated and
+//! `text_projection`, or an MLP `text_head`). With `group` > 1, `group` narrow token embeddings are concatenated and
 //! projected (`token_group`) before the transformer, which then sees context / group positions:
 //! the tower costs a fraction of the paper's at laptop scale.
 
@@ -8,6 +8,7 @@ use rlmflow_stages::encoder::TextConfig;
 use tch::nn::{self, Module};
 use tch::{Kind, Tensor};
 
+use crate::projection::Projection;
 use crate::transformer::{Activation, Transformer};
 
 #[derive(Debug)]
@@ -17,7 +18,7 @@ pub struct TextTower {
     positional_embedding: Tensor,
     transformer: Transformer,
     ln_final: nn::LayerNorm,
-    text_projection: Tensor,
+    projection: Projection,
     pub config: TextConfig,
 }
 
@@ -31,7 +32,7 @@ impl TextTower {
             positional_embedding: root.randn("positional_embedding", &[positions, c.width], 0.0, 0.01),
             transformer: Transformer::new(&(root / "transformer"), c.width, c.layers, c.heads, c.mlp, Activation::QuickGelu, true),
             ln_final: nn::layer_norm(root / "ln_final", vec![c.width], Default::default()),
-            text_projection: root.randn("text_projection", &[c.width, embed], 0.0, (c.width as f64).powf(-0.5)),
+            projection: Projection::new(root, c.head, "text_projection", "text_head", c.width, embed),
             config: c.clone(),
         }
     }
@@ -52,6 +53,6 @@ impl TextTower {
         let has_end = is_end.amax([1].as_slice(), false).to_kind(Kind::Bool);
         let position = first_end.where_self(&has_end, &Tensor::full([b], t - 1, (Kind::Int64, tokens.device()))).divide_scalar_mode(c.group, "floor");
         let pooled = x.gather(1, &position.view([b, 1, 1]).expand([b, 1, c.width], false), false).squeeze_dim(1);
-        pooled.matmul(&self.text_projection)
+        self.projection.forward(&pooled)
     }
 }

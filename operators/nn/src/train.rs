@@ -3,7 +3,7 @@
 //!
 //! An operator brings its model's variables, its training frames, the loss of one batch and an
 //! evaluation after each epoch; `fit` owns the rest: the warmup-cosine schedule, AdamW, gradient
-//! clipping, the epoch's frame order, progress, `epoch` and `resumed` events, and checkpoints.
+//! accumulation, gradient clipping, the epoch's frame order, progress, `epoch` and `resumed` events, and checkpoints.
 //!
 //! A checkpoint is the model's variables and the optimiser's moments in one safetensors file
 //! plus the epochs' log lines in JSON; the log is renamed into place last, so the epochs it
@@ -124,8 +124,9 @@ pub struct Fitted {
 }
 
 /// Trains `vs`'s variables: for each epoch not already in the checkpoint, the frames in the
-/// epoch's order, `loss` per batch (given the epoch's generator after the order was drawn), an
-/// AdamW step at the schedule's rate after clipping, then `evaluate` and a checkpoint.
+/// epoch's order, `loss` per batch (per micro-batch under `accumulate`, their gradients
+/// averaged; given the epoch's generator after the order was drawn), an AdamW step at the
+/// schedule's rate after clipping, then `evaluate` and a checkpoint.
 pub fn fit(
     vs: &nn::VarStore,
     fit: Fit,
@@ -135,6 +136,7 @@ pub fn fit(
 ) -> anyhow::Result<Fitted> {
     let t = fit.training;
     let batch = t.batch as usize;
+    let micro_batches = t.accumulate as usize;
     let steps_per_epoch = (fit.frames.len() / batch) as u64;
     if steps_per_epoch == 0 && t.epochs > 0 {
         bail!("batch {batch} is larger than the {} training frames; lower `batch`", fit.frames.len());
@@ -159,14 +161,26 @@ pub fn fit(
         let mut figures: Vec<(&'static str, Vec<f64>)> = Vec::new();
         for (step, frames) in order.chunks_exact(batch).enumerate() {
             let global = epoch * steps_per_epoch + step as u64;
-            let Step { loss: batch_loss, figures: batch_figures } = loss(frames, &mut rng, &Backward::new(&opt))?;
-            let (value, grads) = match batch_loss {
-                Loss::Tensor(loss) => {
-                    let value = finite(loss.double_value(&[]), global + 1, epoch + 1)?;
-                    (value, opt.gradients(&loss))
+            // The micro-batches' losses, figures and gradients, averaged.
+            let (mut value, mut grads, mut batch_figures) = (0.0, Vec::<Tensor>::new(), Vec::new());
+            for (m, micro) in frames.chunks_exact(batch / micro_batches).enumerate() {
+                let Step { loss: micro_loss, figures: micro_figures } = loss(micro, &mut rng, &Backward::new(&opt))?;
+                let (micro_value, micro_grads) = match micro_loss {
+                    Loss::Tensor(loss) => (finite(loss.double_value(&[]), global + 1, epoch + 1)?, opt.gradients(&loss)),
+                    Loss::Computed { value, gradients } => (finite(value, global + 1, epoch + 1)?, gradients),
+                };
+                value += micro_value / micro_batches as f64;
+                if m == 0 {
+                    batch_figures = micro_figures.into_iter().map(|(name, f)| (name, f / micro_batches as f64)).collect();
+                    grads = micro_grads;
+                } else {
+                    batch_figures.iter_mut().zip(micro_figures).for_each(|((_, sum), (_, f))| *sum += f / micro_batches as f64);
+                    tch::no_grad(|| grads.iter_mut().zip(&micro_grads).filter(|(g, _)| g.defined()).for_each(|(g, add)| *g += add));
                 }
-                Loss::Computed { value, gradients } => (finite(value, global + 1, epoch + 1)?, gradients),
-            };
+            }
+            if micro_batches > 1 {
+                tch::no_grad(|| grads.iter_mut().filter(|g| g.defined()).for_each(|g| *g /= micro_batches as f64));
+            }
             losses.push(value);
             for (i, (name, figure)) in batch_figures.into_iter().enumerate() {
                 match figures.get_mut(i) {
@@ -257,6 +271,42 @@ mod tests {
         let err = finite(f64::NAN, 17, 2).unwrap_err().to_string();
         assert_eq!(err, "the loss is NaN at step 17 (epoch 2); lower `lr` or raise `batch`");
         assert!(finite(f64::INFINITY, 1, 1).unwrap_err().to_string().contains("the loss is inf at step 1"));
+    }
+
+    /// One step of `fit` on a linear model under a mean squared error over 8 frames, with the
+    /// batch split into `accumulate` micro-batches: the trained weights. AdamW's `eps` is large
+    /// so the step depends on the gradient's scale, not only its sign.
+    fn one_step(accumulate: u64) -> Tensor {
+        let dir = std::env::temp_dir().join(format!("rlmflow-nn-accumulate-{}-{accumulate}", std::process::id()));
+        let (out, ckpt) = (dir.join("out"), dir.join("ckpt"));
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::create_dir_all(&ckpt).unwrap();
+        let mut ctx = Context::standalone("fit", &[], &out, &ckpt, 5, 1);
+        tch::manual_seed(3);
+        let vs = nn::VarStore::new(tch::Device::Cpu);
+        let layer = nn::linear(vs.root() / "fc", 3, 2, Default::default());
+        let inputs = Tensor::randn([8, 3], (tch::Kind::Float, tch::Device::Cpu));
+        let targets = Tensor::randn([8, 2], (tch::Kind::Float, tch::Device::Cpu));
+        let training = Training { epochs: 1, batch: 8, accumulate, warmup_epochs: 0.0, lr: 0.1, eps: 1.0, clip_norm: 1e6, ..Training::default() };
+        let frames: Vec<usize> = (0..8).collect();
+        let fit_on = Fit { training: &training, frames: &frames, per_batch: false };
+        fit(&vs, fit_on, &mut ctx, |batch, _, _| {
+            let index = Tensor::from_slice(&batch.iter().map(|&i| i as i64).collect::<Vec<_>>());
+            let predicted = nn::Module::forward(&layer, &inputs.index_select(0, &index));
+            Ok(Step::from((predicted - targets.index_select(0, &index)).square().mean(tch::Kind::Float)))
+        }, || Ok(Vec::new()))
+        .unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+        layer.ws.detach()
+    }
+
+    #[test]
+    fn accumulated_micro_batches_take_the_step_of_the_whole_batch() {
+        let whole = one_step(1);
+        for accumulate in [2, 4, 8] {
+            let accumulated = one_step(accumulate);
+            assert!(accumulated.allclose(&whole, 1e-5, 1e-6, false), "accumulate = {accumulate}: {accumulated} against {whole}");
+        }
     }
 
     #[test]

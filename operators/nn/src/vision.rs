@@ -2,10 +2,11 @@
 //! names: `visual.conv1`, `class_embedding`, `positional_embedding`, `ln_pre`,
 //! `transformer`, `ln_post`, `proj`), with either a patch embedding or a convolutional stem.
 
-use rlmflow_stages::encoder::{Head, Stem, VisionConfig};
+use rlmflow_stages::encoder::{Stem, VisionConfig};
 use tch::Tensor;
 use tch::nn::{self, Module, ModuleT};
 
+use crate::projection::Projection;
 use crate::transformer::{Activation, Transformer};
 
 #[derive(Debug)]
@@ -14,14 +15,6 @@ enum Embedding {
     Patch(nn::Conv2D),
     /// `stem.N.conv` and `stem.N.bn`.
     Conv(Vec<(nn::Conv2D, nn::BatchNorm)>),
-}
-
-#[derive(Debug)]
-enum Projection {
-    /// `proj`: (width, embed), applied as x @ proj.
-    Linear(Tensor),
-    /// `head.fc1`, `head.fc2`.
-    Mlp(nn::Linear, nn::Linear),
 }
 
 #[derive(Debug)]
@@ -66,19 +59,14 @@ impl VisionTower {
         };
         let tokens = c.grid() * c.grid() + 1;
         let scale = (width as f64).powf(-0.5);
-        let projection = match c.head {
-            Head::Linear => Projection::Linear(p.randn("proj", &[width, embed], 0.0, scale)),
-            Head::Mlp => Projection::Mlp(
-                nn::linear(p / "head" / "fc1", width, width, Default::default()),
-                nn::linear(p / "head" / "fc2", width, embed, Default::default()),
-            ),
-        };
+        let activation = if c.quick_gelu { Activation::QuickGelu } else { Activation::Gelu };
+        let projection = Projection::new(p, c.head, "proj", "head", width, embed);
         VisionTower {
             embedding,
             class_embedding: p.randn("class_embedding", &[width], 0.0, scale),
             positional_embedding: p.randn("positional_embedding", &[tokens, width], 0.0, scale),
             ln_pre: nn::layer_norm(p / "ln_pre", vec![width], Default::default()),
-            transformer: Transformer::new(&(p / "transformer"), width, c.layers, c.heads, c.mlp, Activation::Gelu, false),
+            transformer: Transformer::new(&(p / "transformer"), width, c.layers, c.heads, c.mlp, activation, false),
             ln_post: nn::layer_norm(p / "ln_post", vec![width], Default::default()),
             projection,
             config: c.clone(),
@@ -119,11 +107,7 @@ impl VisionTower {
     fn output(&self, x: &Tensor) -> VisionOutput {
         let tokens = self.ln_post.forward(x);
         let cls = tokens.select(1, 0);
-        let embedding = match &self.projection {
-            Projection::Linear(proj) => cls.matmul(proj),
-            Projection::Mlp(fc1, fc2) => fc2.forward(&fc1.forward(&cls).gelu("none")),
-        };
-        VisionOutput { embedding, tokens }
+        VisionOutput { embedding: self.projection.forward(&cls), tokens }
     }
 }
 

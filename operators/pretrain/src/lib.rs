@@ -18,7 +18,8 @@
 use rlmflow_stages::encoder::{Distance, Head, ModelConfig, Stem, TextConfig, VisionConfig};
 use rlmflow_stages::grid::CELLS;
 use rlmflow_stages::weights::{Expected, check_init};
-use rlmflow_stages::{Device, InWorker, InputOutlines, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
+use rlmflow_stages::memory::{FLOAT, TRAINED};
+use rlmflow_stages::{Device, Footprint, InWorker, InputOutlines, ModelOutline, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
 /// The binary the torch operators run in.
@@ -32,6 +33,7 @@ pub const TEXTS: [&str; 2] = ["tiny", "paper"];
 const CLIP_WEIGHTS: Expected = Expected {
     model: "CLIP ViT-B/16 (open_clip `visual.*` or Hugging Face `vision_model.*` names)",
     names: &["visual.conv1.weight", "vision_model.embeddings.patch_embedding.weight"],
+    source: "the README's \"Pretrained weights\" converts OpenAI's in a few lines of Python",
 };
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -51,6 +53,11 @@ pub struct ClipSettings {
     pub text: String,
     /// Radar projection into the shared space: `linear` or `mlp`.
     pub head: Head,
+    /// Text projection into the shared space: `linear` or `mlp`.
+    pub text_head: Head,
+    /// QuickGELU in the radar tower's blocks (open_clip's `quick_gelu`), as OpenAI's CLIP
+    /// weights need; GELU otherwise. The text tower always uses QuickGELU (the paper's table).
+    pub quick_gelu: bool,
     pub objective: Objective,
     /// SG-CLIP sharpness, 0..=1000.
     pub alpha: f64,
@@ -78,6 +85,8 @@ impl Default for ClipSettings {
             encoder: "conv-tiny".into(),
             text: "tiny".into(),
             head: Head::Linear,
+            text_head: Head::Linear,
+            quick_gelu: false,
             objective: Objective::Clip,
             alpha: 1.0,
             distance: Distance::Raw,
@@ -88,6 +97,7 @@ impl Default for ClipSettings {
             training: Training {
                 epochs: 10,
                 batch: 128,
+                accumulate: 1,
                 lr: 1e-3,
                 warmup_epochs: 1.0,
                 warmup_lr: 1e-6,
@@ -127,7 +137,16 @@ impl Settings for ClipSettings {
         if !self.init.is_empty() {
             check_init("init", &self.init, &CLIP_WEIGHTS)?;
         }
+        if self.text_head != Head::Linear && self.objective == Objective::Counts {
+            return Err(SettingError::new("text_head", "the `counts` objective trains no text tower"));
+        }
         SettingError::check_range("chunk", self.chunk, 0..=65_536)?;
+        if self.training.accumulate > 1 && self.objective != Objective::Counts {
+            return Err(SettingError::new(
+                "accumulate",
+                "a contrastive loss over a batch is not the mean of its parts' losses; set `chunk` to embed the batch a chunk at a time (the same loss)",
+            ));
+        }
         if self.chunk > 0 && self.objective == Objective::Counts {
             return Err(SettingError::new("chunk", "embeds a contrastive batch in chunks; the `counts` objective has none"));
         }
@@ -155,19 +174,49 @@ pub fn resources(s: &ClipSettings) -> Resources {
     s.training.resources()
 }
 
-/// The settings against the scenes: the batch fits their frames, and the encoder's patch divides
-/// their image (the model built for a stand-in text vocabulary: only the vision side is checked).
+/// The settings against the scenes and tokens: the batch fits their frames, the encoder's patch
+/// divides their image and the text tower's grouping their context. The outline passes on the
+/// scenes' and describes the model.
 fn outline(s: &ClipSettings, inputs: &InputOutlines) -> Result<Outline, SettingError> {
     let outline = s.training.outline(inputs)?;
-    if let Some(image) = outline.image {
-        model_config(s, image as i64, 8, 259, 1)?;
+    let Some(config) = configured(s, inputs)? else { return Ok(outline) };
+    let v = &config.vision;
+    let model = ModelOutline { parameters: config.parameters(), width: v.width as u64, grid: v.grid() as u64, embed: config.embed as u64, activations: v.activations() };
+    Ok(Outline { model: Some(model), ..outline })
+}
+
+/// The model for the inputs' outlines, where they tell the image side (a stand-in context and
+/// vocabulary where they do not tell the tokens').
+fn configured(s: &ClipSettings, inputs: &InputOutlines) -> Result<Option<ModelConfig>, SettingError> {
+    let Some(image) = Outline::passed_on(inputs).image else { return Ok(None) };
+    let tokens = Outline::of(inputs, "tokens");
+    let context = tokens.and_then(|t| t.context).unwrap_or(8);
+    let vocab = tokens.and_then(|t| t.vocab).unwrap_or(259);
+    model_config(s, image as i64, context as i64, vocab as i64, 1).map(Some)
+}
+
+/// Every weight with its gradient and AdamW's moments, and the activations of the frames a step
+/// embeds at once (the chunk under gradient caching, else the batch), with the batch's logits.
+fn footprint(s: &ClipSettings, inputs: &InputOutlines) -> Option<Footprint> {
+    let config = configured(s, inputs).ok()??;
+    let parameters = config.parameters();
+    if s.training.epochs == 0 {
+        return Some(Footprint { parameters, peak_bytes: parameters * FLOAT, lower_with: "nothing (untrained)" });
     }
-    Ok(outline)
+    let batch = s.training.batch;
+    let at_once = if s.chunk > 0 { s.chunk.min(batch) } else { s.training.micro_batch() };
+    let activations = config.activations() * at_once + 6 * batch * batch;
+    let lower_with = match (s.objective, s.encoder.as_str()) {
+        (Objective::Counts, _) => "`accumulate` (the same gradient) or `batch`",
+        (_, "vit-b16") => "`chunk` (gradient caching, the same loss) or `batch`",
+        _ => "`batch`",
+    };
+    Some(Footprint { parameters, peak_bytes: parameters * TRAINED + activations * FLOAT, lower_with })
 }
 
 /// The operator as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn operator() -> InWorker<ClipSettings> {
-    InWorker { spec: spec(), worker: WORKER, resources, outline }
+    InWorker { spec: spec(), worker: WORKER, resources, outline, footprint }
 }
 
 /// The model the settings name, for images of `image` pixels and the tokens stage's `context`,
@@ -183,11 +232,11 @@ pub fn model_config(s: &ClipSettings, image: i64, context: i64, vocab: i64, end_
     {
         return Err(SettingError::new("encoder", format!("`{}` needs an image side divisible by {size}; the scenes have {image}", s.encoder)));
     }
-    let vision = VisionConfig { image, stem, width, layers, heads, mlp, head: s.head };
+    let vision = VisionConfig { image, stem, width, layers, heads, mlp, head: s.head, quick_gelu: s.quick_gelu };
     let text = match (s.objective, s.text.as_str()) {
         (Objective::Counts, _) => None,
-        (_, "tiny") => Some(TextConfig { context, vocab, group: 8, token_width: 64, width: 128, layers: 2, heads: 4, mlp: 512, end_token }),
-        _ => Some(TextConfig { context, vocab, group: 1, token_width: 512, width: 512, layers: 12, heads: 8, mlp: 2048, end_token }),
+        (_, "tiny") => Some(TextConfig { context, vocab, group: 8, token_width: 64, width: 128, layers: 2, heads: 4, mlp: 512, end_token, head: s.text_head }),
+        _ => Some(TextConfig { context, vocab, group: 1, token_width: 512, width: 512, layers: 12, heads: 8, mlp: 2048, end_token, head: s.text_head }),
     };
     if let Some(t) = &text
         && context % t.group != 0
@@ -231,6 +280,7 @@ mod tests {
         assert_eq!(key(serde_json::json!({"device": "tpu"})), "device");
         assert_eq!(key(serde_json::json!({"init": "/clip.safetensors"})), "init");
         assert_eq!(key(serde_json::json!({"batch": 1})), "batch");
+        assert_eq!(key(serde_json::json!({"objective": "counts", "text_head": "mlp"})), "text_head");
         assert_eq!(key(serde_json::json!({"chunk": 40})), "chunk", "conv-tiny has BatchNorm");
         assert_eq!(key(serde_json::json!({"encoder": "vit-b16", "chunk": 40, "objective": "counts"})), "chunk");
         assert!(op.settings(serde_json::json!({"encoder": "vit-b16", "chunk": 40, "batch": 640})).is_ok());

@@ -25,7 +25,8 @@
 //! scored per cell like `linear`.
 
 use rlmflow_stages::weights::{Expected, check_init};
-use rlmflow_stages::{InWorker, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
+use rlmflow_stages::memory::{self, Blocks, FLOAT, TRAINED};
+use rlmflow_stages::{Footprint, InWorker, InputOutlines, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
 /// The binary the probes run in.
@@ -93,7 +94,11 @@ pub enum Decode {
 }
 
 /// What an `init` file must hold: GPT-2's blocks, by Hugging Face's names.
-const GPT2_WEIGHTS: Expected = Expected { model: "GPT-2 (Hugging Face names)", names: &["h.0.attn.c_attn.weight", "transformer.h.0.attn.c_attn.weight"] };
+const GPT2_WEIGHTS: Expected = Expected {
+    model: "GPT-2 (Hugging Face names)",
+    names: &["h.0.attn.c_attn.weight", "transformer.h.0.attn.c_attn.weight"],
+    source: "the README's \"Pretrained weights\" fetches Hugging Face's `model.safetensors`",
+};
 
 /// Decoder sizes: `tiny` (laptop) and `gpt2` (GPT-2 small, which `init` weights fit).
 pub const DECODERS: [&str; 2] = ["tiny", "gpt2"];
@@ -166,6 +171,31 @@ impl Settings for ClipcapSettings {
     }
 }
 
+impl ClipcapSettings {
+    /// The decoder's width, blocks and heads.
+    pub fn decoder_shape(&self) -> (i64, i64, i64) {
+        if self.decoder == "gpt2" { (768, 12, 12) } else { (128, 2, 4) }
+    }
+}
+
+/// The frozen encoder held once, the mapper and decoder trained on `batch` captions: per caption
+/// the mapper's blocks over its 2 x `prefix` tokens, the decoder's over `prefix` + context
+/// tokens (GELU's tanh form keeps as much as QuickGELU), and the logits with their softmax and
+/// gradient over the vocabulary.
+fn clipcap_footprint(s: &ClipcapSettings, inputs: &InputOutlines) -> Option<Footprint> {
+    let tokens = Outline::of(inputs, "tokens")?;
+    let (context, vocab, encoder) = (tokens.context?, tokens.vocab?, Outline::of(inputs, "encoder")?.model?);
+    let (width, layers, _) = s.decoder_shape();
+    let (width, prefix) = (width as u64, s.prefix as u64);
+    let positions = prefix + context;
+    let mapper = Blocks { width, layers: s.mapper_layers as u64, mlp: 4 * width, quick_gelu: false };
+    let decoder = Blocks { width, layers: layers as u64, mlp: 4 * width, quick_gelu: true };
+    let trained = memory::linear(encoder.embed, prefix * width) + prefix * width + mapper.parameters() + (vocab + positions) * width + decoder.parameters() + 2 * width;
+    let per_caption = mapper.activations(2 * prefix) + decoder.activations(positions) + 3 * positions * vocab;
+    let peak_bytes = encoder.parameters * FLOAT + trained * TRAINED + per_caption * s.training.micro_batch() * FLOAT;
+    Some(Footprint { parameters: encoder.parameters + trained, peak_bytes, lower_with: "`accumulate` (the same gradient) or `batch`" })
+}
+
 pub fn clipcap_spec() -> OperatorSpec {
     OperatorSpec {
         name: "clipcap",
@@ -182,7 +212,13 @@ pub fn clipcap_resources(s: &ClipcapSettings) -> Resources {
 
 /// `clipcap` as `rlmflow` registers it.
 pub fn clipcap() -> InWorker<ClipcapSettings> {
-    InWorker { spec: clipcap_spec(), worker: WORKER, resources: clipcap_resources, outline: |s, inputs| s.training.outline(inputs) }
+    InWorker {
+        spec: clipcap_spec(),
+        worker: WORKER,
+        resources: clipcap_resources,
+        outline: |s, inputs| s.training.outline(inputs),
+        footprint: clipcap_footprint,
+    }
 }
 
 pub fn linear_spec() -> OperatorSpec {
@@ -201,7 +237,7 @@ pub fn linear_resources(s: &LinearSettings) -> Resources {
 
 /// `linear` as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn linear() -> InWorker<LinearSettings> {
-    InWorker { spec: linear_spec(), worker: WORKER, resources: linear_resources, outline: Outline::pass_on }
+    InWorker { spec: linear_spec(), worker: WORKER, resources: linear_resources, outline: Outline::pass_on, footprint: |_, _| None }
 }
 
 #[cfg(test)]

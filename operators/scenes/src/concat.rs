@@ -66,7 +66,7 @@ impl Operator for Concat {
             return Err(SettingError::new("inputs.scenes", format!("mixes scenes of {}; a mix needs one image size (set each input's `radar.image` alike)", sizes.join(" and "))));
         }
         let image = if parts.iter().all(|o| o.image.is_some()) { sizes.first().copied() } else { None };
-        Ok(Outline { image, frames: parts.iter().map(|o| o.frames).sum() })
+        Ok(Outline { image, frames: parts.iter().map(|o| o.frames).sum(), ..Outline::default() })
     }
 
     fn run(&self, s: &ConcatSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {

@@ -152,7 +152,7 @@ impl Operator for HighwayEnv {
     }
 
     fn outline(&self, s: &HighwaySettings, _: &InputOutlines) -> Result<Outline, SettingError> {
-        Ok(Outline { image: Some(s.radar.image as u64), frames: Some(s.frames) })
+        Ok(Outline { image: Some(s.radar.image as u64), frames: Some(s.frames), ..Outline::default() })
     }
 
     fn run(&self, s: &HighwaySettings, ctx: &mut Context) -> anyhow::Result<Outcome> {

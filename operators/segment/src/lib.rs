@@ -12,7 +12,12 @@
 //! Training: AdamW, warmup then cosine, global-norm clipping, loss `dice_weight` * soft Dice +
 //! (1 - `dice_weight`) * BCE against the labels' soft masks; one checkpoint per epoch.
 
-use rlmflow_stages::{InWorker, InputOutlines, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
+use rlmflow_stages::memory::{FLOAT, TRAINED};
+use rlmflow_stages::{Footprint, InWorker, InputOutlines, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
+
+/// The most bytes of frozen-encoder tokens `pup` caches for every frame; beyond, it encodes each
+/// batch's frames as it trains.
+pub const TOKEN_CACHE_BYTES: u64 = 2 << 30;
 use serde::{Deserialize, Serialize};
 
 /// The binary the segmenters run in.
@@ -148,14 +153,73 @@ impl UnetSettings {
     }
 }
 
+/// The decoder widths of the paper's PUP table (768 -> 256 -> 256 -> 128 -> 64), one stage per
+/// doubling of `grid` up to `side`: the table's last stages when fewer are needed, 256 wide
+/// stages first when more are.
+pub fn pup_widths(grid: i64, side: i64) -> Vec<i64> {
+    let mut stages = 0usize;
+    while grid << stages < side {
+        stages += 1;
+    }
+    let paper = [256, 256, 128, 64];
+    let extra = stages.saturating_sub(paper.len());
+    std::iter::repeat_n(256, extra).chain(paper[paper.len() - (stages - extra)..].iter().copied()).collect()
+}
+
+/// The frozen encoder held once (its tokens cached for every frame up to the worker's 2 GiB, else
+/// encoded per batch), and the decoder trained on `batch` frames: per frame the token map, each
+/// stage's convolution, BatchNorm and ReLU outputs and its upsampling, the full-size logits.
+fn pup_footprint(s: &PupSettings, inputs: &InputOutlines) -> Option<Footprint> {
+    let scenes = Outline::passed_on(inputs);
+    let (side, model) = (scenes.image?, Outline::of(inputs, "encoder")?.model?);
+    let widths = if s.channels.is_empty() { pup_widths(model.grid as i64, side as i64) } else { s.channels.clone() };
+    let (mut input, mut grid, mut decoder, mut per_frame) = (model.width, model.grid, 0, (model.grid * model.grid + 1) * model.width);
+    for &w in &widths {
+        let w = w as u64;
+        decoder += 9 * input * w + 2 * w;
+        per_frame += 3 * w * grid * grid + w * 4 * grid * grid;
+        (input, grid) = (w, 2 * grid);
+    }
+    decoder += input + 1;
+    per_frame += 4 * side * side;
+    let tokens = scenes.frames.unwrap_or(0) * (model.grid * model.grid + 1) * model.width * FLOAT;
+    // Beyond the cache each micro-batch is encoded without gradients: one block's tokens and
+    // MLP units (4 x width) at a time.
+    let encoded = (model.grid * model.grid + 1) * 12 * model.width;
+    let cached = if tokens <= TOKEN_CACHE_BYTES { tokens } else { s.training.micro_batch() * encoded * FLOAT };
+    let peak_bytes = model.parameters * FLOAT + decoder * TRAINED + cached + per_frame * s.training.micro_batch() * FLOAT;
+    Some(Footprint { parameters: model.parameters + decoder, peak_bytes, lower_with: "`accumulate` (the same gradient) or `batch`" })
+}
+
+/// The U-Net trained on `batch` frames: per frame each level's two convolutions with their
+/// BatchNorm and ReLU outputs going down, pooled, and coming back up with the skip joined.
+fn unet_footprint(s: &UnetSettings, inputs: &InputOutlines) -> Option<Footprint> {
+    let side = Outline::passed_on(inputs).image?;
+    let widths: Vec<u64> = s.channels.iter().map(|&w| w as u64).collect();
+    let (mut parameters, mut per_frame, mut input) = (0, side * side, 1);
+    for (level, &w) in widths.iter().enumerate() {
+        let area = (side >> level) * (side >> level);
+        parameters += 9 * input * w + 2 * w + 9 * w * w + 2 * w;
+        per_frame += 6 * w * area + w * area / 4;
+        if let Some(&below) = widths.get(level + 1) {
+            parameters += 9 * (w + below) * w + 2 * w + 9 * w * w + 2 * w;
+            per_frame += (below + w + below) * area + 6 * w * area;
+        }
+        input = w;
+    }
+    parameters += widths[0] + 1;
+    per_frame += 4 * side * side;
+    Some(Footprint { parameters, peak_bytes: parameters * TRAINED + per_frame * s.training.micro_batch() * FLOAT, lower_with: "`accumulate` (the same gradient) or `batch`" })
+}
+
 /// `pup` as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn pup() -> InWorker<PupSettings> {
-    InWorker { spec: pup_spec(), worker: WORKER, resources: pup_resources, outline: |s, inputs| s.training.outline(inputs) }
+    InWorker { spec: pup_spec(), worker: WORKER, resources: pup_resources, outline: |s, inputs| s.training.outline(inputs), footprint: pup_footprint }
 }
 
 /// `unet` as `rlmflow` registers it.
 pub fn unet() -> InWorker<UnetSettings> {
-    InWorker { spec: unet_spec(), worker: WORKER, resources: unet_resources, outline: unet_outline }
+    InWorker { spec: unet_spec(), worker: WORKER, resources: unet_resources, outline: unet_outline, footprint: unet_footprint }
 }
 
 #[cfg(test)]
@@ -163,6 +227,15 @@ mod tests {
     use rlmflow_stages::DynOperator;
 
     use super::*;
+
+    #[test]
+    fn pup_widths_follow_the_paper_table() {
+        assert_eq!(pup_widths(14, 224), [256, 256, 128, 64], "vit-b16: 14 -> 224, four doublings");
+        assert_eq!(pup_widths(8, 64), [256, 128, 64]);
+        assert_eq!(pup_widths(4, 32), [256, 128, 64]);
+        assert_eq!(pup_widths(2, 64), [256, 256, 256, 128, 64]);
+        assert_eq!(pup_widths(7, 50), [256, 128, 64], "7 -> 56, resized to 50");
+    }
 
     #[test]
     fn impossible_settings_name_their_key() {

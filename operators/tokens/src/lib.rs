@@ -16,7 +16,7 @@ use rlmflow_stages::identity::FrameSet;
 use rlmflow_stages::labels::Split;
 use rlmflow_stages::npy::{Dtype, NpyWriter};
 use rlmflow_stages::tokens::{self, Special};
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, SettingError, Settings};
+use rlmflow_stages::{Context, InputOutlines, Operator, OperatorSpec, Outcome, Outline, Resources, SettingError, Settings};
 use serde::{Deserialize, Serialize};
 use tokenizers::models::bpe::{BPE, BpeTrainerBuilder};
 use tokenizers::pre_tokenizers::byte_level::ByteLevel;
@@ -74,6 +74,10 @@ impl Operator for Bpe {
 
     fn resources(&self, _: &BpeSettings) -> Resources {
         Resources { threads: usize::MAX, ..Resources::default() }
+    }
+
+    fn outline(&self, s: &BpeSettings, inputs: &InputOutlines) -> Result<Outline, SettingError> {
+        Ok(Outline { context: Some(s.context as u64), vocab: Some(s.vocab as u64), ..Outline::passed_on(inputs) })
     }
 
     fn run(&self, s: &BpeSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {

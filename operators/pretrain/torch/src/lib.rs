@@ -135,7 +135,15 @@ fn write_artifact(
 ) -> anyhow::Result<Outcome> {
     let out = &ctx.output_dir;
     write_weights(vs, &out.join(encoder::WEIGHTS))?;
-    std::fs::write(out.join(encoder::CONFIG), serde_json::to_vec_pretty(config)?)?;
+    let mut config_json = serde_json::to_value(config)?;
+    config_json["open_clip"] = match config.open_clip() {
+        Ok(open_clip) => {
+            std::fs::write(out.join(encoder::OPEN_CLIP), serde_json::to_vec_pretty(&open_clip)?)?;
+            json!(encoder::OPEN_CLIP)
+        }
+        Err(why) => json!(format!("open_clip cannot build this model: {why}")),
+    };
+    std::fs::write(out.join(encoder::CONFIG), serde_json::to_vec_pretty(&config_json)?)?;
     let lines: String = log.iter().map(|l| format!("{l}\n")).collect();
     std::fs::write(out.join(encoder::LOG), lines)?;
     let mut last = log.last().cloned().unwrap_or(Value::Null);
@@ -262,7 +270,7 @@ mod tests {
     use super::*;
 
     fn tiny() -> (nn::VarStore, Model) {
-        let vision = VisionConfig { image: 32, stem: Stem::Patch { size: 16 }, width: 16, layers: 1, heads: 2, mlp: 32, head: Head::Linear };
+        let vision = VisionConfig { image: 32, stem: Stem::Patch { size: 16 }, width: 16, layers: 1, heads: 2, mlp: 32, head: Head::Linear, quick_gelu: false };
         let config = ModelConfig { embed: 8, vision, text: None, counts_head: 0 };
         let vs = nn::VarStore::new(tch::Device::Cpu);
         let model = Model::new(&vs.root(), &config, 0.07, false);

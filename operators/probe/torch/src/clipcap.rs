@@ -50,7 +50,7 @@ impl Operator for Clipcap {
 
 /// The decoder a preset names.
 fn decoder_config(s: &ClipcapSettings, vocab: i64, context: i64) -> GptConfig {
-    let (width, layers, heads) = if s.decoder == "gpt2" { (768, 12, 12) } else { (128, 2, 4) };
+    let (width, layers, heads) = s.decoder_shape();
     GptConfig { vocab, positions: s.prefix + context, width, layers, heads, mlp: 4 * width }
 }
 

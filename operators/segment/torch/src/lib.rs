@@ -12,10 +12,10 @@
 
 use rlmflow_nn::clip::{self, Clip as Model};
 use rlmflow_nn::data::{Frames, Need, Splits};
-use rlmflow_nn::segment::{Pup as PupHead, UNet, dice_bce_loss, pup_widths};
+use rlmflow_nn::segment::{Pup as PupHead, UNet, dice_bce_loss};
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
 use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
-use rlmflow_segment::{PupSettings, UnetSettings};
+use rlmflow_segment::{PupSettings, TOKEN_CACHE_BYTES, UnetSettings, pup_widths};
 use rlmflow_stages::labels::Split;
 use rlmflow_stages::npy::{Dtype, NpyWriter};
 use rlmflow_stages::segment::{self, PixelCounts, SegMetrics};
@@ -23,7 +23,6 @@ use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Traini
 use serde_json::{Value, json};
 
 /// Frozen-encoder tokens up to this size are computed once for every frame.
-pub const TOKEN_CACHE_BYTES: i64 = 2 << 30;
 /// Frames per forward pass when scoring or encoding.
 const CHUNK: usize = 256;
 
@@ -131,7 +130,7 @@ impl<'a> Tokens<'a> {
         let count = frames.len() as i64;
         let bytes = count * (v.grid() * v.grid() + 1) * v.width * 4;
         let mut tokens = Tokens { encoder, frames, device, table: None };
-        if bytes <= TOKEN_CACHE_BYTES {
+        if bytes as u64 <= TOKEN_CACHE_BYTES {
             let all: Vec<usize> = (0..frames.len()).collect();
             let progress = ctx.progress(count as u64, "frames encoded");
             let parts: Vec<Tensor> = all

@@ -1,0 +1,75 @@
+//! What a training action will hold in memory at its peak, estimated from model shapes alone
+//! before it runs: `rlmflow run --dry-run` and `status` show it, and a run refuses a stage whose
+//! estimate exceeds its device's memory.
+//!
+//! The estimate counts what dominates, in float32: every weight (4 bytes); for trained weights
+//! also the gradient and AdamW's two moments (16 bytes a parameter in all); and the activations
+//! a training step keeps for its backward pass, per sample, times the samples a step holds at
+//! once (the batch, or the chunk under gradient caching). Transient buffers, the allocator's
+//! slack and the CUDA context are not counted: the refusal leaves [`HEADROOM`] of the device
+//! for them.
+
+use serde::Serialize;
+
+pub const FLOAT: u64 = 4;
+/// Bytes per trained parameter: the weight, its gradient and AdamW's two moments.
+pub const TRAINED: u64 = 4 * FLOAT;
+/// The share of a device's memory an estimate may fill.
+pub const HEADROOM: f64 = 0.9;
+
+/// An action's estimate, as `--dry-run` shows it.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Footprint {
+    /// Parameters of every model the action holds, trained or frozen.
+    pub parameters: u64,
+    /// Estimated peak bytes on the device it trains on.
+    pub peak_bytes: u64,
+    /// The settings that lower the estimate, for the refusal: "`chunk` or `batch`".
+    pub lower_with: &'static str,
+}
+
+/// A stack of pre-LN residual blocks (attention and an MLP of `mlp` units), as `rlmflow-nn`
+/// builds them.
+pub struct Blocks {
+    pub width: u64,
+    pub layers: u64,
+    pub mlp: u64,
+    /// QuickGELU keeps two more tensors of the MLP's width than GELU.
+    pub quick_gelu: bool,
+}
+
+impl Blocks {
+    pub fn parameters(&self) -> u64 {
+        let (w, m) = (self.width, self.mlp);
+        let attention = 3 * w * w + 3 * w + w * w + w;
+        let mlp = w * m + m + m * w + w;
+        let norms = 4 * w;
+        self.layers * (attention + mlp + norms)
+    }
+
+    /// Floats a training step keeps per sample of `tokens` tokens: per block and token the two
+    /// LayerNorms' inputs and outputs, the queries, keys and values, the attention output and
+    /// the MLP's hidden units before and after the activation (fused attention keeps no tokens x
+    /// tokens map).
+    pub fn activations(&self, tokens: u64) -> u64 {
+        let hidden = if self.quick_gelu { 4 } else { 2 };
+        self.layers * tokens * (8 * self.width + hidden * self.mlp)
+    }
+}
+
+/// The parameters of a linear layer with bias.
+pub fn linear(input: u64, output: u64) -> u64 {
+    input * output + output
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn block_parameters_match_a_hand_count_of_vit_b16() {
+        // ViT-B/16's 12 blocks hold 85.05 M parameters (open_clip: 85,054,464).
+        let blocks = Blocks { width: 768, layers: 12, mlp: 3072, quick_gelu: false };
+        assert_eq!(blocks.parameters(), 85_054_464);
+    }
+}
