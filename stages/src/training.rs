@@ -150,9 +150,19 @@ mod tests {
     }
 
     #[test]
+    fn accumulate_must_divide_the_batch() {
+        let key = |batch, accumulate| Training { batch, accumulate, ..Training::default() }.check().err().map(|e| e.key);
+        assert_eq!(key(64, 4), None);
+        assert_eq!(Training { batch: 64, accumulate: 4, ..Training::default() }.micro_batch(), 16);
+        assert_eq!(key(64, 5).as_deref(), Some("accumulate"));
+        assert_eq!(key(64, 0).as_deref(), Some("accumulate"));
+        assert_eq!(key(4, 8).as_deref(), Some("accumulate"));
+    }
+
+    #[test]
     fn a_device_is_a_string_in_settings() {
         let t: Training = serde_json::from_value(serde_json::json!({
-            "epochs": 1, "batch": 2, "lr": 0.1, "warmup_epochs": 0.0, "warmup_lr": 0.0, "min_lr": 0.0, "betas": [0.9, 0.99],
+            "epochs": 1, "batch": 2, "accumulate": 1, "lr": 0.1, "warmup_epochs": 0.0, "warmup_lr": 0.0, "min_lr": 0.0, "betas": [0.9, 0.99],
             "eps": 1e-8, "weight_decay": 0.0, "clip_norm": 1.0, "device": "cuda:1", "threads": 1
         }))
         .unwrap();

@@ -39,7 +39,9 @@ const TEST_KINDS: &[StageKind] = &[
 fn trace(line: String) {
     if let Ok(path) = std::env::var("RLMFLOW_TEST_TRACE") {
         let mut f = OpenOptions::new().create(true).append(true).open(path).expect("trace file");
-        writeln!(f, "{line} pid={}", std::process::id()).unwrap();
+        // One write per line: concurrent processes append whole lines (`writeln!` writes each
+        // piece of its format separately, and two processes' pieces interleaved).
+        f.write_all(format!("{line} pid={}\n", std::process::id()).as_bytes()).unwrap();
     }
 }
 
