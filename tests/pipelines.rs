@@ -238,6 +238,7 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     let objects = dir.join(".rlmflow/objects");
     the_report_holds_every_probe(&objects);
     a_local_hyperqueue_cluster_gives_the_same_keys_and_bytes(&dir, stages);
+    a_fresh_store_pulls_every_stage_from_a_remote_and_computes_nothing(&dir, &first);
 
     // One probe setting changed: only that probe's instances and the report run again.
     let edited =
@@ -263,6 +264,35 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     });
     every_caption_parses_to_its_labels(&labels, &captions);
     python_tokenizers_gives_the_same_ids(&captions, &tokens);
+}
+
+/// `rlmflow push` of the CI pipeline's results to a directory remote; a fresh store beside it
+/// then computes nothing: every stage is pulled, with the output digests of the run that
+/// computed them.
+fn a_fresh_store_pulls_every_stage_from_a_remote_and_computes_nothing(local: &Path, computed: &str) {
+    let remote = format!("file://{}", local.with_extension("remote").display());
+    let (ok, out) = rlmflow(local, &["push", "ci.toml", "--remote", &remote]);
+    assert!(ok, "{out}");
+    let fresh = local.with_extension("pulled");
+    let _ = std::fs::remove_dir_all(&fresh);
+    std::fs::create_dir_all(&fresh).unwrap();
+    std::fs::copy(local.join("ci.toml"), fresh.join("ci.toml")).unwrap();
+    let (ok, pulled) = rlmflow(&fresh, &["run", "ci.toml", "--json", "--remote", &remote]);
+    assert!(ok, "{pulled}");
+    let outputs = |log: &str, status: &str| -> Vec<(String, String)> {
+        let mut v: Vec<(String, String)> = log
+            .lines()
+            .filter(|l| l.contains("\"stage_finished\"") && l.contains(&format!("\"status\":\"{status}\"")))
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .map(|e| (e["stage"].as_str().unwrap().to_owned(), e["output"].as_str().unwrap().to_owned()))
+            .collect();
+        v.sort();
+        v
+    };
+    assert_eq!(outputs(&pulled, "pulled"), outputs(computed, "ran"), "pulled everything, the same digests: {pulled}");
+    let (ok, verify) = rlmflow(&fresh, &["verify", "ci.toml"]);
+    assert!(ok, "{verify}");
+    std::fs::remove_dir_all(&fresh).unwrap();
 }
 
 /// `examples/ci.toml` run in `local` (by the local executor) again through a local HyperQueue

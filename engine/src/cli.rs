@@ -26,6 +26,31 @@ struct StoreArg {
     cache: Option<PathBuf>,
 }
 
+#[derive(clap::Args)]
+struct RemoteArg {
+    /// The remote cache, overriding `[pipeline] remote`: s3://bucket/prefix (the standard AWS_*
+    /// variables, AWS_ENDPOINT_URL for a non-AWS server), https://host/path (WebDAV) or
+    /// file:///path.
+    #[arg(long, value_name = "URL")]
+    remote: Option<String>,
+    /// Upload computed results to the remote cache (`[pipeline] remote_push = true`): for
+    /// trusted writers only, such as CI on the main branch.
+    #[arg(long)]
+    push: bool,
+}
+
+impl RemoteArg {
+    /// The pipeline's remote settings with the flags over them; `None` without a URL.
+    fn settings(&self, p: &Pipeline) -> Option<config::RemoteSettings> {
+        let mut settings = p.remote.clone();
+        if let Some(url) = &self.remote {
+            settings.url = Some(config::resolve_remote(url, Path::new(".")));
+        }
+        settings.push |= self.push;
+        settings.url.is_some().then_some(settings)
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Run a pipeline, reusing every stage whose inputs and settings are unchanged.
@@ -61,14 +86,40 @@ enum Command {
         check_determinism: Vec<String>,
         #[command(flatten)]
         store: StoreArg,
+        #[command(flatten)]
+        remote: RemoteArg,
     },
-    /// Show each stage as cached, will run (and why) or pending.
+    /// Show each stage as cached, will run (and why) or pending, and which ones the remote cache
+    /// holds.
     Status {
         pipeline: PathBuf,
         #[arg(long)]
         json: bool,
         #[command(flatten)]
         store: StoreArg,
+        #[command(flatten)]
+        remote: RemoteArg,
+    },
+    /// Upload every cached result of a pipeline (or of `--only` stages) to the remote cache.
+    Push {
+        pipeline: PathBuf,
+        #[arg(long, value_name = "STAGE")]
+        only: Vec<String>,
+        #[command(flatten)]
+        store: StoreArg,
+        #[command(flatten)]
+        remote: RemoteArg,
+    },
+    /// Download from the remote cache every result of a pipeline (or of `--only` stages and
+    /// what they need) that the local store lacks and the remote holds.
+    Pull {
+        pipeline: PathBuf,
+        #[arg(long, value_name = "STAGE")]
+        only: Vec<String>,
+        #[command(flatten)]
+        store: StoreArg,
+        #[command(flatten)]
+        remote: RemoteArg,
     },
     /// Show what changed in a stage's preimage since its last run.
     Explain {
@@ -164,13 +215,49 @@ pub fn main(registry: Registry) -> ExitCode {
     }
 }
 
+fn open_remote(settings: &config::RemoteSettings) -> anyhow::Result<rlmflow_remote::Remote> {
+    let url = settings.url.as_deref().context("no remote cache URL")?;
+    rlmflow_remote::Remote::open(url, settings.push, std::time::Duration::from_secs_f64(settings.timeout_s))
+}
+
+/// Downloads the selected instances' results the local store lacks, providers first: a
+/// consumer's key is known once its inputs' outputs are. Returns the results and bytes pulled.
+fn pull(plan: &crate::plan::Plan, registry: &Registry, store: &Store, remote: &rlmflow_remote::Remote, selected: &[bool]) -> anyhow::Result<(usize, u64)> {
+    let mut outputs: Vec<Option<Digest>> = vec![None; plan.instances.len()];
+    let (mut pulled, mut bytes) = (0, 0);
+    for (i, inst) in plan.instances.iter().enumerate() {
+        let Some(key) = plan.preimage(i, registry, &outputs).map(|p| p.key()) else { continue };
+        if let Some(record) = store.fresh(&key)? {
+            outputs[i] = Some(record.output);
+            continue;
+        }
+        if !selected[i] {
+            continue;
+        }
+        match remote.pull(store, &key)? {
+            rlmflow_remote::Pulled::Hit { record, bytes: b, .. } => {
+                println!("  pulled   {}  {:.1} MB", inst.label, b as f64 / 1e6);
+                outputs[i] = Some(record.output);
+                pulled += 1;
+                bytes += b;
+            }
+            rlmflow_remote::Pulled::Miss => println!("  missing  {}", inst.label),
+            rlmflow_remote::Pulled::Corrupt { why } => println!("  corrupt  {}  the remote's copy is not used: {why}", inst.label),
+        }
+        if let Some(why) = remote.down() {
+            bail!("remote cache {}: {why}", remote.url());
+        }
+    }
+    Ok((pulled, bytes))
+}
+
 fn store_root(pipeline: &Pipeline, arg: &StoreArg) -> PathBuf {
     arg.cache.clone().unwrap_or_else(|| pipeline.cache.clone())
 }
 
 fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
     match command {
-        Command::Run { pipeline, dry_run, only, jobs, executor, json, device, verify_inputs, check_determinism, store } => {
+        Command::Run { pipeline, dry_run, only, jobs, executor, json, device, verify_inputs, check_determinism, store, remote } => {
             let mut p = config::load(&pipeline, registry)?;
             if let Some(name) = executor {
                 p.executor = config::Executor::parse(&name)
@@ -183,7 +270,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let runs = crate::run::will_run(&plan, registry, existing.as_ref(), &selected)?;
             let fits = crate::footprint::fits(&plan, registry, device, &runs);
             if dry_run {
-                print_status(&plan, registry, existing.as_ref(), &selected, &fits, json)?;
+                print_status(&plan, registry, existing.as_ref(), &selected, &fits, None, json)?;
                 print_warnings(existing.as_ref());
                 if p.executor == config::Executor::Local {
                     crate::footprint::refuse_oversized(&plan, &fits)?;
@@ -203,7 +290,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 crate::footprint::refuse_oversized(&plan, &fits)?;
             }
             let store = Store::open(&root)?;
-            let opts = RunOptions { jobs, json, device, verify_inputs };
+            let opts = RunOptions { jobs, json, device, verify_inputs, remote: remote.settings(&p) };
             if !check_determinism.is_empty() {
                 let same = crate::determinism::check(&plan, registry, &store, &check_determinism, &opts)?;
                 print_warnings(Some(&store));
@@ -213,15 +300,52 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             print_warnings(Some(&store));
             Ok(if summary.failed > 0 { ExitCode::FAILURE } else { ExitCode::SUCCESS })
         }
-        Command::Status { pipeline, json, store } => {
+        Command::Status { pipeline, json, store, remote } => {
             let p = config::load(&pipeline, registry)?;
             let plan = plan(&p);
             let store = Store::open_existing(&store_root(&p, &store))?;
             let all = vec![true; plan.instances.len()];
             let runs = crate::run::will_run(&plan, registry, store.as_ref(), &all)?;
             let fits = crate::footprint::fits(&plan, registry, rlmflow_stages::Device::Auto, &runs);
-            print_status(&plan, registry, store.as_ref(), &all, &fits, json)?;
+            let remote = remote.settings(&p).map(|r| open_remote(&r)).transpose()?;
+            print_status(&plan, registry, store.as_ref(), &all, &fits, remote.as_ref(), json)?;
+            if let Some(why) = remote.as_ref().and_then(|r| r.down()) {
+                eprintln!("warning: remote cache {} not asked: {why}", remote.as_ref().map_or("", |r| r.url()));
+            }
             print_warnings(store.as_ref());
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Push { pipeline, only, store, remote } => {
+            let p = config::load(&pipeline, registry)?;
+            let plan = plan(&p);
+            let selected = plan.select(&only)?;
+            let store = Store::open_existing(&store_root(&p, &store))?.context("the pipeline has not run yet; nothing to push")?;
+            let settings = remote.settings(&p).context("no remote cache: set `[pipeline] remote` or give --remote")?;
+            let remote = open_remote(&config::RemoteSettings { push: true, ..settings })?;
+            let (mut pushed, mut bytes) = (0, 0);
+            for (i, state) in assess(&plan, registry, Some(&store))?.iter().enumerate().filter(|(i, _)| selected[*i]) {
+                let Freshness::Cached(record) = state else { continue };
+                let sent = remote.push(&store, record, false)?;
+                if let Some(why) = remote.down() {
+                    bail!("remote cache {}: {why}", remote.url());
+                }
+                let sent = sent.unwrap_or(0);
+                println!("  {}  {}  {:.1} MB", if sent > 0 { "pushed" } else { "held  " }, plan.instances[i].label, sent as f64 / 1e6);
+                pushed += usize::from(sent > 0);
+                bytes += sent;
+            }
+            println!("push: {pushed} results uploaded ({:.1} MB) to {}", bytes as f64 / 1e6, remote.url());
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Pull { pipeline, only, store, remote } => {
+            let p = config::load(&pipeline, registry)?;
+            let plan = plan(&p);
+            let selected = plan.select(&only)?;
+            let store = Store::open(&store_root(&p, &store))?;
+            let settings = remote.settings(&p).context("no remote cache: set `[pipeline] remote` or give --remote")?;
+            let remote = open_remote(&settings)?;
+            let (pulled, bytes) = pull(&plan, registry, &store, &remote, &selected)?;
+            println!("pull: {pulled} results downloaded ({:.1} MB) from {}", bytes as f64 / 1e6, remote.url());
             Ok(ExitCode::SUCCESS)
         }
         Command::Explain { pipeline, stage, store } => explain(registry, &pipeline, &stage, &store),

