@@ -202,6 +202,17 @@ fn free_port() -> u16 {
     TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
 }
 
+/// A free port whose gRPC twin (10,000 above, as SeaweedFS takes it) is free too.
+fn free_weed_port() -> u16 {
+    loop {
+        let port: u16 = rand::random_range(20_000..50_000);
+        let free = |p: u16| TcpListener::bind(("127.0.0.1", p)).is_ok();
+        if free(port) && free(port + 10_000) {
+            return port;
+        }
+    }
+}
+
 /// A child process killed when dropped.
 struct Server(Child);
 
@@ -223,8 +234,8 @@ fn http(method: &str, port: u16, path: &str) -> Option<u16> {
     answer.split_whitespace().nth(1)?.parse().ok()
 }
 
-/// Waits until a GET of `path` answers 2xx.
-fn wait_for(port: u16, path: &str, limit: Duration) {
+/// Waits until a GET of `path` answers 2xx; the server's log is shown if it does not.
+fn wait_for(port: u16, path: &str, limit: Duration, log: &Path) {
     let t0 = Instant::now();
     while t0.elapsed() < limit {
         if http("GET", port, path).is_some_and(|code| (200..300).contains(&code)) {
@@ -232,7 +243,8 @@ fn wait_for(port: u16, path: &str, limit: Duration) {
         }
         std::thread::sleep(Duration::from_millis(200));
     }
-    panic!("127.0.0.1:{port}{path} did not answer within {limit:?}");
+    let log = fs::read_to_string(log).unwrap_or_default();
+    panic!("127.0.0.1:{port}{path} did not answer within {limit:?}; its log ends:\n{}", &log[log.len().saturating_sub(3000)..]);
 }
 
 #[test]
@@ -243,18 +255,20 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
     // SeaweedFS: S3 on loopback, a bucket made with one PUT.
     let data = base.dir.join("weed");
     fs::create_dir_all(&data).unwrap();
-    let (master, volume, filer, s3) = (free_port(), free_port(), free_port(), free_port());
+    let (master, volume, filer, s3) = (free_weed_port(), free_weed_port(), free_weed_port(), free_weed_port());
     let mut weed = Server(
         Command::new(env.join("bin/weed"))
             .args(["server", "-s3", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", &format!("-dir={}", data.display())])
             .args([format!("-master.port={master}"), format!("-volume.port={volume}"), format!("-filer.port={filer}"), format!("-s3.port={s3}")])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
+            // Loopback only: no telemetry, and no side services on fixed default ports.
+            .args(["-master.telemetry=false", "-s3.port.iceberg=0", "-s3.port.lance=0"])
+            .stdout(fs::File::create(base.dir.join("weed.log")).unwrap())
+            .stderr(Stdio::from(fs::File::create(base.dir.join("weed.err")).unwrap()))
             .spawn()
             .unwrap(),
     );
     let endpoint = format!("http://127.0.0.1:{s3}");
-    wait_for(s3, "/", Duration::from_secs(60));
+    wait_for(s3, "/", Duration::from_secs(90), &base.dir.join("weed.err"));
     assert_eq!(http("PUT", s3, "/rlmflow"), Some(200), "creating the bucket");
     let s3_env = [
         ("AWS_ENDPOINT_URL", endpoint.as_str()),
@@ -301,12 +315,12 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
         Command::new(env.join("bin/wsgidav"))
             .args(["--host", "127.0.0.1", "--port", &port.to_string(), "--root", root.to_str().unwrap(), "--auth", "anonymous", "--no-config"])
             .stdout(Stdio::null())
-            .stderr(Stdio::null())
+            .stderr(fs::File::create(base.dir.join("dav.err")).unwrap())
             .spawn()
             .unwrap(),
     );
     let url = format!("http://127.0.0.1:{port}/");
-    wait_for(port, "/", Duration::from_secs(30));
+    wait_for(port, "/", Duration::from_secs(30), &base.dir.join("dav.err"));
     let pusher = Scratch::new("remote-dav-pusher");
     pusher.pipeline(CHAIN);
     let computed = pusher.run_expecting(0, &["--remote", &url, "--push"]);
@@ -317,4 +331,16 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
     let pulled = reader.run_expecting(0, &["--remote", &url]);
     assert_eq!(pulled.with_status("pulled").len(), 5, "{:?}", pulled.finished());
     assert_eq!(outputs(&pulled), outputs(&computed));
+}
+
+#[test]
+fn a_bad_remote_setting_is_a_config_error_naming_its_key() {
+    let s = Scratch::new("remote-config");
+    s.pipeline(&CHAIN.replace("seed = 7", "seed = 7\nremote = \"ftp://cache/rlmflow\"\nremote_timeout_s = 0.0"));
+    let out = s.cli(&["run", "p.toml"]);
+    let err = text(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("p.toml:5: pipeline.remote: `ftp://cache/rlmflow` is not a remote URL"), "{err}");
+    assert!(err.contains("pipeline.remote_timeout_s: must be a number of seconds in 0.1..=3600, not 0.0"), "{err}");
+    assert!(!s.store().join("objects").exists(), "nothing ran");
 }
