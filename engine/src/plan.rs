@@ -273,7 +273,8 @@ pub fn assess(plan: &Plan, registry: &Registry, store: Option<&Store>) -> anyhow
                     }
                     None => {
                         let stage = &plan.pipeline.stages[inst.stage].name;
-                        let reasons = why(store, last.get(&inst.label), &key, &preimage, stage)?;
+                        let resumes = registry.get(&inst.operator).expect("validated operator").resumes_from();
+                        let reasons = why(store, last.get(&inst.label), &key, &preimage, stage, resumes)?;
                         Freshness::Stale { key, reasons, preimage: Box::new(preimage) }
                     }
                 }
@@ -293,15 +294,16 @@ pub fn assess(plan: &Plan, registry: &Registry, store: Option<&Store>) -> anyhow
     Ok(states)
 }
 
-/// Why an action with `key` is not in the store, compared with the stage's last run.
-pub fn why(store: Option<&Store>, last: Option<&Digest>, key: &Digest, now: &Preimage, stage: &str) -> anyhow::Result<Vec<String>> {
+/// Why an action with `key` is not in the store, compared with the stage's last run; `resumes`
+/// is what its operator resumes from when interrupted.
+pub fn why(store: Option<&Store>, last: Option<&Digest>, key: &Digest, now: &Preimage, stage: &str, resumes: &str) -> anyhow::Result<Vec<String>> {
     let (Some(store), Some(last)) = (store, last) else {
         return Ok(vec!["never run".into()]);
     };
     if last == key {
         return Ok(vec![match store.record(key)? {
             Some(_) => "its output is gone (quarantined by verify, or collected)".into(),
-            None if store.checkpoint_dir(key).is_dir() => "interrupted; resumes from its checkpoint".into(),
+            None if store.checkpoint_dir(key).is_dir() => format!("interrupted; resumes from {resumes}"),
             None => "its last attempt did not finish".into(),
         }]);
     }

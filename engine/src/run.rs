@@ -433,7 +433,8 @@ impl Executor<'_> {
             }
             let inst = &self.plan.instances[i];
             let stage = &self.plan.pipeline.stages[inst.stage];
-            let reasons = why(Some(self.store), self.last.get(&inst.label), &key, &preimage, &stage.name)?;
+            let resumes = self.registry.get(&inst.operator).expect("validated operator").resumes_from();
+            let reasons = why(Some(self.store), self.last.get(&inst.label), &key, &preimage, &stage.name, resumes)?;
             self.ui.say(format!("  run      {}  ({})", inst.label, reasons.join("; ")));
             self.events.write("stage_planned", json!({"stage": inst.label, "key": key, "reasons": reasons}))?;
             self.write_request(i, key, preimage)?;

@@ -21,6 +21,18 @@ pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'stat
     fn check(&self) -> Result<(), SettingError> {
         Ok(())
     }
+
+    /// The settings as an artifact may record them: without [`Settings::NON_RESULT`], which the
+    /// key does not cover, so the artifact's bytes stay a function of its key.
+    fn result_settings(&self) -> Value {
+        let mut value = serde_json::to_value(self).expect("settings serialise to JSON");
+        if let Value::Object(map) = &mut value {
+            for key in Self::NON_RESULT {
+                map.remove(*key);
+            }
+        }
+        value
+    }
 }
 
 /// A setting that is invalid: its dotted key (relative to the stage table) and what is valid.
@@ -204,6 +216,11 @@ pub trait Operator: Send + Sync + 'static {
         None
     }
 
+    /// What an interrupted action resumes from, as `status` says it.
+    fn resumes_from(&self) -> &'static str {
+        "its checkpoint"
+    }
+
     fn run(&self, settings: &Self::Settings, ctx: &mut Context) -> anyhow::Result<Outcome>;
 }
 
@@ -322,6 +339,7 @@ pub trait DynOperator: Send + Sync {
     /// The output's outline for valid `settings` and the inputs' outlines.
     fn outline(&self, settings: &Value, inputs: &InputOutlines) -> Result<Outline, SettingError>;
     fn footprint(&self, settings: &Value, inputs: &InputOutlines) -> Option<Footprint>;
+    fn resumes_from(&self) -> &'static str;
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome>;
 }
 
@@ -381,6 +399,10 @@ impl<O: Operator> DynOperator for O {
         Operator::footprint(self, &parse_settings::<O::Settings>(settings.clone()).ok()?, inputs)
     }
 
+    fn resumes_from(&self) -> &'static str {
+        Operator::resumes_from(self)
+    }
+
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome> {
         let typed = parse_settings::<O::Settings>(settings.clone()).map_err(|e| anyhow::anyhow!("invalid settings: {e}"))?;
         Operator::run(self, &typed, ctx)
@@ -428,7 +450,15 @@ fn deserialize<S: Settings>(value: Value) -> Result<S, SettingError> {
         let key = e.path().to_string();
         let message = e.inner().to_string();
         match unknown_field(&message) {
-            Some((field, valid)) => SettingError { key, message: format!("unknown setting `{field}`"), valid },
+            Some((field, valid)) => {
+                // Only what a user may set: fields the defaults show (an internal one such as a
+                // shard's share is skipped while unset).
+                let defaults = serde_json::to_value(S::default()).expect("settings serialise to JSON");
+                let parent = key.rsplit_once('.').map_or("", |(parent, _)| parent);
+                let shown = parent.split('.').filter(|p| !p.is_empty()).try_fold(&defaults, |v, p| v.get(p));
+                let valid = valid.into_iter().filter(|k| shown.is_none_or(|shown| shown.get(k).is_some())).collect();
+                SettingError { key, message: format!("unknown setting `{field}`"), valid }
+            }
             None => SettingError::new(if key == "." { String::new() } else { key }, not_finite(&message).unwrap_or(message)),
         }
     })
@@ -547,6 +577,20 @@ mod tests {
         let e = DemoOp.settings(serde_json::json!({"nested": {"imag": 3}})).unwrap_err();
         assert_eq!(e.key, "nested.imag");
         assert_eq!(e.valid, vec!["image"]);
+    }
+
+    #[test]
+    fn an_internal_setting_is_not_offered_as_a_valid_key() {
+        #[derive(Debug, Serialize, Deserialize, Default)]
+        #[serde(default, deny_unknown_fields)]
+        struct Sharded {
+            frames: u64,
+            #[serde(skip_serializing_if = "Option::is_none")]
+            shard: Option<u64>,
+        }
+        impl Settings for Sharded {}
+        let e = parse_settings::<Sharded>(serde_json::json!({"frame": 3})).unwrap_err();
+        assert_eq!((e.key.as_str(), e.valid.clone()), ("frame", vec!["frames".to_owned()]));
     }
 
     #[test]

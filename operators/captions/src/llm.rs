@@ -66,6 +66,9 @@ pub struct LlmSettings {
     /// Times a frame's disagreeing captions are asked for again, 0..=10.
     pub regenerate: u32,
     pub on_mismatch: OnMismatch,
+    /// The least share of frames that must keep a caption, [0, 1]; below it the stage fails.
+    /// 1: any frame left without one is an error (lower it to allow drops).
+    pub min_captioned: f64,
     /// Requests in flight at once, 1..=256.
     pub concurrency: usize,
     /// Seconds a request may take, (0, 3600].
@@ -96,6 +99,7 @@ impl Default for LlmSettings {
             no_distance_numbers: 0.5,
             regenerate: 2,
             on_mismatch: OnMismatch::Drop,
+            min_captioned: 1.0,
             concurrency: 8,
             timeout_s: 120.0,
             retries: 6,
@@ -128,6 +132,9 @@ impl Settings for LlmSettings {
         SettingError::check_range("retries", self.retries, 0..=20)?;
         if !(1..=128).contains(&self.n) {
             return err("n", format!("must be in 1..=128, not {}", self.n));
+        }
+        if !(0.0..=1.0).contains(&self.min_captioned) {
+            return err("min_captioned", format!("must be in [0, 1], not {}", self.min_captioned));
         }
         if !(0.0..=1.0).contains(&self.no_distance_numbers) {
             return err("no_distance_numbers", format!("must be in [0, 1], not {}", self.no_distance_numbers));
@@ -225,6 +232,10 @@ impl Operator for Llm {
 
     /// A shard captions a share of the labelled frames; `concat-captions` joins the shares into
     /// the whole's bytes.
+    fn resumes_from(&self) -> &'static str {
+        "its response cache (the answers it already has)"
+    }
+
     fn sharding(&self) -> Option<Sharding<LlmSettings>> {
         Some(Sharding {
             unit: "frames",
@@ -283,15 +294,34 @@ impl Operator for Llm {
             statistics.add(&r.statistics);
         }
         let statistics = statistics.finish();
+        let captioned = frames.len() as u64 - statistics.frames_without_captions;
+        if (captioned as f64) < s.min_captioned * frames.len() as f64 {
+            bail!(
+                "{} of {} frames kept no caption ({} of {} answers faithful on first asking, {} cut off at max_tokens = {}, {} received of {} asked for); \
+                 raise `regenerate` or `max_tokens`, set `on_mismatch = \"keep\"`, or lower `min_captioned` (now {}) to allow frames without captions",
+                statistics.frames_without_captions,
+                frames.len(),
+                statistics.first_answers_faithful,
+                statistics.first_answers,
+                statistics.cut_off,
+                s.max_tokens,
+                statistics.received,
+                statistics.requested,
+                s.min_captioned
+            );
+        }
         let mut metrics = serde_json::to_value(&statistics).expect("statistics serialise");
         metrics["requests"] = client.stats.json();
         write_captions(&ctx.output_dir, frames.len() as u64, &captions, generator(s, &statistics))?;
         Ok(Outcome {
             summary: format!(
-                "{} captions for {} frames; {:.1}% faithful on first answer, {} regenerated, {} dropped, {} kept unfaithful; {}",
+                "{} captions for {} frames ({} received of {} asked for); {:.1}% faithful on first answer, {} cut off, {} regenerated, {} dropped, {} kept unfaithful; {}",
                 captions.len(),
                 frames.len(),
+                statistics.received,
+                statistics.requested,
                 100.0 * statistics.first_answer_fidelity,
+                statistics.cut_off,
                 statistics.regenerated,
                 statistics.dropped,
                 statistics.kept_mismatched,
@@ -302,11 +332,11 @@ impl Operator for Llm {
     }
 }
 
-/// The Captions summary's `generator`: the settings and what the captions cost and how faithful
-/// they were. How many requests this run sent or found cached is not in it (that depends on the
-/// response cache, not on the captions): it is in the action's metrics.
+/// The Captions summary's `generator`: the settings the key covers and what the captions cost
+/// and how faithful they were. How many requests this run sent or found cached is not in it
+/// (that depends on the response cache, not on the captions): it is in the action's metrics.
 fn generator(s: &LlmSettings, statistics: &Statistics) -> Value {
-    json!({"settings": s, "statistics": statistics})
+    json!({"settings": s.result_settings(), "statistics": statistics})
 }
 
 /// The `generator` of the whole when `parts` are the generators of every share of one `llm`
@@ -322,7 +352,7 @@ pub fn join_shares(parts: &[&Value]) -> Option<Value> {
         s.shard = None;
         match &settings {
             None => settings = Some(s),
-            Some(first) if serde_json::to_value(first).ok()? == serde_json::to_value(&s).ok()? => {}
+            Some(first) if first.result_settings() == s.result_settings() => {}
             Some(_) => return None,
         }
         total.add(&serde_json::from_value(part.get("statistics")?.clone()).ok()?);
@@ -349,8 +379,14 @@ struct Statistics {
     /// Captions in the first answer, and how many of them matched the grid.
     first_answers: u64,
     first_answers_faithful: u64,
-    /// Captions asked for again.
+    /// Captions asked for (every request's `n`, summed), and received (servers that ignore `n`
+    /// send fewer; the rest is asked for again).
+    requested: u64,
+    received: u64,
+    /// Captions asked for again because they disagreed with the grid or were cut off.
     regenerated: u64,
+    /// Answers that stopped at `max_tokens` (`finish_reason = "length"`): never faithful.
+    cut_off: u64,
     dropped: u64,
     kept_mismatched: u64,
     /// The tokens of every answer used, whether asked now or read from the response cache.
@@ -364,7 +400,10 @@ impl Statistics {
         self.frames_without_captions += other.frames_without_captions;
         self.first_answers += other.first_answers;
         self.first_answers_faithful += other.first_answers_faithful;
+        self.requested += other.requested;
+        self.received += other.received;
         self.regenerated += other.regenerated;
+        self.cut_off += other.cut_off;
         self.dropped += other.dropped;
         self.kept_mismatched += other.kept_mismatched;
         self.prompt_tokens += other.prompt_tokens;
@@ -377,7 +416,10 @@ impl Statistics {
     }
 }
 
-/// Asks for a frame's captions until `n` agree with its grid or the regenerations run out.
+/// Asks for a frame's captions until `n` agree with its grid or the regenerations run out. Within
+/// a round, choices a server did not send (one that ignores `n`) are asked for again, one
+/// request at a time at most as many times as were missing; each request has its own number,
+/// so the response cache tells them apart.
 fn caption_frame(s: &LlmSettings, label: &FrameLabel, seed: u64, client: &Client) -> anyhow::Result<FrameCaptions> {
     let mut rng = ChaCha8Rng::seed_from_u64(rlmflow_stages::item_seed(seed, label.frame));
     let no_numbers = rng.random_bool(s.no_distance_numbers);
@@ -385,24 +427,35 @@ fn caption_frame(s: &LlmSettings, label: &FrameLabel, seed: u64, client: &Client
     let mut out = FrameCaptions::default();
     let f = &mut out.statistics;
     let mut mismatched = Vec::new();
-    for attempt in 0..=s.regenerate {
+    let mut request = 0;
+    for round in 0..=s.regenerate {
         let needed = s.n - out.captions.len();
         if needed == 0 {
             break;
         }
-        if attempt > 0 {
+        if round > 0 {
             f.regenerated += needed as u64;
         }
-        let answer = client.complete(&request_body(s, &prompt, needed), attempt)?;
-        f.prompt_tokens += answer.prompt_tokens;
-        f.completion_tokens += answer.completion_tokens;
-        for caption in answer.captions.into_iter().take(needed) {
-            let ok = parse(&caption).grid == label.grid;
-            if attempt == 0 {
-                f.first_answers += 1;
-                f.first_answers_faithful += u64::from(ok);
+        let (mut answered, mut asks) = (0, 0);
+        while answered < needed && asks < needed {
+            let ask = needed - answered;
+            let answer = client.complete(&request_body(s, &prompt, ask), request)?;
+            (request, asks) = (request + 1, asks + 1);
+            f.requested += ask as u64;
+            f.prompt_tokens += answer.prompt_tokens;
+            f.completion_tokens += answer.completion_tokens;
+            let got: Vec<(String, bool)> = answer.captions.into_iter().take(ask).collect();
+            f.received += got.len() as u64;
+            answered += got.len();
+            for (caption, cut) in got {
+                f.cut_off += u64::from(cut);
+                let ok = !cut && parse(&caption).grid == label.grid;
+                if round == 0 {
+                    f.first_answers += 1;
+                    f.first_answers_faithful += u64::from(ok);
+                }
+                if ok { out.captions.push(caption) } else { mismatched.push(caption) }
             }
-            if ok { out.captions.push(caption) } else { mismatched.push(caption) }
         }
     }
     let missing = s.n - out.captions.len();
@@ -603,9 +656,10 @@ fn store(path: &Path, text: &str, answer: Answer) -> anyhow::Result<Answer> {
     }
 }
 
-/// A chat-completions answer: its captions (whitespace collapsed) and the tokens it cost.
+/// A chat-completions answer: its captions (whitespace collapsed), each with whether it was cut
+/// off at `max_tokens`, and the tokens it cost.
 struct Answer {
-    captions: Vec<String>,
+    captions: Vec<(String, bool)>,
     prompt_tokens: u64,
     completion_tokens: u64,
 }
@@ -617,10 +671,8 @@ impl Answer {
         let captions = choices
             .iter()
             .map(|c| {
-                c["message"]["content"]
-                    .as_str()
-                    .map(|t| t.split_whitespace().collect::<Vec<_>>().join(" "))
-                    .context("a choice without `message.content`")
+                let text = c["message"]["content"].as_str().context("a choice without `message.content`")?;
+                Ok((text.split_whitespace().collect::<Vec<_>>().join(" "), c["finish_reason"] == "length"))
             })
             .collect::<anyhow::Result<_>>()?;
         let usage = |key: &str| value["usage"][key].as_u64().unwrap_or(0);
@@ -657,6 +709,8 @@ mod tests {
     /// What the fake endpoint does with one request.
     enum Reply {
         Captions(usize),
+        /// Captions that stopped at `max_tokens` (`finish_reason = "length"`).
+        CutOff(usize),
         Status(u16, &'static str),
         Malformed,
         Slow(Duration),
@@ -739,6 +793,11 @@ mod tests {
             let (status, text, retry_after) = match script(number, &prompt, n) {
                 _ if auth != "Bearer sk-test" => (401, r#"{"error": {"message": "Incorrect API key provided"}}"#.to_owned(), ""),
                 Reply::Captions(k) => (200, answer(&prompt, k, wrong(&prompt)), ""),
+                Reply::CutOff(k) => {
+                    let mut cut: Value = serde_json::from_str(&answer(&prompt, k, false)).unwrap();
+                    cut["choices"].as_array_mut().unwrap().iter_mut().for_each(|c| c["finish_reason"] = json!("length"));
+                    (200, cut.to_string(), "")
+                }
                 Reply::Status(code, message) => (code, format!(r#"{{"error": {{"message": "{message}"}}}}"#), "Retry-After: 0\r\n"),
                 Reply::Malformed => (200, r#"{"choices": [{"message": "#.to_owned(), ""),
                 Reply::Slow(d) => {
@@ -1002,13 +1061,82 @@ mod tests {
         let path = root.join("cache").join("digest.json");
         let text = |caption: &str| json!({"choices": [{"message": {"content": caption}}]}).to_string();
         let first = text("From zero to ten meters,   there are no vehicles.");
-        assert_eq!(store(&path, &first, Answer::parse(&first).unwrap()).unwrap().captions, ["From zero to ten meters, there are no vehicles."]);
+        assert_eq!(store(&path, &first, Answer::parse(&first).unwrap()).unwrap().captions, [("From zero to ten meters, there are no vehicles.".to_owned(), false)]);
         // A second answer to the same request (sent at the same time by another frame) yields
         // the stored one, so both frames agree with what a rerun reads.
         let second = text("Close by, a single car is right in front of us.");
-        assert_eq!(store(&path, &second, Answer::parse(&second).unwrap()).unwrap().captions, ["From zero to ten meters, there are no vehicles."]);
+        assert_eq!(store(&path, &second, Answer::parse(&second).unwrap()).unwrap().captions, [("From zero to ten meters, there are no vehicles.".to_owned(), false)]);
         assert_eq!(std::fs::read_to_string(&path).unwrap(), first);
         assert_eq!(std::fs::read_dir(root.join("cache")).unwrap().count(), 1, "no scratch files left");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn a_server_that_ignores_n_is_asked_again_for_the_rest_and_counted_honestly() {
+        let root = scratch("ignores-n");
+        write_labels(&root, 4);
+        // llama.cpp's server answers one choice whatever `n` asks.
+        let server = FakeLlm::start(Box::new(|_, _, _| Reply::Captions(1)), Wrong::Never);
+        let s = LlmSettings { regenerate: 0, ..settings(&server, &root) };
+        let m = run(&root, &s).unwrap().metrics;
+        // Per frame: 3 asked, 1 came; 2 asked, 1 came; 1 asked, 1 came.
+        assert_eq!((m["captions"].as_u64(), m["requested"].as_u64(), m["received"].as_u64()), (Some(12), Some(24), Some(12)), "{m}");
+        assert_eq!(m["requests"]["sent"], 12, "{m}");
+        let bodies: Vec<u64> = server.bodies.lock().unwrap().iter().map(|b| b["n"].as_u64().unwrap()).collect();
+        assert_eq!(bodies.iter().filter(|&&n| n == 3).count(), 4);
+        // A rerun asks nothing: each of a frame's requests has its own cached answer.
+        let again = run(&root, &s).unwrap().metrics;
+        assert_eq!((again["requests"]["sent"].as_u64(), again["captions"].as_u64()), (Some(0), Some(12)), "{again}");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn answers_cut_off_at_max_tokens_are_never_faithful_and_are_counted() {
+        let root = scratch("cut-off");
+        write_labels(&root, 3);
+        // The first answer to each prompt is cut off.
+        let seen = Mutex::new(std::collections::HashSet::new());
+        let server = FakeLlm::start(
+            Box::new(move |_, prompt, n| if seen.lock().unwrap().insert(prompt.to_owned()) { Reply::CutOff(n) } else { Reply::Captions(n) }),
+            Wrong::Never,
+        );
+        let s = LlmSettings { regenerate: 1, ..settings(&server, &root) };
+        let m = run(&root, &s).unwrap().metrics;
+        // Each frame's first answer is cut off (template captions that would parse right): all
+        // three regenerated, and the second answers kept.
+        assert_eq!((m["cut_off"].as_u64(), m["first_answers_faithful"].as_u64(), m["regenerated"].as_u64()), (Some(9), Some(0), Some(9)), "{m}");
+        assert_eq!(m["captions"], 9, "{m}");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn frames_left_without_captions_fail_the_stage_unless_drops_are_allowed() {
+        let root = scratch("none-kept");
+        write_labels(&root, 4);
+        let server = FakeLlm::start(Box::new(|_, _, n| Reply::CutOff(n)), Wrong::Never);
+        let s = LlmSettings { regenerate: 1, ..settings(&server, &root) };
+        let e = run(&root, &s).unwrap_err().to_string();
+        assert!(e.starts_with("4 of 4 frames kept no caption (0 of 12 answers faithful on first asking, 24 cut off at max_tokens = 400"), "{e}");
+        assert!(e.contains("lower `min_captioned` (now 1)"), "{e}");
+        assert!(!root.join("out").join(captions::SUMMARY).exists(), "no partial artifact");
+        let allowed = run(&root, &LlmSettings { min_captioned: 0.0, ..s }).unwrap().metrics;
+        assert_eq!((allowed["captions"].as_u64(), allowed["frames_without_captions"].as_u64()), (Some(0), Some(4)));
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn settings_the_key_leaves_out_leave_the_bytes_alone() {
+        let root = scratch("non-result");
+        write_labels(&root, 5);
+        let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::FirstAnswer);
+        let s = settings(&server, &root);
+        let one = run_into(&root, &LlmSettings { concurrency: 1, retries: 2, timeout_s: 5.0, backoff_s: 0.5, ..s.clone() }, "one");
+        let other = LlmSettings { concurrency: 4, retries: 9, api_key_env: "RLMFLOW_TEST_LLM_KEY".into(), ..s };
+        assert_eq!(run_into(&root, &other, "other"), one, "captions.json and captions.jsonl");
+        let summary: Value = serde_json::from_slice(&one.0).unwrap();
+        for key in LlmSettings::NON_RESULT {
+            assert!(summary["generator"]["settings"].get(key).is_none(), "`{key}` is recorded: {summary}");
+        }
         std::fs::remove_dir_all(&root).unwrap();
     }
 
@@ -1019,6 +1147,7 @@ mod tests {
         let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Always);
         let s = LlmSettings { regenerate: 1, ..settings(&server, &root) };
         let dropped = run(&root, &s).unwrap().metrics;
+        assert_eq!(dropped["frames_without_captions"], 0, "{dropped}");
         // Per frame: three asked, one wrong; one asked again, wrong again.
         assert_eq!((dropped["captions"].as_u64(), dropped["dropped"].as_u64(), dropped["kept_mismatched"].as_u64()), (Some(8), Some(8), Some(0)));
         let kept = run(&root, &LlmSettings { on_mismatch: OnMismatch::Keep, ..s }).unwrap().metrics;

@@ -66,7 +66,7 @@ impl Operator for Template {
         }
         progress.finish();
         let n = captions.len();
-        write_captions(&ctx.output_dir, labels.frames.len() as u64, &captions, serde_json::to_value(s)?)?;
+        write_captions(&ctx.output_dir, labels.frames.len() as u64, &captions, s.result_settings())?;
         let words: usize = captions.iter().map(|c| c.caption.split_whitespace().count()).sum();
         let mean_words = words as f64 / n.max(1) as f64;
         Ok(Outcome {

@@ -201,7 +201,7 @@ impl Operator for HighwayEnv {
             progress.set_position(writer.done());
         }
         progress.finish();
-        let summary = writer.finish(&ctx.output_dir, s.radar.range_max_m, serde_json::to_value(s)?)?;
+        let summary = writer.finish(&ctx.output_dir, s.radar.range_max_m, s.result_settings())?;
         let (covered, vehicles) = (summary.cells_covered(), summary.vehicles());
         let metrics = serde_json::json!({
             "frames": summary.frames, "vehicles": vehicles, "cells_covered": covered, "episodes": cursor.episodes,

@@ -175,23 +175,13 @@ impl Operator for Procedural {
             progress.set_position(writer.done());
         }
         progress.finish();
-        let summary = writer.finish(&ctx.output_dir, s.radar.range_max_m, generator(s)?)?;
+        let summary = writer.finish(&ctx.output_dir, s.radar.range_max_m, s.result_settings())?;
         let (covered, vehicles) = (summary.cells_covered(), summary.vehicles());
         Ok(Outcome {
             metrics: serde_json::json!({"frames": summary.frames, "vehicles": vehicles, "cells_covered": covered, "frames_per_scenario": summary.frames_per_scenario}),
             summary: format!("{} frames, {vehicles} vehicles, {covered}/{CELLS} cells covered", summary.frames),
         })
     }
-}
-
-/// The settings as the summary records them: without those that cannot change the result, so
-/// the bytes stay a function of the key.
-fn generator(s: &ProceduralSettings) -> anyhow::Result<serde_json::Value> {
-    let mut value = serde_json::to_value(s)?;
-    for key in ProceduralSettings::NON_RESULT {
-        value.as_object_mut().expect("settings are a table").remove(*key);
-    }
-    Ok(value)
 }
 
 /// Output frame `index`: deterministic in (seed, `first_frame + index`) whatever the batch,

@@ -127,7 +127,7 @@ impl Operator for Bpe {
             truncated,
             mean_length: total_len as f64 / rows.max(1) as f64,
             max_length: max_len,
-            generator: serde_json::to_value(s)?,
+            generator: s.result_settings(),
         };
         std::fs::write(ctx.output_dir.join(tokens::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
         let metrics =

@@ -22,7 +22,7 @@ use rlmflow_pretrain::{ClipSettings, Objective};
 use rlmflow_stages::encoder::{self, ModelConfig};
 use rlmflow_stages::identity::FrameSet;
 use rlmflow_stages::tokens;
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources};
+use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settings};
 use serde_json::{Value, json};
 
 pub struct Clip;
@@ -162,7 +162,7 @@ fn write_artifact(
         last: last.clone(),
         chance_top1: 1.0 / n,
         chance_top5: (5.0 / n).min(1.0),
-        generator: serde_json::to_value(s)?,
+        generator: s.result_settings(),
     };
     std::fs::write(out.join(encoder::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
     let ids = |f: &usize| frames.labels.frames[*f].id.clone();

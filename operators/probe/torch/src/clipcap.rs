@@ -19,7 +19,7 @@ use rlmflow_stages::grid::{CELLS, Grid};
 use rlmflow_stages::labels::Split;
 use rlmflow_stages::probe::{self, Row, Scores, Summary, score};
 use rlmflow_stages::tokens;
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources};
+use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settings};
 use serde_json::{Value, json};
 use tokenizers::Tokenizer;
 
@@ -189,7 +189,7 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         test_frames: test.len() as u64,
         hygiene: data.hygiene.clone(),
         rows: vec![row],
-        generator: serde_json::to_value(s)?,
+        generator: s.result_settings(),
     };
     let out = &ctx.output_dir;
     std::fs::write(out.join(probe::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;

@@ -14,7 +14,7 @@ use rlmflow_probe::{LinearSettings, Source};
 use rlmflow_stages::grid::CELLS;
 use rlmflow_stages::labels::Split;
 use rlmflow_stages::probe::{self, Row, Summary, score};
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources};
+use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settings};
 use serde_json::json;
 
 pub use clipcap::{Clipcap, score_captions};
@@ -96,7 +96,7 @@ impl Operator for Linear {
             test_frames: test.len() as u64,
             hygiene,
             rows: rows.clone(),
-            generator: serde_json::to_value(s)?,
+            generator: s.result_settings(),
         };
         std::fs::write(ctx.output_dir.join(probe::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
         std::fs::write(ctx.output_dir.join(probe::PREDICTIONS), predictions)?;

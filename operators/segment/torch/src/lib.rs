@@ -19,7 +19,7 @@ use rlmflow_segment::{PupSettings, TOKEN_CACHE_BYTES, UnetSettings, pup_widths};
 use rlmflow_stages::labels::Split;
 use rlmflow_stages::npy::{Dtype, NpyWriter};
 use rlmflow_stages::segment::{self, PixelCounts, SegMetrics};
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Training};
+use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settings, Training};
 use serde_json::{Value, json};
 
 /// Frozen-encoder tokens up to this size are computed once for every frame.
@@ -56,7 +56,7 @@ impl Operator for Pup {
         let segmenter =
             Segmenter { name: "pup", vs, forward: Box::new(move |frames: &[usize], train: bool| head.forward_t(&tokens.get(frames), train)) };
         let rollout = |frames: &[usize]| tch::no_grad(|| encoder.visual.attention_rollout(&data.frames.images(frames, device), blocks.len()));
-        let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: serde_json::to_value(s)? };
+        let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: s.result_settings() };
         train(&s.training, &segmentation, ctx, &data, device, segmenter, Some((&blocks, &rollout)))
     }
 }
@@ -83,7 +83,7 @@ impl Operator for Unet {
         let frames = &data.frames;
         let segmenter =
             Segmenter { name: "unet", vs, forward: Box::new(move |batch: &[usize], train: bool| unet.forward_t(&frames.images(batch, device), train)) };
-        let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: serde_json::to_value(s)? };
+        let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: s.result_settings() };
         train(&s.training, &segmentation, ctx, &data, device, segmenter, None)
     }
 }
