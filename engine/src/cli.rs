@@ -163,8 +163,13 @@ enum Command {
         #[command(flatten)]
         store: StoreArg,
     },
-    /// List stage kinds and operators with their default settings.
-    Operators,
+    /// List stage kinds and operators with their default settings, and the settings that cannot
+    /// change a result (left out of the key).
+    Operators {
+        /// One JSON object per operator: name, kind, version, defaults, non_result.
+        #[arg(long)]
+        json: bool,
+    },
     /// Parse captions into the paper's grid JSON with the LLM-free parser: one caption per line,
     /// or JSON lines with a `caption` field; writes one grid JSON per line. Warnings go to stderr.
     Parse {
@@ -413,7 +418,18 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             println!("site-packages: {}", env.site_packages.display());
             Ok(ExitCode::SUCCESS)
         }
-        Command::Operators => {
+        Command::Operators { json: true } => {
+            for kind in &registry.catalog.kinds {
+                for op in registry.operators_of(kind.name) {
+                    let spec = op.spec();
+                    let defaults = op.settings(serde_json::json!({})).unwrap_or_default();
+                    let line = serde_json::json!({"name": spec.name, "kind": spec.kind, "version": spec.version, "defaults": defaults, "non_result": op.non_result_keys()});
+                    println!("{line}");
+                }
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Operators { json: false } => {
             for kind in &registry.catalog.kinds {
                 let inputs: Vec<String> = kind.inputs.iter().map(|s| format!("{}: {}", s.name, s.artifact)).collect();
                 println!("{} ({}) -> {}", kind.name, inputs.join(", "), kind.produces);
@@ -421,6 +437,9 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                     let spec = op.spec();
                     let defaults = op.settings(serde_json::json!({})).unwrap_or_default();
                     println!("  {} v{}: {}\n    defaults: {}", spec.name, spec.version, spec.summary, canonical_json(&defaults));
+                    if !op.non_result_keys().is_empty() {
+                        println!("    not part of the result (left out of the key): {}", op.non_result_keys().join(", "));
+                    }
                     match (op.merge(), op.items(&defaults)) {
                         (Some(merge), Some((ItemCount::Known(_), unit))) => {
                             println!("    shardable: `shards` or `shard_size` split its {unit} into parts, merged by `{merge}`")
