@@ -51,6 +51,18 @@ impl RemoteArg {
     }
 }
 
+/// What `push` and `pull` move: a pipeline's results, or those of `--only` stages.
+#[derive(clap::Args)]
+struct Transfer {
+    pipeline: PathBuf,
+    #[arg(long, value_name = "STAGE")]
+    only: Vec<String>,
+    #[command(flatten)]
+    store: StoreArg,
+    #[command(flatten)]
+    remote: RemoteArg,
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Run a pipeline, reusing every stage whose inputs and settings are unchanged.
@@ -101,26 +113,10 @@ enum Command {
         remote: RemoteArg,
     },
     /// Upload every cached result of a pipeline (or of `--only` stages) to the remote cache.
-    Push {
-        pipeline: PathBuf,
-        #[arg(long, value_name = "STAGE")]
-        only: Vec<String>,
-        #[command(flatten)]
-        store: StoreArg,
-        #[command(flatten)]
-        remote: RemoteArg,
-    },
+    Push(Transfer),
     /// Download from the remote cache every result of a pipeline (or of `--only` stages and
     /// what they need) that the local store lacks and the remote holds.
-    Pull {
-        pipeline: PathBuf,
-        #[arg(long, value_name = "STAGE")]
-        only: Vec<String>,
-        #[command(flatten)]
-        store: StoreArg,
-        #[command(flatten)]
-        remote: RemoteArg,
-    },
+    Pull(Transfer),
     /// Show what changed in a stage's preimage since its last run.
     Explain {
         pipeline: PathBuf,
@@ -320,7 +316,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             print_warnings(store.as_ref());
             Ok(ExitCode::SUCCESS)
         }
-        Command::Push { pipeline, only, store, remote } => {
+        Command::Push(Transfer { pipeline, only, store, remote }) => {
             let p = config::load(&pipeline, registry)?;
             let plan = plan(&p);
             let selected = plan.select(&only)?;
@@ -342,7 +338,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             println!("push: {pushed} results uploaded ({:.1} MB) to {}", bytes as f64 / 1e6, remote.url());
             Ok(ExitCode::SUCCESS)
         }
-        Command::Pull { pipeline, only, store, remote } => {
+        Command::Pull(Transfer { pipeline, only, store, remote }) => {
             let p = config::load(&pipeline, registry)?;
             let plan = plan(&p);
             let selected = plan.select(&only)?;

@@ -10,6 +10,9 @@
 //! cargo xtask bench [ARGS]         cargo bench [ARGS]
 //! cargo xtask rlmflow [ARGS]       build (release), then rlmflow [ARGS]: any subcommand
 //! cargo xtask libtorch             install libtorch if missing and print where it is
+//! cargo xtask llm-check            build rlmflow, then run tests/llm_check.py: the `llm`
+//!                                  operator against a real llama.cpp server (opt-in; it
+//!                                  compiles llama.cpp, about 11 minutes on 2 cores)
 //! ```
 //!
 //! `LIBTORCH` set beforehand (a machine with torch 2.11 already) is used instead of installing.
@@ -31,7 +34,7 @@ fn main() -> ExitCode {
 
 fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
     let Some((command, rest)) = args.split_first() else {
-        bail!("usage: cargo xtask <test|run|build|bench|rlmflow|libtorch> [ARGS]");
+        bail!("usage: cargo xtask <test|run|build|bench|rlmflow|libtorch|llm-check> [ARGS]");
     };
     let libtorch = rlmflow_python::libtorch::ensure_libtorch(&mut |note| eprintln!("xtask: {note}"))?;
     let cargo = || {
@@ -55,7 +58,14 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
             }
             status(rlmflow.args(rest))
         }
-        other => bail!("unknown xtask `{other}`; valid: test, run, build, bench, rlmflow, libtorch"),
+        "llm-check" => {
+            if !status(cargo().args(["build", "--bin", "rlmflow", "-p", "rlmflow"]))?.eq(&ExitCode::SUCCESS) {
+                return Ok(ExitCode::FAILURE);
+            }
+            let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/llm_check.py");
+            status(Command::new("python3").arg(script).arg(target_dir()?.join("debug/rlmflow")))
+        }
+        other => bail!("unknown xtask `{other}`; valid: test, run, build, bench, rlmflow, libtorch, llm-check"),
     }
 }
 
