@@ -643,4 +643,19 @@ operator = "od"
         assert!(e.contains("stages.c.shard_size: `sc` splits the items of its `a` input, which are counted only when it runs"), "{e}");
         assert!(e.contains("use `shards = N`"), "{e}");
     }
+
+    #[test]
+    fn an_interrupted_action_says_what_its_operator_resumes_from() {
+        let root = std::env::temp_dir().join(format!("rlmflow-why-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let store = Store::open(&root).unwrap();
+        let preimage = Preimage { operator: "llm".into(), operator_version: 1, config: serde_json::json!({}), seed: 0, inputs: vec![] };
+        let key = preimage.key();
+        let reasons = |resumes: &str| why(Some(&store), Some(&key), &key, &preimage, "captions", resumes).unwrap();
+        assert_eq!(reasons("its checkpoint"), ["its last attempt did not finish"]);
+        std::fs::create_dir_all(store.checkpoint_dir(&key)).unwrap();
+        assert_eq!(reasons("its response cache (the answers it already has)"), ["interrupted; resumes from its response cache (the answers it already has)"]);
+        assert_eq!(reasons("its checkpoint"), ["interrupted; resumes from its checkpoint"]);
+        std::fs::remove_dir_all(&root).unwrap();
+    }
 }

@@ -1125,6 +1125,11 @@ mod tests {
     }
 
     #[test]
+    fn an_interrupted_stage_resumes_from_its_response_cache() {
+        assert_eq!(Operator::resumes_from(&Llm), "its response cache (the answers it already has)");
+    }
+
+    #[test]
     fn settings_the_key_leaves_out_leave_the_bytes_alone() {
         let root = scratch("non-result");
         write_labels(&root, 5);
