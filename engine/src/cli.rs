@@ -216,11 +216,6 @@ pub fn main(registry: Registry) -> ExitCode {
     }
 }
 
-fn open_remote(settings: &config::RemoteSettings) -> anyhow::Result<rlmflow_remote::Remote> {
-    let url = settings.url.as_deref().context("no remote cache URL")?;
-    rlmflow_remote::Remote::open(url, settings.push, std::time::Duration::from_secs_f64(settings.timeout_s))
-}
-
 /// Downloads the selected instances' results the local store lacks, providers first: a
 /// consumer's key is known once its inputs' outputs are. Returns the results and bytes pulled.
 fn pull(plan: &crate::plan::Plan, registry: &Registry, store: &Store, remote: &rlmflow_remote::Remote, selected: &[bool]) -> anyhow::Result<(usize, u64)> {
@@ -268,10 +263,11 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let selected = plan.select(&only)?;
             let root = store_root(&p, &store);
             let existing = Store::open_existing(&root)?;
-            let runs = crate::run::will_run(&plan, registry, existing.as_ref(), &selected)?;
+            let states = assess(&plan, registry, existing.as_ref())?;
+            let runs = crate::run::will_run(&states, &selected);
             let fits = crate::footprint::fits(&plan, registry, device, &runs);
             if dry_run {
-                print_status(&plan, registry, existing.as_ref(), &selected, &fits, None, json)?;
+                print_status(&plan, &states, &selected, &fits, None, json);
                 print_warnings(existing.as_ref());
                 if p.executor == config::Executor::Local {
                     crate::footprint::refuse_oversized(&plan, &fits)?;
@@ -306,10 +302,10 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let plan = plan(&p);
             let store = Store::open_existing(&store_root(&p, &store))?;
             let all = vec![true; plan.instances.len()];
-            let runs = crate::run::will_run(&plan, registry, store.as_ref(), &all)?;
-            let fits = crate::footprint::fits(&plan, registry, rlmflow_stages::Device::Auto, &runs);
-            let remote = remote.settings(&p).map(|r| open_remote(&r)).transpose()?;
-            print_status(&plan, registry, store.as_ref(), &all, &fits, remote.as_ref(), json)?;
+            let states = assess(&plan, registry, store.as_ref())?;
+            let fits = crate::footprint::fits(&plan, registry, rlmflow_stages::Device::Auto, &crate::run::will_run(&states, &all));
+            let remote = remote.settings(&p).map(|r| r.open()).transpose()?;
+            print_status(&plan, &states, &all, &fits, remote.as_ref(), json);
             if let Some(why) = remote.as_ref().and_then(|r| r.down()) {
                 eprintln!("warning: remote cache {} not asked: {why}", remote.as_ref().map_or("", |r| r.url()));
             }
@@ -322,7 +318,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let selected = plan.select(&only)?;
             let store = Store::open_existing(&store_root(&p, &store))?.context("the pipeline has not run yet; nothing to push")?;
             let settings = remote.settings(&p).context("no remote cache: set `[pipeline] remote` or give --remote")?;
-            let remote = open_remote(&config::RemoteSettings { push: true, ..settings })?;
+            let remote = config::RemoteSettings { push: true, ..settings }.open()?;
             let (mut pushed, mut bytes) = (0, 0);
             for (i, state) in assess(&plan, registry, Some(&store))?.iter().enumerate().filter(|(i, _)| selected[*i]) {
                 let Freshness::Cached(record) = state else { continue };
@@ -344,7 +340,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let selected = plan.select(&only)?;
             let store = Store::open(&store_root(&p, &store))?;
             let settings = remote.settings(&p).context("no remote cache: set `[pipeline] remote` or give --remote")?;
-            let remote = open_remote(&settings)?;
+            let remote = settings.open()?;
             let (pulled, bytes) = pull(&plan, registry, &store, &remote, &selected)?;
             println!("pull: {pulled} results downloaded ({:.1} MB) from {}", bytes as f64 / 1e6, remote.url());
             Ok(ExitCode::SUCCESS)

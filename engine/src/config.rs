@@ -84,6 +84,14 @@ pub struct RemoteSettings {
     pub timeout_s: f64,
 }
 
+impl RemoteSettings {
+    /// The remote these settings name (the client only: nothing is asked yet).
+    pub fn open(&self) -> anyhow::Result<rlmflow_remote::Remote> {
+        let url = self.url.as_deref().ok_or_else(|| anyhow::anyhow!("no remote cache URL"))?;
+        rlmflow_remote::Remote::open(url, self.push, std::time::Duration::from_secs_f64(self.timeout_s))
+    }
+}
+
 impl Default for RemoteSettings {
     fn default() -> Self {
         RemoteSettings { url: None, push: false, timeout_s: 10.0 }

@@ -7,7 +7,7 @@ use std::fs::File;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use anyhow::Context as _;
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
@@ -20,7 +20,7 @@ use crate::config::{Executor as ExecutorKind, RemoteSettings};
 use crate::dispatch::{Dispatch, Exit, Launch, Local, Report};
 use crate::exec::{EXIT_CORRUPT_INPUT, Message};
 use crate::footprint::Fit;
-use crate::plan::{Freshness, Plan, assess, why};
+use crate::plan::{Freshness, Plan, why};
 
 #[derive(Clone, Debug)]
 pub struct RunOptions {
@@ -47,16 +47,7 @@ pub struct Summary {
 
 /// Prints where each selected instance stands (`status`, `run --dry-run`), with the memory
 /// estimate of each that will run.
-pub fn print_status(
-    plan: &Plan,
-    registry: &Registry,
-    store: Option<&Store>,
-    selected: &[bool],
-    fits: &[Option<Fit>],
-    remote: Option<&Remote>,
-    json: bool,
-) -> anyhow::Result<()> {
-    let states = assess(plan, registry, store)?;
+pub fn print_status(plan: &Plan, states: &[Freshness], selected: &[bool], fits: &[Option<Fit>], remote: Option<&Remote>, json: bool) {
     let width = plan.instances.iter().map(|i| i.label.len()).max().unwrap_or(0);
     for (i, state) in states.iter().enumerate().filter(|(i, _)| selected[*i]) {
         let label = &plan.instances[i].label;
@@ -88,7 +79,6 @@ pub fn print_status(
             println!("            {:width$}  {}{verdict}", "", fit.describe());
         }
     }
-    Ok(())
 }
 
 #[derive(Clone, Debug)]
@@ -161,8 +151,8 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
 }
 
 /// Which instances are selected and will run (not reused from the store).
-pub fn will_run(plan: &Plan, registry: &Registry, store: Option<&Store>, selected: &[bool]) -> anyhow::Result<Vec<bool>> {
-    Ok(assess(plan, registry, store)?.iter().zip(selected).map(|(state, &s)| s && !matches!(state, Freshness::Cached(_))).collect())
+pub fn will_run(states: &[Freshness], selected: &[bool]) -> Vec<bool> {
+    states.iter().zip(selected).map(|(state, &s)| s && !matches!(state, Freshness::Cached(_))).collect()
 }
 
 /// Refuses a local run, before anything starts, in which a stage that must run needs a CUDA
@@ -448,9 +438,7 @@ impl Executor<'_> {
     fn remote(&self) -> Option<&Remote> {
         self.remote
             .get_or_init(|| {
-                let settings = self.opts.remote.as_ref()?;
-                let url = settings.url.as_ref()?;
-                match Remote::open(url, settings.push, Duration::from_secs_f64(settings.timeout_s)) {
+                match self.opts.remote.as_ref()?.open() {
                     Ok(remote) => Some(remote),
                     Err(e) => {
                         self.ui.say(format!("  warning  remote cache not used: {e:#}"));
@@ -465,9 +453,8 @@ impl Executor<'_> {
     /// verified, and finishes the instance as `pulled`.
     fn pull(&mut self, i: usize, key: &Digest) -> anyhow::Result<Option<ActionRecord>> {
         let Some(remote) = self.remote() else { return Ok(None) };
-        let was_down = remote.down().is_some();
         let pulled = remote.pull(self.store, key)?;
-        let down = (!was_down).then(|| remote.down()).flatten();
+        let down = remote.newly_down();
         let label = self.plan.instances[i].label.clone();
         if let Some(why) = down {
             self.warn_remote_down(&why)?;
@@ -501,12 +488,10 @@ impl Executor<'_> {
     /// Uploads a finished action's result when the remote cache takes pushes.
     fn push(&mut self, label: &str, record: &ActionRecord) -> anyhow::Result<()> {
         let Some(remote) = self.remote().filter(|r| r.push) else { return Ok(()) };
-        let was_down = remote.down().is_some();
         let replace = self.corrupt_remote.contains(&record.key);
         let clock = Instant::now();
         let pushed = remote.push(self.store, record, replace)?;
-        let down = (!was_down).then(|| remote.down()).flatten();
-        if let Some(why) = down {
+        if let Some(why) = remote.newly_down() {
             return self.warn_remote_down(&why);
         }
         if let Some(bytes) = pushed {

@@ -47,6 +47,8 @@ pub struct Remote {
     pub push: bool,
     /// Why the remote stopped being used, once a request failed.
     down: RefCell<Option<String>>,
+    /// Whether [`Remote::newly_down`] has told it.
+    told: std::cell::Cell<bool>,
 }
 
 /// What a pull found.
@@ -92,7 +94,7 @@ impl Remote {
             bail!("remote `{url}`: unknown scheme; valid: s3://bucket/prefix, https://host/path (WebDAV), file:///path");
         };
         let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
-        Ok(Remote { url: url.to_owned(), objects, runtime, timeout, push, down: RefCell::new(None) })
+        Ok(Remote { url: url.to_owned(), objects, runtime, timeout, push, down: RefCell::new(None), told: Default::default() })
     }
 
     pub fn url(&self) -> &str {
@@ -102,6 +104,13 @@ impl Remote {
     /// Why the remote is no longer asked, if a request failed.
     pub fn down(&self) -> Option<String> {
         self.down.borrow().clone()
+    }
+
+    /// Why the remote went down, the first time it is asked after it did: a caller warns once.
+    pub fn newly_down(&self) -> Option<String> {
+        let why = self.down().filter(|_| !self.told.get());
+        self.told.set(why.is_some() || self.told.get());
+        why
     }
 
     /// Runs one request within the timeout; the first failure marks the remote down.
