@@ -23,7 +23,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::memory::{Blocks, linear};
+use crate::memory::{Blocks, conv3x3_bn, linear};
 
 pub const WEIGHTS: &str = "model.safetensors";
 pub const CONFIG: &str = "config.json";
@@ -136,7 +136,7 @@ impl VisionConfig {
         let w = self.width as u64;
         let stem = match &self.stem {
             Stem::Patch { size } => (size * size) as u64 * w,
-            Stem::Conv { channels } => channels.iter().fold((1, 0), |(input, n), &c| (c as u64, n + 9 * input * c as u64 + 2 * c as u64)).1,
+            Stem::Conv { channels } => channels.iter().fold((1, 0), |(input, n), &c| (c as u64, n + conv3x3_bn(input, c as u64))).1,
         };
         let tokens = (self.grid() * self.grid() + 1) as u64;
         stem + w + tokens * w + 4 * w + self.blocks().parameters() + head_parameters(self.head, w, embed as u64)

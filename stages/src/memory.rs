@@ -62,6 +62,14 @@ pub fn linear(input: u64, output: u64) -> u64 {
     input * output + output
 }
 
+/// The parameters of a 3x3 convolution without bias and its BatchNorm's scale and shift.
+pub fn conv3x3_bn(input: u64, output: u64) -> u64 {
+    9 * input * output + 2 * output
+}
+
+/// What a refusal suggests for a loss that averages over frames.
+pub const LOWER_BY_ACCUMULATING: &str = "`accumulate` (the same gradient) or `batch`";
+
 #[cfg(test)]
 mod tests {
     use super::*;

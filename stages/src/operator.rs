@@ -134,8 +134,6 @@ pub struct ModelOutline {
     pub grid: u64,
     /// The shared space's width.
     pub embed: u64,
-    /// Floats the radar tower keeps per image when trained (its forward pass costs less).
-    pub activations: u64,
 }
 
 impl Outline {

@@ -18,7 +18,7 @@
 use rlmflow_stages::encoder::{Distance, Head, ModelConfig, Stem, TextConfig, VisionConfig};
 use rlmflow_stages::grid::CELLS;
 use rlmflow_stages::weights::{Expected, check_init};
-use rlmflow_stages::memory::{FLOAT, TRAINED};
+use rlmflow_stages::memory::{FLOAT, LOWER_BY_ACCUMULATING, TRAINED};
 use rlmflow_stages::{Device, Footprint, InWorker, InputOutlines, ModelOutline, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
@@ -181,7 +181,7 @@ fn outline(s: &ClipSettings, inputs: &InputOutlines) -> Result<Outline, SettingE
     let outline = s.training.outline(inputs)?;
     let Some(config) = configured(s, inputs)? else { return Ok(outline) };
     let v = &config.vision;
-    let model = ModelOutline { parameters: config.parameters(), width: v.width as u64, grid: v.grid() as u64, embed: config.embed as u64, activations: v.activations() };
+    let model = ModelOutline { parameters: config.parameters(), width: v.width as u64, grid: v.grid() as u64, embed: config.embed as u64 };
     Ok(Outline { model: Some(model), ..outline })
 }
 
@@ -207,7 +207,7 @@ fn footprint(s: &ClipSettings, inputs: &InputOutlines) -> Option<Footprint> {
     let at_once = if s.chunk > 0 { s.chunk.min(batch) } else { s.training.micro_batch() };
     let activations = config.activations() * at_once + 6 * batch * batch;
     let lower_with = match (s.objective, s.encoder.as_str()) {
-        (Objective::Counts, _) => "`accumulate` (the same gradient) or `batch`",
+        (Objective::Counts, _) => LOWER_BY_ACCUMULATING,
         (_, "vit-b16") => "`chunk` (gradient caching, the same loss) or `batch`",
         _ => "`batch`",
     };

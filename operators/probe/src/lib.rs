@@ -193,7 +193,7 @@ fn clipcap_footprint(s: &ClipcapSettings, inputs: &InputOutlines) -> Option<Foot
     let trained = memory::linear(encoder.embed, prefix * width) + prefix * width + mapper.parameters() + (vocab + positions) * width + decoder.parameters() + 2 * width;
     let per_caption = mapper.activations(2 * prefix) + decoder.activations(positions) + 3 * positions * vocab;
     let peak_bytes = encoder.parameters * FLOAT + trained * TRAINED + per_caption * s.training.micro_batch() * FLOAT;
-    Some(Footprint { parameters: encoder.parameters + trained, peak_bytes, lower_with: "`accumulate` (the same gradient) or `batch`" })
+    Some(Footprint { parameters: encoder.parameters + trained, peak_bytes, lower_with: memory::LOWER_BY_ACCUMULATING })
 }
 
 pub fn clipcap_spec() -> OperatorSpec {

@@ -12,7 +12,7 @@
 //! Training: AdamW, warmup then cosine, global-norm clipping, loss `dice_weight` * soft Dice +
 //! (1 - `dice_weight`) * BCE against the labels' soft masks; one checkpoint per epoch.
 
-use rlmflow_stages::memory::{FLOAT, TRAINED};
+use rlmflow_stages::memory::{FLOAT, LOWER_BY_ACCUMULATING, TRAINED, conv3x3_bn};
 use rlmflow_stages::{Footprint, InWorker, InputOutlines, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
 
 /// The most bytes of frozen-encoder tokens `pup` caches for every frame; beyond, it encodes each
@@ -176,7 +176,7 @@ fn pup_footprint(s: &PupSettings, inputs: &InputOutlines) -> Option<Footprint> {
     let (mut input, mut grid, mut decoder, mut per_frame) = (model.width, model.grid, 0, (model.grid * model.grid + 1) * model.width);
     for &w in &widths {
         let w = w as u64;
-        decoder += 9 * input * w + 2 * w;
+        decoder += conv3x3_bn(input, w);
         per_frame += 3 * w * grid * grid + w * 4 * grid * grid;
         (input, grid) = (w, 2 * grid);
     }
@@ -188,7 +188,7 @@ fn pup_footprint(s: &PupSettings, inputs: &InputOutlines) -> Option<Footprint> {
     let encoded = (model.grid * model.grid + 1) * 12 * model.width;
     let cached = if tokens <= TOKEN_CACHE_BYTES { tokens } else { s.training.micro_batch() * encoded * FLOAT };
     let peak_bytes = model.parameters * FLOAT + decoder * TRAINED + cached + per_frame * s.training.micro_batch() * FLOAT;
-    Some(Footprint { parameters: model.parameters + decoder, peak_bytes, lower_with: "`accumulate` (the same gradient) or `batch`" })
+    Some(Footprint { parameters: model.parameters + decoder, peak_bytes, lower_with: LOWER_BY_ACCUMULATING })
 }
 
 /// The U-Net trained on `batch` frames: per frame each level's two convolutions with their
@@ -199,17 +199,17 @@ fn unet_footprint(s: &UnetSettings, inputs: &InputOutlines) -> Option<Footprint>
     let (mut parameters, mut per_frame, mut input) = (0, side * side, 1);
     for (level, &w) in widths.iter().enumerate() {
         let area = (side >> level) * (side >> level);
-        parameters += 9 * input * w + 2 * w + 9 * w * w + 2 * w;
+        parameters += conv3x3_bn(input, w) + conv3x3_bn(w, w);
         per_frame += 6 * w * area + w * area / 4;
         if let Some(&below) = widths.get(level + 1) {
-            parameters += 9 * (w + below) * w + 2 * w + 9 * w * w + 2 * w;
+            parameters += conv3x3_bn(w + below, w) + conv3x3_bn(w, w);
             per_frame += (below + w + below) * area + 6 * w * area;
         }
         input = w;
     }
     parameters += widths[0] + 1;
     per_frame += 4 * side * side;
-    Some(Footprint { parameters, peak_bytes: parameters * TRAINED + per_frame * s.training.micro_batch() * FLOAT, lower_with: "`accumulate` (the same gradient) or `batch`" })
+    Some(Footprint { parameters, peak_bytes: parameters * TRAINED + per_frame * s.training.micro_batch() * FLOAT, lower_with: LOWER_BY_ACCUMULATING })
 }
 
 /// `pup` as `rlmflow` registers it: validated and planned here, run by the worker.
