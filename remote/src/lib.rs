@@ -132,6 +132,12 @@ impl Remote {
         }
     }
 
+    /// The whole body of `key`; `None` when it is absent or the remote is down.
+    fn get(&self, what: &str, key: &Key) -> Option<impl std::ops::Deref<Target = [u8]> + use<>> {
+        let found = self.call(what, self.objects.get(key)).ok()??;
+        self.call(what, found.bytes()).ok()?
+    }
+
     fn record_key(key: &Digest) -> Key {
         Key::from(format!("ac/{}.json", key.hex()))
     }
@@ -142,8 +148,7 @@ impl Remote {
 
     /// Whether the remote holds `key`'s record and the object it names (a miss when it is down).
     pub fn holds(&self, key: &Digest) -> bool {
-        let Ok(Some(record)) = self.call("reading a record", self.objects.get(&Self::record_key(key))) else { return false };
-        let Ok(Some(bytes)) = self.call("reading a record", record.bytes()) else { return false };
+        let Some(bytes) = self.get("reading a record", &Self::record_key(key)) else { return false };
         let Ok(record) = serde_json::from_slice::<ActionRecord>(&bytes) else { return false };
         matches!(self.call("checking an object", self.objects.head(&Self::object_key(&record.output))), Ok(Some(_)))
     }
@@ -152,8 +157,7 @@ impl Remote {
     /// either or is down.
     pub fn pull(&self, store: &Store, key: &Digest) -> anyhow::Result<Pulled> {
         let clock = Instant::now();
-        let Ok(Some(found)) = self.call("reading a record", self.objects.get(&Self::record_key(key))) else { return Ok(Pulled::Miss) };
-        let Ok(Some(bytes)) = self.call("reading a record", found.bytes()) else { return Ok(Pulled::Miss) };
+        let Some(bytes) = self.get("reading a record", &Self::record_key(key)) else { return Ok(Pulled::Miss) };
         let record = match serde_json::from_slice::<ActionRecord>(&bytes) {
             Ok(r) if r.key == *key && r.preimage.key() == *key => r,
             _ => return Ok(Pulled::Corrupt { why: format!("the record of {} is not that key's", key.short()) }),
@@ -162,8 +166,7 @@ impl Remote {
             store.write_record(&record)?;
             return Ok(Pulled::Hit { record, bytes: 0, seconds: clock.elapsed().as_secs_f64() });
         }
-        let Ok(Some(found)) = self.call("reading an object", self.objects.get(&Self::object_key(&record.output))) else { return Ok(Pulled::Miss) };
-        let Ok(Some(tar)) = self.call("reading an object", found.bytes()) else { return Ok(Pulled::Miss) };
+        let Some(tar) = self.get("reading an object", &Self::object_key(&record.output)) else { return Ok(Pulled::Miss) };
         let dir = store.work_dir(key)?;
         let unpacked = tar::Archive::new(&tar[..]).unpack(&dir);
         let digest = unpacked.map_err(anyhow::Error::from).and_then(|()| Ok(hash_tree(&dir)?.digest));
