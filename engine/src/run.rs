@@ -126,7 +126,7 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
     let states = selected.iter().map(|&s| if s { State::Waiting } else { State::Excluded }).collect();
     let n = plan.instances.len();
     let ui = Ui::new(opts.json);
-    let dispatch = dispatcher(plan, store, &run, opts.device, &ui)?;
+    let dispatch = dispatcher(plan, store, &run, opts.device, opts.remote.as_ref(), &ui)?;
     let mut ex = Executor {
         plan,
         registry,
@@ -184,19 +184,20 @@ pub fn refuse_cuda_stages(plan: &Plan, registry: &Registry, runs: &[bool]) -> an
 }
 
 /// The pipeline's dispatcher. An existing HyperQueue server is checked here, before anything runs.
-fn dispatcher(plan: &Plan, store: &Store, run: &str, device: Device, ui: &Ui) -> anyhow::Result<Box<dyn Dispatch>> {
+fn dispatcher(plan: &Plan, store: &Store, run: &str, device: Device, remote: Option<&RemoteSettings>, ui: &Ui) -> anyhow::Result<Box<dyn Dispatch>> {
     match plan.pipeline.executor {
         ExecutorKind::Local => Ok(Box::new(Local::new(device))),
         #[cfg(feature = "python")]
         ExecutorKind::HyperQueue => {
             let dir = store.run_dir(run).join("hyperqueue");
             let ui = ui.clone();
-            let hq = crate::dispatch::HyperQueue::connect(plan.pipeline.hyperqueue.clone(), &dir, Box::new(move |note| ui.say(note.to_owned())))?;
+            let note = Box::new(move |note: &str| ui.say(note.to_owned()));
+            let hq = crate::dispatch::HyperQueue::connect(plan.pipeline.hyperqueue.clone(), &dir, run, remote, note)?;
             Ok(Box::new(hq))
         }
         #[cfg(not(feature = "python"))]
         ExecutorKind::HyperQueue => {
-            let _ = (store, run, device, ui);
+            let _ = (store, run, device, remote, ui);
             anyhow::bail!("executor = \"hyperqueue\" needs the embedded Python (build rlmflow with its default `python` feature)")
         }
     }
@@ -560,7 +561,8 @@ impl Executor<'_> {
             .chain(["--device".to_owned(), self.opts.device.to_string()])
             .collect();
         let log = self.log_path(&label);
-        self.dispatch.start(i, Launch { exe, args, label, threads, gpu, log }, tx)
+        let (store, device, replace_remote) = (self.store.root().to_path_buf(), self.opts.device, self.corrupt_remote.contains(&key));
+        self.dispatch.start(i, Launch { exe, args, key, store, device, replace_remote, label, threads, gpu, log }, tx)
     }
 
     /// An instance that could not be started (its worker binary is missing) fails like one

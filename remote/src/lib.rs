@@ -6,6 +6,7 @@
 //! ```text
 //! <prefix>/cas/<digest>.tar   an artifact directory as one tar (one request per artifact)
 //! <prefix>/ac/<key>.json      an action record (the local store's, byte for byte)
+//! <prefix>/runs/<run>/<task>  a cluster task's transcript, until the engine that submitted it reads it
 //! ```
 //!
 //! * **Objects first, the record last.** A push uploads the artifact, then the record; a push
@@ -49,6 +50,17 @@ pub struct Remote {
     down: RefCell<Option<String>>,
     /// Whether [`Remote::newly_down`] has told it.
     told: std::cell::Cell<bool>,
+}
+
+/// Whether [`Remote::fetch_object`] found an artifact.
+pub enum Fetched {
+    /// The local store had it already.
+    Present,
+    /// Downloaded (this many bytes), verified and committed.
+    Downloaded(u64),
+    Missing,
+    /// The remote's copy is not that digest's (`why`); nothing entered the store.
+    Corrupt(String),
 }
 
 /// What a pull found.
@@ -99,6 +111,11 @@ impl Remote {
 
     pub fn url(&self) -> &str {
         &self.url
+    }
+
+    /// The most one request may take.
+    pub fn timeout(&self) -> Duration {
+        self.timeout
     }
 
     /// Why the remote is no longer asked, if a request failed.
@@ -162,27 +179,36 @@ impl Remote {
             Ok(r) if r.key == *key && r.preimage.key() == *key => r,
             _ => return Ok(Pulled::Corrupt { why: format!("the record of {} is not that key's", key.short()) }),
         };
-        if store.has_object(&record.output) {
-            store.write_record(&record)?;
-            return Ok(Pulled::Hit { record, bytes: 0, seconds: clock.elapsed().as_secs_f64() });
+        let bytes = match self.fetch_object(store, &record.output)? {
+            Fetched::Present => 0,
+            Fetched::Downloaded(bytes) => bytes,
+            Fetched::Missing => return Ok(Pulled::Miss),
+            Fetched::Corrupt(why) => return Ok(Pulled::Corrupt { why }),
+        };
+        store.write_record(&record)?;
+        Ok(Pulled::Hit { record, bytes, seconds: clock.elapsed().as_secs_f64() })
+    }
+
+    /// Fetches the artifact `digest` into `store`, verified, unless the store has it: what a
+    /// cluster task does for each input it lacks.
+    pub fn fetch_object(&self, store: &Store, digest: &Digest) -> anyhow::Result<Fetched> {
+        if store.has_object(digest) {
+            return Ok(Fetched::Present);
         }
-        let Some(tar) = self.get("reading an object", &Self::object_key(&record.output)) else { return Ok(Pulled::Miss) };
-        let dir = store.work_dir(key)?;
+        let Some(tar) = self.get("reading an object", &Self::object_key(digest)) else { return Ok(Fetched::Missing) };
+        let dir = store.work_dir(digest)?;
         let unpacked = tar::Archive::new(&tar[..]).unpack(&dir);
-        let digest = unpacked.map_err(anyhow::Error::from).and_then(|()| Ok(hash_tree(&dir)?.digest));
-        match digest {
-            Ok(digest) if digest == record.output => {
+        match unpacked.map_err(anyhow::Error::from).and_then(|()| Ok(hash_tree(&dir)?.digest)) {
+            Ok(found) if found == *digest => {
                 store.commit_tree(&dir)?;
-                store.write_record(&record)?;
-                Ok(Pulled::Hit { record, bytes: tar.len() as u64, seconds: clock.elapsed().as_secs_f64() })
+                Ok(Fetched::Downloaded(tar.len() as u64))
             }
             other => {
                 remove_dir(&dir);
-                let why = match other {
-                    Ok(digest) => format!("its artifact hashes to {}, not {}", digest.short(), record.output.short()),
+                Ok(Fetched::Corrupt(match other {
+                    Ok(found) => format!("its artifact hashes to {}, not {}", found.short(), digest.short()),
                     Err(e) => format!("its artifact does not unpack ({e:#})"),
-                };
-                Ok(Pulled::Corrupt { why })
+                }))
             }
         }
     }
@@ -191,19 +217,7 @@ impl Remote {
     /// `replace`: it is known corrupt), then the record. Returns the bytes uploaded; `Ok(None)`
     /// when the remote is down or this client does not push.
     pub fn push(&self, store: &Store, record: &ActionRecord, replace: bool) -> anyhow::Result<Option<u64>> {
-        if !self.push {
-            return Ok(None);
-        }
-        let object = Self::object_key(&record.output);
-        let mut sent = 0;
-        let Ok(present) = self.call("checking an object", self.objects.head(&object)) else { return Ok(None) };
-        if present.is_none() || replace {
-            let tar = pack(&store.object_dir(&record.output))?;
-            sent += tar.len() as u64;
-            if self.call("uploading an object", self.objects.put(&object, PutPayload::from(tar))).is_err() {
-                return Ok(None);
-            }
-        }
+        let Some(mut sent) = self.push_object(store, &record.output, replace)? else { return Ok(None) };
         let key = Self::record_key(&record.key);
         let Ok(present) = self.call("checking a record", self.objects.head(&key)) else { return Ok(None) };
         if present.is_none() || replace {
@@ -214,6 +228,47 @@ impl Remote {
             }
         }
         Ok(Some(sent))
+    }
+
+    /// Uploads the artifact `digest` from `store` unless the remote has it (or `replace`): what
+    /// the engine does for a cluster task's inputs. Returns the bytes uploaded; `Ok(None)` when
+    /// the remote is down or this client does not push.
+    pub fn push_object(&self, store: &Store, digest: &Digest, replace: bool) -> anyhow::Result<Option<u64>> {
+        if !self.push {
+            return Ok(None);
+        }
+        let object = Self::object_key(digest);
+        let Ok(present) = self.call("checking an object", self.objects.head(&object)) else { return Ok(None) };
+        if present.is_some() && !replace {
+            return Ok(Some(0));
+        }
+        let tar = pack(&store.object_dir(digest))?;
+        let sent = tar.len() as u64;
+        if self.call("uploading an object", self.objects.put(&object, PutPayload::from(tar))).is_err() {
+            return Ok(None);
+        }
+        Ok(Some(sent))
+    }
+
+    /// Writes a cluster task's transcript (its protocol lines and other output) under
+    /// `runs/<name>`, where the engine that submitted it reads it back. `false` when the remote
+    /// is down or this client does not push.
+    pub fn put_transcript(&self, name: &str, text: String) -> bool {
+        self.push && self.call("uploading a transcript", self.objects.put(&Self::transcript_key(name), PutPayload::from(text))).is_ok()
+    }
+
+    /// A transcript [`Remote::put_transcript`] wrote, if the remote has it.
+    pub fn transcript(&self, name: &str) -> Option<String> {
+        self.get("reading a transcript", &Self::transcript_key(name)).map(|bytes| String::from_utf8_lossy(&bytes).into_owned())
+    }
+
+    /// Removes a transcript its engine has read (and kept in the stage's log).
+    pub fn remove_transcript(&self, name: &str) {
+        let _ = self.call("removing a transcript", self.objects.delete(&Self::transcript_key(name)));
+    }
+
+    fn transcript_key(name: &str) -> Key {
+        Key::from(format!("runs/{name}"))
     }
 }
 

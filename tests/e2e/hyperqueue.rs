@@ -152,3 +152,60 @@ fn bad_hyperqueue_settings_name_their_key_and_line() {
     let err = text(&s.pipeline(CHAIN).cli(&["run", "p.toml", "--executor", "slurm"]).stderr);
     assert!(err.contains("unknown executor `slurm` for --executor; valid: local, hyperqueue"), "{err}");
 }
+
+/// Every object directory under a store, by digest.
+fn objects(store: &std::path::Path) -> Vec<String> {
+    let mut v: Vec<String> = fs::read_dir(store.join("objects")).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn workers_with_stores_of_their_own_share_only_the_remote_and_give_the_bytes_of_a_local_run() {
+    let local = Scratch::new("hq-own-local");
+    local.pipeline(CHAIN).run();
+    let s = Scratch::new("hq-own");
+    let remote = s.dir.join("remote");
+    let pipeline = hyperqueue(CHAIN, "workers = 2\ncores = 1\nworker_store = \"temporary\"")
+        .replacen("seed = 7\n", &format!("seed = 7\nremote = \"file://{}\"\nremote_push = true\n", remote.display()), 1);
+    s.pipeline(&pipeline);
+    let events = s.run();
+    assert_eq!(events.with_status("ran").len(), 5, "{:?}", events.finished());
+    assert!(events.of("run_started")[0]["executor"].as_str().unwrap().contains("worker stores temporary, through file://"));
+    // The results came back through the remote into this store: the keys and bytes of a local run.
+    assert_eq!(keys_and_outputs(&s), keys_and_outputs(&local));
+    assert_eq!(objects(&s.store()), objects(&local.store()));
+    let verify = s.cli(&["verify", "p.toml"]);
+    assert!(verify.status.success(), "{}", text(&verify.stdout));
+    // Each task ran in a store of its own, which it removed; none used the run's store.
+    let stores: Vec<String> = s.trace().into_iter().filter(|l| l.starts_with("start write-text")).collect();
+    assert_eq!(stores.len(), 2, "{stores:?}");
+    let run_store = format!("out={}", s.store().display());
+    assert!(stores.iter().all(|l| l.contains(" out=") && !l.contains(&run_store)), "tasks ran outside the run's store: {stores:?}");
+    // Events travel in the task's transcript.
+    assert!(events.of("operator_event").iter().any(|e| e["stage"] == "source" && e["name"] == "wrote"), "{:?}", events.0);
+    // What the workers pushed is on the remote, records with their objects.
+    assert_eq!(fs::read_dir(remote.join("ac")).unwrap().count(), 5);
+
+    // An operator's error comes back in the transcript, with the operator's words.
+    let failing = pipeline.replace("text = \"independent\"", "text = \"independent, failing\"\nfail = true");
+    s.pipeline(&failing);
+    let failed = s.run_expecting(1, &[]);
+    let other = failed.of("stage_finished").into_iter().find(|e| e["stage"] == "other").unwrap().clone();
+    assert_eq!(other["status"], "failed");
+    assert_eq!(other["error"], "asked to fail", "{other}");
+}
+
+#[test]
+fn workers_with_stores_of_their_own_need_a_remote_this_run_pushes_to() {
+    let s = Scratch::new("hq-own-no-remote");
+    s.pipeline(&hyperqueue(CHAIN, "worker_store = \"temporary\""));
+    let out = s.cli(&["run", "p.toml"]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = text(&out.stderr);
+    assert!(err.contains("worker_store = \"temporary\" hands inputs and results") && err.contains("remote_push = true"), "{err}");
+    assert!(s.trace().is_empty(), "nothing ran");
+    s.pipeline(&hyperqueue(CHAIN, "worker_store = \"scratch\""));
+    let err = text(&s.cli(&["run", "p.toml", "--dry-run"]).stderr);
+    assert!(err.contains("pipeline.hyperqueue.worker_store: `scratch` is not valid; valid: \"shared\""), "{err}");
+}

@@ -108,7 +108,7 @@ impl Operator for WriteText {
     fn run(&self, s: &WriteTextSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         let done_file = ctx.checkpoint_dir.join("steps-done");
         let start: u32 = fs::read_to_string(&done_file).ok().and_then(|t| t.trim().parse().ok()).unwrap_or(0);
-        trace(format!("start write-text {} from={start} threads={}", ctx.stage, ctx.threads));
+        trace(format!("start write-text {} from={start} threads={} out={}", ctx.stage, ctx.threads, ctx.output_dir.display()));
         if s.panic {
             panic!("asked to panic");
         }

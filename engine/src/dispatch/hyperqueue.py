@@ -8,6 +8,7 @@ engine makes one call at a time.
 from hyperqueue import Client, Job
 from hyperqueue.cluster import LocalCluster, WorkerConfig
 from hyperqueue.ffi.protocol import ResourceRequest
+from hyperqueue.output import StdioDef
 
 
 def start_cluster(server_dir, workers, cores):
@@ -31,15 +32,21 @@ def connect(directory):
     return Client(directory)
 
 
-def submit(client, name, args, cwd, stdout, stderr, cpus, gpus):
-    """Submits one task running `args`; returns the job id."""
+def submit(client, name, args, cwd, stdout, stderr, cpus, gpus, stdin=None):
+    """Submits one task running `args`; returns the job id.
+
+    With `stdin` (a task with a store of its own), `stdout` and `stderr` are paths on the worker,
+    kept there only if the task fails."""
     resources = {"gpus/nvidia": gpus} if gpus else None
+    if stdin is not None:
+        stdout, stderr = StdioDef.remove_if_finished(stdout), StdioDef.remove_if_finished(stderr)
     job = Job(name=name, max_fails=1)
     job.program(
         args,
         cwd=cwd,
         stdout=stdout,
         stderr=stderr,
+        stdin=stdin,
         name=name,
         resources=ResourceRequest(cpus=cpus, resources=resources),
         crash_limit=1,

@@ -3,11 +3,20 @@
 //! when `gpus = true`). The client API and the local cluster come from the `hyperqueue` package
 //! in the managed Python environment (`hyperqueue.py`).
 //!
-//! A task's stdout and stderr go to files under the run directory (the store must be on a
-//! filesystem every worker sees); stdout is followed as it grows, so progress and events arrive
-//! as from a local child, and the rest of both files joins the stage's log. A task that ends
-//! without an outcome (its process killed, its worker lost) is submitted again up to `retries`
-//! times; the action resumes from its checkpoint. An operator's own error is not retried.
+//! With `worker_store = "shared"` (the default) a task's stdout and stderr go to files under the
+//! run directory (the store must be on a filesystem every worker sees); stdout is followed as it
+//! grows, so progress and events arrive as from a local child, and the rest of both files joins
+//! the stage's log.
+//!
+//! With a store of each worker's own (`"temporary"` or a path), nothing is shared but the remote
+//! cache: the engine pushes the task's inputs there and sends the request on the task's stdin;
+//! the task (`exec --remote`, in `exec.rs`) fetches its inputs, runs, pushes its result and a
+//! transcript of its output; the engine then reads the transcript (outcome, events, log) and
+//! pulls the result into its own store. Progress arrives with the transcript, when the task ends.
+//!
+//! A task that ends without an outcome (its process killed, its worker lost) is submitted again
+//! up to `retries` times; the action resumes from its checkpoint. An operator's own error is not
+//! retried.
 
 use std::fs::File;
 use std::io::{Read, Seek, SeekFrom, Write};
@@ -24,7 +33,8 @@ use pyo3::conversion::FromPyObjectOwned;
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
-use super::{Dispatch, Exit, HyperQueueSettings, Launch, Report, forward_line};
+use super::{Dispatch, Exit, HyperQueueSettings, Launch, Report, WorkerStore, forward_line};
+use crate::config::RemoteSettings;
 use crate::exec::Message;
 
 const HELPER: &str = include_str!("hyperqueue.py");
@@ -42,6 +52,17 @@ pub struct HyperQueue {
     cluster: Option<Py<PyAny>>,
     /// Where task outputs and a local cluster's server directory go (inside the run directory).
     dir: PathBuf,
+    /// With stores of the workers' own: theirs, and the remote cache between them and the engine.
+    own: Option<OwnStores>,
+}
+
+/// Tasks with stores of their own, and the remote cache their inputs and results travel by.
+#[derive(Clone)]
+struct OwnStores {
+    store: WorkerStore,
+    remote: RemoteSettings,
+    /// The run's id, under which the transcripts go.
+    run: String,
 }
 
 /// The helper module and a client connection, used by one thread at a time.
@@ -91,8 +112,28 @@ impl HyperQueue {
     /// runs. For a local cluster nothing happens until the first task: the Python environment,
     /// the interpreter, the client and the cluster start then, so a run with nothing to do
     /// costs what a local one does.
-    pub fn connect(settings: HyperQueueSettings, dir: &Path, note: Box<dyn FnMut(&str) + Send>) -> anyhow::Result<HyperQueue> {
-        let mut hq = HyperQueue { settings, note, helper: None, client: None, cluster: None, dir: dir.to_path_buf() };
+    ///
+    /// Workers with stores of their own need `remote`, pushing: it is how their inputs and
+    /// results travel.
+    pub fn connect(
+        settings: HyperQueueSettings,
+        dir: &Path,
+        run: &str,
+        remote: Option<&RemoteSettings>,
+        note: Box<dyn FnMut(&str) + Send>,
+    ) -> anyhow::Result<HyperQueue> {
+        let store = settings.worker_store().map_err(|(key, why)| anyhow::anyhow!("[pipeline.hyperqueue] {key}: {why}"))?;
+        let own = match (store, remote) {
+            (WorkerStore::Shared, _) => None,
+            (store, Some(remote)) if remote.url.is_some() && remote.push => Some(OwnStores { store, remote: remote.clone(), run: run.to_owned() }),
+            _ => anyhow::bail!(
+                "[pipeline.hyperqueue] worker_store = \"{}\" hands inputs and results between the workers and this machine through the remote cache, \
+                 so it needs one that this run pushes to: set [pipeline] remote and remote_push = true (or pass --remote URL --push), \
+                 or use worker_store = \"shared\" with the store on a filesystem every worker sees",
+                settings.worker_store
+            ),
+        };
+        let mut hq = HyperQueue { settings, note, helper: None, client: None, cluster: None, dir: dir.to_path_buf(), own };
         if let Some(server) = hq.settings.server_dir.clone() {
             let helper = hq.helper()?;
             hq.client = Some(Arc::new(Mutex::new(Client::connect(&helper, &server)?)));
@@ -153,12 +194,13 @@ struct Task {
     launch: Launch,
     retries: u32,
     gpus: bool,
+    own: Option<OwnStores>,
 }
 
 impl Dispatch for HyperQueue {
     fn start(&mut self, id: usize, launch: Launch, tx: Sender<(usize, Report)>) -> anyhow::Result<()> {
         let client = self.client()?;
-        let task = Task { client, dir: self.dir.clone(), launch, retries: self.settings.retries, gpus: self.settings.gpus };
+        let task = Task { client, dir: self.dir.clone(), launch, retries: self.settings.retries, gpus: self.settings.gpus, own: self.own.clone() };
         let log = Arc::new(Mutex::new(File::create(&task.launch.log).with_context(|| format!("creating {}", task.launch.log.display()))?));
         std::thread::spawn(move || {
             let exit = task.run(id, &tx, &log).unwrap_or_else(|e| Exit::Lost(format!("{e:#}")));
@@ -177,10 +219,15 @@ impl Dispatch for HyperQueue {
 
     fn describe(&self) -> String {
         let HyperQueueSettings { workers, server_dir, .. } = &self.settings;
-        match server_dir {
-            Some(dir) => format!("hyperqueue (server {})", dir.display()),
-            None => format!("hyperqueue (local cluster, {workers} workers x {} cores)", self.settings.cores()),
-        }
+        let cluster = match server_dir {
+            Some(dir) => format!("server {}", dir.display()),
+            None => format!("local cluster, {workers} workers x {} cores", self.settings.cores()),
+        };
+        let stores = match &self.own {
+            None => String::new(),
+            Some(own) => format!(", worker stores {}, through {}", self.settings.worker_store, own.remote.url.as_deref().unwrap_or_default()),
+        };
+        format!("hyperqueue ({cluster}{stores})")
     }
 }
 
@@ -190,18 +237,39 @@ const POLL: Duration = Duration::from_millis(100);
 impl Task {
     fn run(&self, id: usize, tx: &Sender<(usize, Report)>, log: &Mutex<File>) -> anyhow::Result<Exit> {
         let name = rlmflow_cache::file_safe(&self.launch.label);
+        let own = match &self.own {
+            Some(own) => match OwnTask::prepare(own, &self.launch)? {
+                Ok(task) => Some(task),
+                Err(exit) => return Ok(exit),
+            },
+            None => None,
+        };
         let mut attempt = 0;
         loop {
-            let stdout = self.dir.join(format!("{name}.{attempt}.stdout"));
-            let stderr = self.dir.join(format!("{name}.{attempt}.stderr"));
-            let job = self.submit(&name, &stdout, &stderr)?;
-            let (exit, outcome) = self.follow(job, &stdout, id, tx, log)?;
-            if let Ok(mut text) = std::fs::read_to_string(&stderr) {
-                if !text.is_empty() && !text.ends_with('\n') {
-                    text.push('\n');
+            let (job, exit, outcome) = match &own {
+                None => {
+                    let stdout = self.dir.join(format!("{name}.{attempt}.stdout"));
+                    let stderr = self.dir.join(format!("{name}.{attempt}.stderr"));
+                    let job = self.submit(&name, self.launch.args.clone(), &self.dir, [&stdout, &stderr], None)?;
+                    let (exit, outcome) = self.follow(job, &stdout, id, tx, log)?;
+                    if let Ok(mut text) = std::fs::read_to_string(&stderr) {
+                        if !text.is_empty() && !text.ends_with('\n') {
+                            text.push('\n');
+                        }
+                        let _ = log.lock().unwrap().write_all(text.as_bytes());
+                    }
+                    (job, exit, outcome)
                 }
-                let _ = log.lock().unwrap().write_all(text.as_bytes());
-            }
+                Some(own) => {
+                    let transcript = format!("{}/{name}.{attempt}", own.run);
+                    let cwd = std::env::temp_dir();
+                    let [stdout, stderr] = ["stdout", "stderr"].map(|ext| cwd.join(format!("rlmflow-{name}.{attempt}.{ext}")));
+                    let job = self.submit(&name, own.args(&self.launch, &transcript), &cwd, [&stdout, &stderr], Some(&own.request))?;
+                    let reason = self.wait(job)?;
+                    let (exit, outcome) = own.finish(&reason, &transcript, &stderr, id, tx, log)?;
+                    (job, exit, outcome)
+                }
+            };
             let lost = !outcome && !matches!(exit, Exit::Code(0));
             if !lost || attempt >= self.retries {
                 return Ok(exit);
@@ -209,31 +277,43 @@ impl Task {
             attempt += 1;
             let data = json!({"job": job, "attempt": attempt, "retries": self.retries, "reason": exit.describe()});
             let _ = tx.send((id, Report::Message(Message::Event { name: "hyperqueue_retry".into(), data })));
-            let _ =
-                writeln!(log.lock().unwrap(), "rlmflow: HyperQueue job {job} ended without an outcome ({}); submitting it again", exit.describe());
+            let _ = writeln!(log.lock().unwrap(), "rlmflow: HyperQueue job {job} ended without an outcome ({}); submitting it again", exit.describe());
         }
     }
 
-    fn submit(&self, name: &str, stdout: &Path, stderr: &Path) -> anyhow::Result<u64> {
+    fn submit(&self, name: &str, args: Vec<String>, cwd: &Path, [stdout, stderr]: [&Path; 2], stdin: Option<&[u8]>) -> anyhow::Result<u64> {
         let l = &self.launch;
-        let mut args = vec![l.exe.to_string_lossy().into_owned()];
-        args.extend(l.args.iter().cloned());
+        let mut command = vec![l.exe.to_string_lossy().into_owned()];
+        command.extend(args);
         let gpus = u32::from(self.gpus && l.gpu);
-        let [cwd, stdout, stderr] = [&self.dir, stdout, stderr].map(|p| p.to_string_lossy().into_owned());
+        let [cwd, stdout, stderr] = [cwd, stdout, stderr].map(|p| p.to_string_lossy().into_owned());
+        let stdin = stdin.map(|bytes| bytes.to_vec());
         let client = self.client.lock().unwrap();
         client
             .call("submit", |py| {
                 Ok(vec![
                     name.into_pyobject(py)?.into_any(),
-                    args.into_pyobject(py)?.into_any(),
+                    command.into_pyobject(py)?.into_any(),
                     cwd.into_pyobject(py)?.into_any(),
                     stdout.into_pyobject(py)?.into_any(),
                     stderr.into_pyobject(py)?.into_any(),
                     l.threads.into_pyobject(py)?.into_any(),
                     gpus.into_pyobject(py)?.into_any(),
+                    stdin.map(|b| pyo3::types::PyBytes::new(py, &b).into_any()).unwrap_or_else(|| py.None().into_bound(py)),
                 ])
             })
             .with_context(|| format!("submitting {}", l.label))
+    }
+
+    /// Waits for the job to end; returns HyperQueue's reason it failed ("" when it did not).
+    fn wait(&self, job: u64) -> anyhow::Result<String> {
+        loop {
+            let state: Option<String> = self.client.lock().unwrap().call("status", |py| Ok(vec![job.into_pyobject(py)?.into_any()]))?;
+            match state {
+                Some(reason) => return Ok(reason),
+                None => std::thread::sleep(POLL),
+            }
+        }
     }
 
     /// Follows the task's stdout until the job ends; returns how it ended and whether the
@@ -259,6 +339,95 @@ impl Task {
         tail.finish(&mut forward);
         let exit = if reason.is_empty() { Exit::Code(0) } else { exit_of(&reason) };
         Ok((exit, outcome))
+    }
+}
+
+/// One action as a task with a store of its own: its request, and a client of the remote cache
+/// for the task's thread.
+struct OwnTask {
+    store: WorkerStore,
+    remote: rlmflow_remote::Remote,
+    /// The engine's store: the inputs come from it, the result goes into it.
+    engine: rlmflow_cache::Store,
+    key: rlmflow_cache::Digest,
+    /// The request, as JSON, for the task's stdin.
+    request: Vec<u8>,
+    /// The run's id, under which the transcripts go.
+    run: String,
+}
+
+impl OwnTask {
+    /// Pushes the action's inputs to the remote cache, where the workers fetch them; an exit
+    /// when that cannot be done.
+    fn prepare(own: &OwnStores, launch: &Launch) -> anyhow::Result<Result<OwnTask, Exit>> {
+        let remote = own.remote.open()?;
+        let engine = rlmflow_cache::Store::open_existing(&launch.store)?.with_context(|| format!("no rlmflow store at {}", launch.store.display()))?;
+        let request = engine.request(&launch.key)?.with_context(|| format!("the store has no request for action {}", launch.key))?;
+        for input in &request.preimage.inputs {
+            if remote.push_object(&engine, &input.digest, false)?.is_none() {
+                let why = remote.down().unwrap_or_default();
+                return Ok(Err(Exit::Lost(format!("could not hand input {} to the workers through the remote cache: {why}", input.digest.short()))));
+            }
+        }
+        let request = serde_json::to_vec(&request)?;
+        Ok(Ok(OwnTask { store: own.store.clone(), remote, engine, key: launch.key, request, run: own.run.clone() }))
+    }
+
+    /// `exec KEY --remote URL ...`: the task's command line after the executable.
+    fn args(&self, launch: &Launch, transcript: &str) -> Vec<String> {
+        let timeout = self.remote.timeout().as_secs_f64();
+        let mut args = vec!["exec".to_owned(), launch.key.to_string(), "--remote".into(), self.remote.url().to_owned()];
+        args.extend(["--remote-timeout".into(), timeout.to_string(), "--transcript".into(), transcript.to_owned()]);
+        args.extend(["--threads".into(), launch.threads.to_string(), "--device".into(), launch.device.to_string()]);
+        if let WorkerStore::Own(dir) = &self.store {
+            args.extend(["--store".into(), dir.to_string_lossy().into_owned()]);
+        }
+        if launch.replace_remote {
+            args.push("--replace".into());
+        }
+        args
+    }
+
+    /// After the job ended (HyperQueue's `reason` it failed, "" if it did not): forwards the
+    /// transcript, and pulls the result into the engine's store. Returns how the task ended
+    /// and whether it reported an outcome.
+    fn finish(&self, reason: &str, transcript: &str, stderr: &Path, id: usize, tx: &Sender<(usize, Report)>, log: &Mutex<File>) -> anyhow::Result<(Exit, bool)> {
+        let mut exit = if reason.is_empty() { Exit::Code(0) } else { exit_of(reason) };
+        let mut outcome = None;
+        match self.remote.transcript(transcript) {
+            Some(text) => {
+                for line in text.lines() {
+                    if let Some(Ok(message)) = line.strip_prefix(crate::exec::PREFIX).map(serde_json::from_str::<Message>) {
+                        if !matches!(message, Message::Progress { .. } | Message::Event { .. } | Message::Waiting) {
+                            outcome = Some(matches!(message, Message::Done { .. } | Message::Reused));
+                        }
+                    }
+                    forward_line(line, id, tx, log);
+                }
+                self.remote.remove_transcript(transcript);
+            }
+            None => {
+                let why = self.remote.down().map(|d| format!(" ({d})")).unwrap_or_default();
+                let _ = writeln!(
+                    log.lock().unwrap(),
+                    "rlmflow: the task left no transcript on the remote cache{why}; its worker keeps its output in {}",
+                    stderr.with_extension("stdout").display()
+                );
+            }
+        }
+        if outcome == Some(true) && exit == Exit::Code(0) {
+            let why = match self.remote.pull(&self.engine, &self.key)? {
+                rlmflow_remote::Pulled::Hit { .. } => None,
+                rlmflow_remote::Pulled::Miss => Some(self.remote.down().unwrap_or_else(|| "the remote cache does not have it".into())),
+                rlmflow_remote::Pulled::Corrupt { why } => Some(why),
+            };
+            if let Some(why) = why {
+                let message = format!("the task finished, but its result could not be fetched from the remote cache: {why}");
+                let _ = tx.send((id, Report::Message(Message::Failed { message })));
+                exit = Exit::Code(1);
+            }
+        }
+        Ok((exit, outcome.is_some()))
     }
 }
 

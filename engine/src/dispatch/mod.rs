@@ -29,6 +29,12 @@ pub struct Launch {
     pub exe: PathBuf,
     /// The arguments after the executable (`exec KEY --store DIR ...`).
     pub args: Vec<String>,
+    pub key: rlmflow_cache::Digest,
+    /// The engine's store, which holds the action's request and inputs.
+    pub store: PathBuf,
+    pub device: rlmflow_stages::Device,
+    /// The remote cache's copy of this action's result is corrupt: a push replaces it.
+    pub replace_remote: bool,
     /// The instance's label, for names and messages.
     pub label: String,
     pub threads: usize,
@@ -131,11 +137,25 @@ pub struct HyperQueueSettings {
     pub retries: u32,
     /// Whether a stage that can use a GPU asks for one (the workers must have GPUs).
     pub gpus: bool,
+    /// The store a task uses: `"shared"`, the run's own (on a filesystem every worker sees);
+    /// `"temporary"`, a fresh one per task in the worker's temporary directory; or an absolute
+    /// path, a store of each worker's own kept between tasks. Other than shared, inputs and
+    /// results travel through the remote cache, which the run must push to.
+    pub worker_store: String,
+}
+
+/// Where a HyperQueue task keeps its store.
+#[derive(Clone, Debug, PartialEq)]
+pub enum WorkerStore {
+    Shared,
+    Temporary,
+    /// A directory on each worker.
+    Own(PathBuf),
 }
 
 impl Default for HyperQueueSettings {
     fn default() -> Self {
-        HyperQueueSettings { server_dir: None, workers: 1, cores: 0, retries: 1, gpus: false }
+        HyperQueueSettings { server_dir: None, workers: 1, cores: 0, retries: 1, gpus: false, worker_store: "shared".into() }
     }
 }
 
@@ -151,7 +171,20 @@ impl HyperQueueSettings {
         if self.retries > 100 {
             return Err(("retries", format!("must be in 0..=100, not {}", self.retries)));
         }
+        self.worker_store()?;
         Ok(())
+    }
+
+    pub fn worker_store(&self) -> Result<WorkerStore, (&'static str, String)> {
+        match self.worker_store.as_str() {
+            "shared" => Ok(WorkerStore::Shared),
+            "temporary" => Ok(WorkerStore::Temporary),
+            path if path.starts_with('/') => Ok(WorkerStore::Own(PathBuf::from(path))),
+            other => Err((
+                "worker_store",
+                format!("`{other}` is not valid; valid: \"shared\" (the run's store), \"temporary\" (one per task) or an absolute path on the workers"),
+            )),
+        }
     }
 
     pub fn cores(&self) -> usize {
