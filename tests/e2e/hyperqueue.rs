@@ -209,3 +209,17 @@ fn workers_with_stores_of_their_own_need_a_remote_this_run_pushes_to() {
     let err = text(&s.cli(&["run", "p.toml", "--dry-run"]).stderr);
     assert!(err.contains("pipeline.hyperqueue.worker_store: `scratch` is not valid; valid: \"shared\""), "{err}");
 }
+
+#[test]
+fn a_worker_store_on_a_path_keeps_what_its_tasks_fetched_and_computed() {
+    let s = Scratch::new("hq-own-path");
+    let (remote, worker) = (s.dir.join("remote"), s.dir.join("worker-store"));
+    let table = format!("workers = 1\ncores = 1\nworker_store = \"{}\"", worker.display());
+    s.pipeline(&hyperqueue(CHAIN, &table).replacen("seed = 7\n", &format!("seed = 7\nremote = \"file://{}\"\nremote_push = true\n", remote.display()), 1));
+    let events = s.run();
+    assert_eq!(events.with_status("ran").len(), 5, "{:?}", events.finished());
+    // The worker's store holds every result its tasks computed (the inputs among them), and the
+    // run's store the same objects, pulled back.
+    assert_eq!(objects(&worker), objects(&s.store()));
+    assert!(s.trace().iter().filter(|l| l.starts_with("start write-text")).all(|l| l.contains(&format!("out={}", worker.display()))), "{:?}", s.trace());
+}
