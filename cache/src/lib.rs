@@ -31,6 +31,8 @@
 //! locks/                     advisory locks: one per action key, one for the store
 //! tmp/                       work directories of running actions; orphans are swept
 //! quarantine/                objects that failed verification, kept for inspection
+//! external/                  digests of external inputs' files, and their trees' manifests
+//!                            (see [`external`])
 //! ```
 //!
 //! * An action record exists only if its output object does: outputs are written in `tmp/`,
@@ -41,6 +43,7 @@
 //!   needs removing by hand.
 
 mod digest;
+pub mod external;
 mod gc;
 mod lock;
 mod preimage;

@@ -590,7 +590,7 @@ fn abandoned_write(path: &Path, writer: &str) -> bool {
 }
 
 /// Writes `bytes` to a temporary file in the store's `tmp/` and renames it over `path`.
-fn atomic_write(store: &Store, path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+pub(crate) fn atomic_write(store: &Store, path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     static COUNTER: AtomicU64 = AtomicU64::new(0);
     let n = COUNTER.fetch_add(1, Ordering::Relaxed);
     let tmp = store.root.join("tmp").join(format!("write-{}-{n}", std::process::id()));

@@ -32,20 +32,44 @@ pub fn hash_file(path: &Path) -> io::Result<Digest> {
 /// Hashes every regular file below `root`. Symbolic links and non-UTF-8 names are errors: an
 /// artifact must mean the same bytes on every machine.
 pub fn hash_tree(root: &Path) -> anyhow::Result<TreeInfo> {
+    let files = list_files(root)?;
+    let mut entries = Vec::with_capacity(files.len());
+    for rel in files {
+        let path = root.join(&rel);
+        let meta = fs::metadata(&path)?;
+        let digest = hash_file(&path).with_context(|| format!("hashing {}", path.display()))?;
+        entries.push(Entry { rel, digest, size: meta.len(), exec: is_exec(&meta) });
+    }
+    Ok(tree_info(&entries))
+}
+
+/// One file of a tree, as its manifest line records it.
+pub(crate) struct Entry {
+    pub rel: String,
+    pub digest: Digest,
+    pub size: u64,
+    pub exec: bool,
+}
+
+pub(crate) fn is_exec(meta: &fs::Metadata) -> bool {
+    meta.permissions().mode() & 0o111 != 0
+}
+
+/// The manifest and digest of a tree's files, sorted by path.
+pub(crate) fn tree_info(entries: &[Entry]) -> TreeInfo {
+    let mut manifest = String::from(MANIFEST_HEADER);
+    for e in entries {
+        manifest.push_str(&format!("{} {} {} {}\n", e.digest, e.size, if e.exec { 'x' } else { '-' }, e.rel));
+    }
+    TreeInfo { digest: Digest::of(manifest.as_bytes()), files: entries.len() as u64, bytes: entries.iter().map(|e| e.size).sum(), manifest }
+}
+
+/// Every regular file below `root`, relative, sorted.
+pub(crate) fn list_files(root: &Path) -> anyhow::Result<Vec<String>> {
     let mut files = Vec::new();
     collect(root, "", &mut files)?;
     files.sort();
-    let mut manifest = String::from(MANIFEST_HEADER);
-    let mut bytes = 0;
-    for rel in &files {
-        let path = root.join(rel);
-        let meta = fs::metadata(&path)?;
-        let digest = hash_file(&path).with_context(|| format!("hashing {}", path.display()))?;
-        let exec = if meta.permissions().mode() & 0o111 != 0 { 'x' } else { '-' };
-        manifest.push_str(&format!("{digest} {} {exec} {rel}\n", meta.len()));
-        bytes += meta.len();
-    }
-    Ok(TreeInfo { digest: Digest::of(manifest.as_bytes()), files: files.len() as u64, bytes, manifest })
+    Ok(files)
 }
 
 fn collect(dir: &Path, prefix: &str, out: &mut Vec<String>) -> anyhow::Result<()> {
