@@ -121,13 +121,13 @@ pub fn snapshot(store: &Store, source: &Path, digest: &Digest) -> anyhow::Result
     Ok(())
 }
 
-/// The manifest of a tree this store fingerprinted or holds, if it has it.
+/// The manifest of a tree this store fingerprinted, if it has it.
 pub fn manifest(store: &Store, digest: &Digest) -> Option<String> {
-    fs::read_to_string(manifest_path(store, digest)).or_else(|_| fs::read_to_string(store.manifest_path(digest))).ok()
+    fs::read_to_string(manifest_path(store, digest)).ok()
 }
 
 /// The files that differ between two fingerprinted trees (changed, added or removed), if the
-/// store has both manifests.
+/// store fingerprinted both.
 pub fn changed_files(store: &Store, before: &Digest, now: &Digest) -> Option<Vec<String>> {
     Some(differing_files(&manifest(store, now)?, &manifest(store, before)?))
 }

@@ -260,6 +260,13 @@ fn pull(plan: &crate::plan::Plan, registry: &Registry, store: &Store, remote: &r
     Ok((pulled, bytes))
 }
 
+/// The pipeline's plan, with the content of every tracked path (recorded in `store`, if any).
+fn planned<'p>(pipeline: &'p Pipeline, store: Option<&Store>) -> anyhow::Result<crate::plan::Plan<'p>> {
+    let mut plan = plan(pipeline);
+    plan.fingerprint(store)?;
+    Ok(plan)
+}
+
 fn store_root(pipeline: &Pipeline, arg: &StoreArg) -> PathBuf {
     arg.cache.clone().unwrap_or_else(|| pipeline.cache.clone())
 }
@@ -272,10 +279,10 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 p.executor = config::Executor::parse(&name)
                     .with_context(|| format!("unknown executor `{name}` for --executor; valid: {}", config::Executor::NAMES.join(", ")))?;
             }
-            let plan = plan(&p);
-            let selected = plan.select(&only)?;
             let root = store_root(&p, &store);
             let existing = Store::open_existing(&root)?;
+            let plan = planned(&p, existing.as_ref())?;
+            let selected = plan.select(&only)?;
             let states = assess(&plan, registry, existing.as_ref())?;
             let runs = crate::run::will_run(&states, &selected);
             let fits = crate::footprint::fits(&plan, registry, device, &runs);
@@ -312,8 +319,8 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         }
         Command::Status { pipeline, json, store, remote } => {
             let p = config::load(&pipeline, registry)?;
-            let plan = plan(&p);
             let store = Store::open_existing(&store_root(&p, &store))?;
+            let plan = planned(&p, store.as_ref())?;
             let all = vec![true; plan.instances.len()];
             let states = assess(&plan, registry, store.as_ref())?;
             let fits = crate::footprint::fits(&plan, registry, rlmflow_stages::Device::Auto, &crate::run::will_run(&states, &all));
@@ -327,9 +334,9 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         }
         Command::Push(Transfer { pipeline, only, store, remote }) => {
             let p = config::load(&pipeline, registry)?;
-            let plan = plan(&p);
-            let selected = plan.select(&only)?;
             let store = Store::open_existing(&store_root(&p, &store))?.context("the pipeline has not run yet; nothing to push")?;
+            let plan = planned(&p, Some(&store))?;
+            let selected = plan.select(&only)?;
             let settings = remote.settings(&p).context("no remote cache: set `[pipeline] remote` or give --remote")?;
             let remote = config::RemoteSettings { push: true, ..settings }.open()?;
             let (mut pushed, mut bytes) = (0, 0);
@@ -349,9 +356,9 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         }
         Command::Pull(Transfer { pipeline, only, store, remote }) => {
             let p = config::load(&pipeline, registry)?;
-            let plan = plan(&p);
-            let selected = plan.select(&only)?;
             let store = Store::open(&store_root(&p, &store))?;
+            let plan = planned(&p, Some(&store))?;
+            let selected = plan.select(&only)?;
             let settings = remote.settings(&p).context("no remote cache: set `[pipeline] remote` or give --remote")?;
             let remote = settings.open()?;
             let (pulled, bytes) = pull(&plan, registry, &store, &remote, &selected)?;
@@ -400,8 +407,8 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         Command::Pin { pipeline, name, store } => {
             config::check_name(&name).map_err(|problem| anyhow::anyhow!("the pin name {problem}"))?;
             let p = config::load(&pipeline, registry)?;
-            let plan = plan(&p);
             let store = Store::open_existing(&store_root(&p, &store))?.context("the pipeline has not run yet; nothing to pin")?;
+            let plan = planned(&p, Some(&store))?;
             let states = assess(&plan, registry, Some(&store))?;
             let keys: std::collections::BTreeMap<String, Digest> = states
                 .iter()
@@ -428,7 +435,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 for op in registry.operators_of(kind.name) {
                     let spec = op.spec();
                     let defaults = op.settings(serde_json::json!({})).unwrap_or_default();
-                    let line = serde_json::json!({"name": spec.name, "kind": spec.kind, "version": spec.version, "defaults": defaults, "non_result": op.non_result_keys()});
+                    let line = serde_json::json!({"name": spec.name, "kind": spec.kind, "version": spec.version, "defaults": defaults, "non_result": op.non_result_keys(), "tracked": op.tracked_keys()});
                     println!("{line}");
                 }
             }
@@ -442,6 +449,9 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                     let spec = op.spec();
                     let defaults = op.settings(serde_json::json!({})).unwrap_or_default();
                     println!("  {} v{}: {}\n    defaults: {}", spec.name, spec.version, spec.summary, canonical_json(&defaults));
+                    if !op.tracked_keys().is_empty() {
+                        println!("    paths tracked by content (their files' digests enter the key, not the path): {}", op.tracked_keys().join(", "));
+                    }
                     if !op.non_result_keys().is_empty() {
                         println!("    not part of the result (left out of the key): {}", op.non_result_keys().join(", "));
                     }
@@ -500,8 +510,8 @@ fn instances_of(plan: &crate::plan::Plan, stage: &str) -> anyhow::Result<Vec<usi
 
 fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
     let p = config::load(file, registry)?;
-    let plan = plan(&p);
     let store = Store::open_existing(&store_root(&p, arg))?;
+    let plan = planned(&p, store.as_ref())?;
     let states = assess(&plan, registry, store.as_ref())?;
     let last = match &store {
         Some(s) => s.last_keys(&p.name)?,
@@ -550,8 +560,8 @@ fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> any
 
 fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
     let p = config::load(file, registry)?;
-    let plan = plan(&p);
     let store = Store::open_existing(&store_root(&p, arg))?;
+    let plan = planned(&p, store.as_ref())?;
     let states = assess(&plan, registry, store.as_ref())?;
     for i in instances_of(&plan, stage)? {
         let label = &plan.instances[i].label;

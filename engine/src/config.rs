@@ -154,6 +154,9 @@ pub struct Variant {
     pub settings: Value,
     /// A sharded stage's parts: the items each computes and its settings, in order.
     pub shards: Vec<(Part, Value)>,
+    /// The files or directories outside the store it reads, by setting (`Settings::TRACKED`),
+    /// made absolute against the pipeline file.
+    pub tracked: Vec<(String, PathBuf)>,
 }
 
 /// The action that joins a sharded stage's parts: an operator gathering them, in order, into one
@@ -440,7 +443,7 @@ impl Checker {
                 self.error(self.line(&path), &path, "must be a table".into(), None);
                 continue;
             };
-            if let Some((stage, inputs)) = self.stage(name, table, registry) {
+            if let Some((stage, inputs)) = self.stage(name, table, registry, file.parent().unwrap_or(Path::new("."))) {
                 stages.push(stage);
                 explicit_inputs.push(inputs);
             }
@@ -578,7 +581,7 @@ impl Checker {
     }
 
     /// Checks one stage table; returns it with its explicit `inputs` (slot -> stage names).
-    fn stage(&mut self, name: &str, table: &Map<String, Value>, registry: &Registry) -> Option<(Stage, BTreeMap<String, Vec<String>>)> {
+    fn stage(&mut self, name: &str, table: &Map<String, Value>, registry: &Registry, dir: &Path) -> Option<(Stage, BTreeMap<String, Vec<String>>)> {
         let path = format!("stages.{name}");
         let line = self.line(&path);
         let kind_name = self.string(table, &path, "kind").unwrap_or_else(|| name.to_owned());
@@ -647,7 +650,24 @@ impl Checker {
         let mut reported = std::collections::BTreeSet::new();
         for (variant, merged) in variants {
             match op.settings(Value::Object(merged)) {
-                Ok(settings) => checked.push(Variant { name: variant.map(|v| v.0), settings, shards: Vec::new() }),
+                Ok(settings) => {
+                    let mut tracked = Vec::new();
+                    for &key in op.tracked_keys() {
+                        let Some(given) = settings.get(key).and_then(Value::as_str).filter(|p| !p.is_empty()) else { continue };
+                        let source = std::path::absolute(dir.join(given)).unwrap_or_else(|_| dir.join(given));
+                        if source.exists() {
+                            tracked.push((key.to_owned(), source));
+                        } else {
+                            let at = match &variant {
+                                Some((v, overrides)) if overrides.contains_key(key) => format!("{path}.variants.{v}.{key}"),
+                                _ => format!("{path}.{key}"),
+                            };
+                            let help = format!("a file or directory, relative to the pipeline file's directory ({})", dir.display());
+                            self.error(self.line(&at), &at, format!("`{given}` does not exist ({})", source.display()), Some(help));
+                        }
+                    }
+                    checked.push(Variant { name: variant.map(|v| v.0), settings, shards: Vec::new(), tracked });
+                }
                 Err(e) => {
                     // Point at the variant's line when the variant set the key.
                     let top = e.key.split('.').next().unwrap_or_default();

@@ -47,6 +47,7 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
         let input_labels = plan.input_labels(i);
         let input_instances = plan.input_instances(i);
         store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone(), input_labels, input_instances })?;
+        plan.snapshot_tracked(i, store)?;
         println!("check-determinism {} (key {})", inst.label, key.short());
         let exe = crate::exec::executable(registry.get(&inst.operator).expect("validated operator"))?;
         let mut attempts: Vec<(PathBuf, Digest)> = Vec::new();

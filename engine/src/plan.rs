@@ -2,6 +2,7 @@
 //! whether each is cached, will run (and why), or waits for an upstream that will run.
 
 use std::collections::{BTreeMap, HashMap};
+use std::path::PathBuf;
 
 use anyhow::bail;
 use rlmflow_cache::{ActionRecord, Change, Digest, InputDigest, Preimage, Store};
@@ -26,6 +27,8 @@ pub struct Instance {
     pub inputs: Vec<InstanceInput>,
     /// The items a shard computes (`None`: not a shard).
     pub shard: Option<Part>,
+    /// Files or directories outside the store it reads: input slot -> path.
+    pub tracked: Vec<(String, PathBuf)>,
 }
 
 #[derive(Clone, Debug)]
@@ -41,6 +44,8 @@ pub struct InstanceInput {
 pub struct Plan<'p> {
     pub pipeline: &'p Pipeline,
     pub instances: Vec<Instance>,
+    /// The content of every tracked path ([`Plan::fingerprint`]).
+    pub tracked: BTreeMap<PathBuf, Digest>,
 }
 
 pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
@@ -112,6 +117,7 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                     settings: variant.settings.clone(),
                     inputs,
                     shard: None,
+                    tracked: variant.tracked.clone(),
                 },
                 Some(merge) => {
                     let mut parts = Vec::new();
@@ -125,6 +131,7 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                             settings: settings.clone(),
                             inputs: inputs.clone(),
                             shard: Some(part.clone()),
+                            tracked: variant.tracked.clone(),
                         });
                     }
                     let inputs = vec![InstanceInput { slot: merge.slot, arity: Arity::All, providers: parts }];
@@ -136,6 +143,7 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                         settings: merge.settings.clone(),
                         inputs,
                         shard: None,
+                        tracked: Vec::new(),
                     }
                 }
             };
@@ -144,7 +152,7 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
         }
         dims_of.push(dims);
     }
-    Plan { pipeline, instances }
+    Plan { pipeline, instances, tracked: BTreeMap::new() }
 }
 
 fn restrict(a: &BTreeMap<String, String>, dims: &[String]) -> BTreeMap<String, String> {
@@ -209,6 +217,22 @@ impl Plan<'_> {
     }
 
     /// The preimage of instance `i`, once every input's output digest is known.
+    /// Digests every tracked path (`rlmflow_cache::external`: a stat per unchanged file).
+    pub fn fingerprint(&mut self, store: Option<&Store>) -> anyhow::Result<()> {
+        let sources: std::collections::BTreeSet<PathBuf> = self.instances.iter().flat_map(|i| i.tracked.iter().map(|t| t.1.clone())).collect();
+        for source in sources {
+            let info = rlmflow_cache::external::fingerprint(store, &source)?;
+            self.tracked.insert(source, info.digest);
+        }
+        Ok(())
+    }
+
+    /// Copies instance `i`'s tracked paths into the store by the digests in its key, where the
+    /// operator reads them.
+    pub fn snapshot_tracked(&self, i: usize, store: &Store) -> anyhow::Result<()> {
+        self.instances[i].tracked.iter().try_for_each(|(_, source)| rlmflow_cache::external::snapshot(store, source, &self.tracked[source]))
+    }
+
     pub fn preimage(&self, i: usize, registry: &Registry, outputs: &[Option<Digest>]) -> Option<Preimage> {
         let inst = &self.instances[i];
         let op = registry.get(&inst.operator).expect("validated operator");
@@ -226,10 +250,13 @@ impl Plan<'_> {
                 inputs.push(InputDigest { slot: input.slot.to_owned(), label, digest: outputs[p]? });
             }
         }
+        for (slot, source) in &inst.tracked {
+            inputs.push(InputDigest { slot: slot.clone(), label: String::new(), digest: *self.tracked.get(source)? });
+        }
         inputs.sort();
         let mut config = inst.settings.clone();
         if let Value::Object(map) = &mut config {
-            for key in op.non_result_keys() {
+            for key in op.non_result_keys().iter().chain(op.tracked_keys()) {
                 map.remove(*key);
             }
         }
@@ -314,7 +341,22 @@ pub fn why(store: Option<&Store>, last: Option<&Digest>, key: &Digest, now: &Pre
     if changes.is_empty() {
         return Ok(vec!["changed since its last run".into()]);
     }
-    Ok(changes.iter().map(|c| describe(stage, c)).collect())
+    Ok(changes.iter().map(|c| describe(stage, c) + &changed_files(store, c, now, &before)).collect())
+}
+
+/// For a changed input that is a tracked path: `: a.npy, b.npy` (up to 5 of the files that
+/// differ), from the manifests the store keeps; empty otherwise.
+fn changed_files(store: &Store, change: &Change, now: &Preimage, before: &Preimage) -> String {
+    let Change::InputChanged { slot, label } = change else { return String::new() };
+    let digest = |p: &Preimage| p.inputs.iter().find(|i| &i.slot == slot && &i.label == label).map(|i| i.digest);
+    let (Some(new), Some(old)) = (digest(now), digest(before)) else { return String::new() };
+    match rlmflow_cache::external::changed_files(store, &old, &new) {
+        Some(files) if !files.is_empty() => {
+            let more = if files.len() > 5 { format!(" and {} more", files.len() - 5) } else { String::new() };
+            format!(": {}{more} changed", files.iter().take(5).cloned().collect::<Vec<_>>().join(", "))
+        }
+        _ => String::new(),
+    }
 }
 
 /// The preimage of an earlier action: from its record, or from its request if it never finished.

@@ -428,6 +428,11 @@ impl Executor<'_> {
             let reasons = why(Some(self.store), self.last.get(&inst.label), &key, &preimage, &stage.name, resumes)?;
             self.ui.say(format!("  run      {}  ({})", inst.label, reasons.join("; ")));
             self.events.write("stage_planned", json!({"stage": inst.label, "key": key, "reasons": reasons}))?;
+            // The operator reads a snapshot of each tracked path, by the digest in its key.
+            if let Err(e) = self.plan.snapshot_tracked(i, self.store) {
+                self.fail_unstarted(i, key, format!("{e:#}"))?;
+                continue;
+            }
             self.write_request(i, key, preimage)?;
             self.states[i] = State::Ready { key };
         }

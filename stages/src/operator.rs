@@ -17,6 +17,12 @@ pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'stat
     /// of the action key, so changing them reuses cached results.
     const NON_RESULT: &'static [&'static str] = &[];
 
+    /// Settings that name a file or directory outside the store (relative to the pipeline file)
+    /// that the operator reads: the engine tracks each by content (its digest enters the key as
+    /// an input in the slot of the setting's name, `ctx.input(key)`, a snapshot of it in the
+    /// store), so the path itself stays out of the key and out of the artifact.
+    const TRACKED: &'static [&'static str] = &[];
+
     /// Checks that types cannot express ("impossible settings"). The error names the key.
     fn check(&self) -> Result<(), SettingError> {
         Ok(())
@@ -27,7 +33,7 @@ pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'stat
     fn result_settings(&self) -> Value {
         let mut value = serde_json::to_value(self).expect("settings serialise to JSON");
         if let Value::Object(map) = &mut value {
-            for key in Self::NON_RESULT {
+            for key in Self::NON_RESULT.iter().chain(Self::TRACKED) {
                 map.remove(*key);
             }
         }
@@ -325,6 +331,7 @@ pub trait DynOperator: Send + Sync {
     /// Fills in defaults and checks a stage's settings; returns every setting, canonical.
     fn settings(&self, raw: Value) -> Result<Value, SettingError>;
     fn non_result_keys(&self) -> &'static [&'static str];
+    fn tracked_keys(&self) -> &'static [&'static str];
     fn resources(&self, settings: &Value) -> Resources;
     fn worker(&self) -> Option<&'static str>;
     /// The operator that merges this one's shards, when it can be sharded.
@@ -353,6 +360,10 @@ impl<O: Operator> DynOperator for O {
 
     fn non_result_keys(&self) -> &'static [&'static str] {
         O::Settings::NON_RESULT
+    }
+
+    fn tracked_keys(&self) -> &'static [&'static str] {
+        O::Settings::TRACKED
     }
 
     fn resources(&self, settings: &Value) -> Resources {
