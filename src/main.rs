@@ -6,6 +6,7 @@ use rlmflow_stages::{Catalog, Registry};
 fn registry() -> Registry {
     let mut registry = Registry::new(Catalog::paper());
     registry.add(rlmflow_scenes::Procedural);
+    registry.add(rlmflow_scenes::Import);
     registry.add(rlmflow_scenes::Concat);
     registry.add(rlmflow_labels::EgoGrid);
     registry.add(rlmflow_captions::Template);

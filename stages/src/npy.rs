@@ -16,6 +16,7 @@ const MAGIC: &[u8] = b"\x93NUMPY\x01\x00";
 pub enum Dtype {
     U8,
     U32,
+    F32,
 }
 
 impl Dtype {
@@ -23,13 +24,14 @@ impl Dtype {
         match self {
             Dtype::U8 => "|u1",
             Dtype::U32 => "<u4",
+            Dtype::F32 => "<f4",
         }
     }
 
     pub fn size(self) -> usize {
         match self {
             Dtype::U8 => 1,
-            Dtype::U32 => 4,
+            Dtype::U32 | Dtype::F32 => 4,
         }
     }
 }
@@ -113,10 +115,10 @@ impl Npy {
         let mut dict = vec![0u8; len];
         file.read_exact_at(&mut dict, 10).with_context(|| format!("{}: header cut short", path.display()))?;
         let dict = String::from_utf8_lossy(&dict);
-        let dtype = [Dtype::U8, Dtype::U32]
+        let dtype = [Dtype::U8, Dtype::U32, Dtype::F32]
             .into_iter()
             .find(|d| dict.contains(&format!("'descr': '{}'", d.descr())))
-            .with_context(|| format!("{}: element type is not one of |u1, <u4: {dict}", path.display()))?;
+            .with_context(|| format!("{}: element type is not one of |u1 (uint8), <u4 (uint32), <f4 (float32): {}", path.display(), dict.trim()))?;
         if !dict.contains("'fortran_order': False") {
             bail!("{}: only C-ordered arrays are read", path.display());
         }
@@ -162,6 +164,17 @@ impl Npy {
 
     pub fn row_u32(&self, row: usize) -> anyhow::Result<Vec<u32>> {
         Ok(u32s(&self.row_bytes(row, Dtype::U32)?))
+    }
+
+    /// The whole array, flat, as f32 (a uint8 or float32 array; values as stored).
+    pub fn all_f32(&self) -> anyhow::Result<Vec<f32>> {
+        let mut out = vec![0u8; self.shape.iter().product::<usize>() * self.dtype.size()];
+        self.file.read_exact_at(&mut out, self.data_offset).with_context(|| format!("reading {}", self.path.display()))?;
+        match self.dtype {
+            Dtype::U8 => Ok(out.into_iter().map(f32::from).collect()),
+            Dtype::F32 => Ok(out.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().expect("chunks of 4"))).collect()),
+            Dtype::U32 => bail!("{} holds uint32; valid here: uint8 or float32", self.path.display()),
+        }
     }
 
     /// The whole array, flat.

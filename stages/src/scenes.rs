@@ -79,13 +79,23 @@ pub struct Frame {
     pub episode: Option<String>,
     pub scenario: String,
     pub actors: Vec<Actor>,
+    /// The paper's grid JSON, for an imported frame whose recording gives the grid rather than
+    /// the actors (`actors` is then empty): the labels stage takes it as it is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grid: Option<serde_json::Value>,
 }
 
 impl Frame {
     /// A newly born frame with these images: its identity is the digest of its content.
     pub fn new(index: u64, scenario: String, actors: Vec<Actor>, images: &[Vec<u8>]) -> Frame {
         let id = crate::identity::frame_id(&scenario, &serde_json::to_string(&actors).expect("actors serialise"), images);
-        Frame { index, id, episode: None, scenario, actors }
+        Frame { index, id, episode: None, scenario, actors, grid: None }
+    }
+
+    /// A newly born frame labelled by its grid (the paper's JSON) instead of actors.
+    pub fn with_grid(index: u64, scenario: String, grid: serde_json::Value, images: &[Vec<u8>]) -> Frame {
+        let id = crate::identity::frame_id(&scenario, &format!("grid {grid}"), images);
+        Frame { index, id, episode: None, scenario, actors: Vec::new(), grid: Some(grid) }
     }
 
     /// What the split is decided on: the episode, else the frame itself.
@@ -119,6 +129,14 @@ pub struct Summary {
     pub vehicles_per_scene: Vec<u64>,
     /// Vehicles per grid cell under the default rule, keyed `bin/sector`.
     pub cells: BTreeMap<String, u64>,
+    /// Frames labelled by a grid alone, whose vehicles have no place in the image: there is no
+    /// segmentation target for them.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub frames_without_positions: u64,
+}
+
+fn is_zero(n: &u64) -> bool {
+    *n == 0
 }
 
 impl Summary {

@@ -18,6 +18,8 @@
 //!   test-to-train similarity as high as train-to-train.
 //! * Walkers count within 40 m. A traffic sign (actor class `sign:<name>`) applies when it is
 //!   within 40 m and ahead (x >= 0); names are listed once each, sorted.
+//! * A frame imported with its grid instead of actors keeps that grid (the rule does not apply),
+//!   and its mask is empty: segmentation refuses such scenes.
 //! * The mask marks every vehicle the primary image shows, also beyond the grid's 40 m, since
 //!   the segmentation probe reads the image, not the grid. Each vehicle is a Gaussian of
 //!   `sigma_px` cut off at `radius_px` (both given at `reference_size` pixels and scaled to the
@@ -153,7 +155,10 @@ impl Operator for EgoGrid {
         let mut identities = Vec::with_capacity(frames as usize);
         for i in 0..frames {
             let frame = scenes.frame(i)?;
-            grids.push(grid(&s.rule, &frame));
+            grids.push(match &frame.grid {
+                Some(given) => Grid::from_json(given).map_err(|e| anyhow::anyhow!("frame {i} ({}): its grid: {e}", frame.id))?,
+                None => grid(&s.rule, &frame),
+            });
             masks.write_u8(&mask(&frame, &geometry))?;
             identities.push((frame.id, frame.episode));
             progress.inc(1);
@@ -380,6 +385,7 @@ mod tests {
                 actor("sign:stop", 25.0, -5.0, PI, (0.0, 0.0)),
                 actor("sign:yield", -10.0, -5.0, PI, (0.0, 0.0)),
             ],
+            grid: None,
         };
         let g = grid(&GridRule::default(), &frame);
         assert_eq!(
@@ -392,7 +398,7 @@ mod tests {
     fn lane_headings_keep_a_lane_changing_vehicle_in_its_lanes_direction() {
         let mut changing = actor("car", 12.0, 0.5, 1.2, (0.0, 0.0));
         changing.lane_heading = Some(0.0);
-        let frame = Frame { index: 0, id: String::new(), episode: None, scenario: "t".into(), actors: vec![changing] };
+        let frame = Frame { index: 0, id: String::new(), episode: None, scenario: "t".into(), actors: vec![changing], grid: None };
         assert_eq!(grid(&GridRule::default(), &frame).get(1, 10), 1, "by body heading it crosses: other_lane_front");
         let lane = GridRule { heading: Heading::Lane, ..GridRule::default() };
         assert_eq!(grid(&lane, &frame).get(1, 3), 1, "by lane heading it is ahead in our lane");
@@ -551,6 +557,7 @@ mod tests {
             episode: None,
             scenario: "t".into(),
             actors: vec![actor("car", 10.0, 0.0, 0.0, (20.5, 30.5)), actor("walker", 5.0, 0.0, 0.0, (60.5, 60.5))],
+            grid: None,
         };
         let m = mask(&frame, &g);
         let at = |r: usize, c: usize| m[r * 112 + c];
@@ -561,7 +568,7 @@ mod tests {
         assert_eq!(at(60, 60), 0, "walkers are not vehicles");
         assert_eq!(m.iter().filter(|v| **v > 0).count(), 37, "pixels within 3.5 px of a pixel centre");
         let off =
-            Frame { index: 0, id: String::new(), episode: None, scenario: "t".into(), actors: vec![actor("car", 10.0, 0.0, 0.0, (-40.0, 30.5))] };
+            Frame { index: 0, id: String::new(), episode: None, scenario: "t".into(), actors: vec![actor("car", 10.0, 0.0, 0.0, (-40.0, 30.5))], grid: None };
         assert!(mask(&off, &g).iter().all(|v| *v == 0));
     }
 

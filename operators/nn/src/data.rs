@@ -62,6 +62,14 @@ impl Frames {
         let pixels = (0..scenes.len()).map(|i| scenes.heatmap(i)).collect::<anyhow::Result<Vec<_>>>()?.concat();
         let mut masks = Vec::new();
         if need.masks {
+            let without = scenes.summary.frames_without_positions;
+            if without > 0 {
+                bail!(
+                    "{without} of the {} frames were imported with a grid but no actors, so no vehicle has a place in their images and there is no segmentation target: \
+                     segmentation needs actors with positions (x, y in the manifest, with the image's axes, or row, col)",
+                    scenes.len()
+                );
+            }
             if labels.summary.mask.size != side {
                 bail!(
                     "the labels' masks are {} px but the scenes' primary image {side} px: give the stage the scenes that were labelled",

@@ -82,7 +82,7 @@ impl Projection {
     }
 
     /// The ego-frame point at continuous pixel coordinates.
-    fn point(&self, row: f64, col: f64) -> (f64, f64) {
+    pub fn point(&self, row: f64, col: f64) -> (f64, f64) {
         let s = self.size as f64;
         match self.view {
             View::RangeAzimuth => {

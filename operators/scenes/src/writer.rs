@@ -13,7 +13,7 @@ use foxglove::Encode;
 use foxglove::bytes::Bytes;
 use foxglove::messages::{RawImage, Timestamp};
 use mcap::records::{MessageHeader, Record};
-use rlmflow_stages::grid::{DISTANCE_BINS, GridRule, SECTORS};
+use rlmflow_stages::grid::{Cell, DISTANCE_BINS, Grid, GridRule, SECTORS};
 use rlmflow_stages::scenes::{ACTORS_TOPIC, FORMAT, Frame, INDEX, Image, MCAP, SUMMARY, Summary};
 
 use crate::render::Rendered;
@@ -123,6 +123,7 @@ impl SceneWriter {
             vehicles_per_scene: stats.vehicles_per_scene(),
             frames_per_scenario: stats.per_scenario,
             cells: stats.cells,
+            frames_without_positions: stats.without_positions,
         };
         fs::write(output.join(SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
         Ok(summary)
@@ -146,7 +147,7 @@ impl SceneWriter {
         for i in 0..self.done {
             let line = frames.next().context("the frames part is shorter than its record")??;
             let frame: Frame = serde_json::from_str(&line).context("reading back frames")?;
-            stats.add(&frame);
+            stats.add(&frame)?;
             let time = i * FRAME_PERIOD_NS;
             let header = |channel_id| MessageHeader { channel_id, sequence: i as u32, log_time: time, publish_time: time };
             out.write_to_known_channel(&header(actors), line.as_bytes())?;
@@ -230,16 +231,27 @@ struct Statistics {
     per_scene: Vec<u64>,
     cells: BTreeMap<String, u64>,
     rule: GridRule,
+    without_positions: u64,
 }
 
 impl Statistics {
     fn new() -> Statistics {
         let cells = DISTANCE_BINS.iter().flat_map(|bin| SECTORS.iter().map(move |sector| (format!("{bin}/{sector}"), 0))).collect();
-        Statistics { per_scenario: BTreeMap::new(), per_scene: vec![0; 21], cells, rule: GridRule::default() }
+        Statistics { per_scenario: BTreeMap::new(), per_scene: vec![0; 21], cells, rule: GridRule::default(), without_positions: 0 }
     }
 
-    fn add(&mut self, frame: &Frame) {
+    fn add(&mut self, frame: &Frame) -> anyhow::Result<()> {
         *self.per_scenario.entry(frame.scenario.clone()).or_default() += 1;
+        if let Some(given) = &frame.grid {
+            let grid = Grid::from_json(given).map_err(|e| anyhow::anyhow!("frame {}: its grid: {e}", frame.index))?;
+            let n = (grid.vehicles() as usize).min(self.per_scene.len() - 1);
+            self.per_scene[n] += 1;
+            for (i, &n) in grid.counts.iter().enumerate().filter(|(_, n)| **n > 0) {
+                *self.cells.get_mut(&Cell::from_index(i).name()).expect("every cell is listed") += n as u64;
+            }
+            self.without_positions += 1;
+            return Ok(());
+        }
         let vehicles: Vec<_> = frame.actors.iter().filter(|a| a.is_vehicle()).collect();
         let n = vehicles.len().min(self.per_scene.len() - 1);
         self.per_scene[n] += 1;
@@ -248,6 +260,7 @@ impl Statistics {
                 *self.cells.get_mut(&cell.name()).expect("every cell is listed") += 1;
             }
         }
+        Ok(())
     }
 
     /// Frames per vehicle count, without trailing empty counts.

@@ -1,0 +1,534 @@
+//! The `import` operator (kind `scenes`): a researcher's own recordings as a Scenes artifact,
+//! the one the simulators write, so labels, captions, pretraining and probes run on them.
+//!
+//! `path` (tracked by content: an edited image reruns the import and what depends on it) is
+//! either a directory with a manifest, or an MCAP file:
+//!
+//! * **Manifest** (`manifest`, JSON lines, one frame per line): the image file (`.npy` of
+//!   float32 or uint8, or a grayscale `.png`), optionally its `episode` (a sequence: its frames
+//!   share a split), `time` (seconds, increasing within an episode) and `scenario`, and either
+//!   its `actors` in the ego frame or the paper's `grid` JSON itself. The image's axes
+//!   (`axes`) say how to read it: a range-azimuth map is resampled into rlmflow's 360-degree
+//!   range-azimuth image of `image` pixels out to `range_max_m`, so actors land on the pixels
+//!   the simulators would put them on; `layout = "as-given"` keeps the image (resized to
+//!   `image`) and takes each actor's pixel `row` and `col` from the manifest.
+//! * **MCAP** with `foxglove.RawImage` radar channels (`mono8`, square) and a JSON `/actors`
+//!   channel of frames, matched by log time: at least the layout rlmflow itself writes, so the
+//!   import of a Scenes artifact's `scenes.mcap` gives frames and images equal to the original's
+//!   (identity, episode and actors kept).
+//!
+//! Every problem names the file, the line or frame, and what would be valid; the operator
+//! writes its artifact only once every frame has been read.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context as _, bail};
+use rlmflow_radar::{Projection, View};
+use rlmflow_stages::grid::Grid;
+use rlmflow_stages::npy::Npy;
+use rlmflow_stages::scenes::{ACTORS_TOPIC, Actor, Frame, Image};
+use rlmflow_stages::{Context, InputOutlines, Operator, OperatorSpec, Outcome, Outline, SettingError, Settings};
+use serde::{Deserialize, Serialize};
+use serde_json::{Value, json};
+
+use crate::render::Rendered;
+use crate::writer::SceneWriter;
+
+pub struct Import;
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ImportSettings {
+    /// A directory holding `manifest` and the images it names, or an `.mcap` file; relative to
+    /// the pipeline file.
+    pub path: String,
+    /// The manifest's name inside `path`.
+    pub manifest: String,
+    /// The imported image's side in pixels, 8..=1,024 (0: as the recording has it, for square
+    /// images kept as given and MCAP).
+    pub image: usize,
+    /// The range the imported range-azimuth image reaches, in metres (the simulators' `radar.range_max_m`).
+    pub range_max_m: f64,
+    /// How the manifest's images are laid out and scaled.
+    pub axes: Axes,
+    /// The scenario of frames whose line names none.
+    pub scenario: String,
+    /// Frames per checkpointed batch (does not change the result).
+    pub batch: u64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Axes {
+    pub layout: Layout,
+    /// The ranges the rows cover, from 0 (the radar) to this, in metres.
+    pub range_span_m: f64,
+    /// The azimuths the columns cover, centred on straight ahead, in degrees, (0, 360].
+    pub azimuth_span_deg: f64,
+    pub rows: Rows,
+    pub columns: Columns,
+    pub power: Power,
+    /// For `linear` and `db`: the span below each frame's peak mapped onto the pixel range.
+    pub dynamic_range_db: f64,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Layout {
+    /// Rows are range, columns azimuth: resampled into rlmflow's range-azimuth image.
+    RangeAzimuth,
+    /// Kept as it is (resized to `image`); actors need `row` and `col`.
+    AsGiven,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Rows {
+    /// The first row is at the radar.
+    NearFirst,
+    FarFirst,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Columns {
+    /// The first column is the leftmost azimuth (the ego's left), as rlmflow draws it.
+    LeftFirst,
+    RightFirst,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Power {
+    /// Received power (non-negative), shown in dB.
+    Linear,
+    /// Power already in dB.
+    Db,
+    /// Already an image: uint8 as it is, floats in [0, 1].
+    Normalised,
+}
+
+impl Default for ImportSettings {
+    fn default() -> Self {
+        ImportSettings {
+            path: String::new(),
+            manifest: "manifest.jsonl".into(),
+            image: 64,
+            range_max_m: 50.0,
+            axes: Axes::default(),
+            scenario: "imported".into(),
+            batch: 256,
+        }
+    }
+}
+
+impl Default for Axes {
+    fn default() -> Self {
+        Axes {
+            layout: Layout::RangeAzimuth,
+            range_span_m: 50.0,
+            azimuth_span_deg: 180.0,
+            rows: Rows::NearFirst,
+            columns: Columns::LeftFirst,
+            power: Power::Linear,
+            dynamic_range_db: 40.0,
+        }
+    }
+}
+
+impl Settings for ImportSettings {
+    const NON_RESULT: &'static [&'static str] = &["batch"];
+    const TRACKED: &'static [&'static str] = &["path"];
+
+    fn check(&self) -> Result<(), SettingError> {
+        if self.path.is_empty() {
+            return Err(SettingError::new("path", "must name a directory with a manifest, or an .mcap file (relative to the pipeline file)"));
+        }
+        if self.image != 0 {
+            SettingError::check_range("image", self.image, 8..=1024)?;
+        }
+        SettingError::check_positive("range_max_m", self.range_max_m, 10_000.0)?;
+        SettingError::check_positive("axes.range_span_m", self.axes.range_span_m, 10_000.0)?;
+        if !(self.axes.azimuth_span_deg > 0.0 && self.axes.azimuth_span_deg <= 360.0) {
+            return Err(SettingError::new(
+                "axes.azimuth_span_deg",
+                format!("must be in (0, 360] (the columns' azimuths, centred on straight ahead), not {}", self.axes.azimuth_span_deg),
+            ));
+        }
+        SettingError::check_positive("axes.dynamic_range_db", self.axes.dynamic_range_db, 200.0)?;
+        if self.axes.layout == Layout::RangeAzimuth && self.image == 0 {
+            return Err(SettingError::new("image", "must be set (8..=1024) to resample a range-azimuth map; 0 keeps images as given only"));
+        }
+        SettingError::check_range("batch", self.batch, 1..=4_096)
+    }
+}
+
+impl Operator for Import {
+    type Settings = ImportSettings;
+
+    fn spec(&self) -> OperatorSpec {
+        OperatorSpec {
+            name: "import",
+            kind: "scenes",
+            version: 1,
+            inputs: None,
+            summary: "your own recordings (a manifest of .npy/.png radar images with actors or grids, or an MCAP file) as a Scenes artifact",
+        }
+    }
+
+    fn outline(&self, s: &ImportSettings, _: &InputOutlines) -> Result<Outline, SettingError> {
+        Ok(Outline { image: (s.image > 0).then_some(s.image as u64), ..Outline::default() })
+    }
+
+    fn run(&self, s: &ImportSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        let source = ctx.input("path")?.to_path_buf();
+        let mcap = std::fs::read_dir(&source)?.flatten().map(|e| e.path()).find(|p| p.extension().is_some_and(|e| e == "mcap"));
+        let (images, frames, from) = match mcap {
+            Some(file) if !source.join(&s.manifest).exists() => {
+                let (images, frames) = read_mcap(&file, s).with_context(|| format!("{}", s.path))?;
+                (images, frames, "mcap")
+            }
+            _ => {
+                let (images, frames) = read_manifest(&source, s)?;
+                (images, frames, "manifest")
+            }
+        };
+        let mut writer = SceneWriter::resume(&ctx.checkpoint_dir, images).context("opening the checkpoint")?;
+        let progress = ctx.progress(frames.len() as u64, "frames");
+        progress.set_position(writer.done());
+        for batch in frames[writer.done() as usize..].chunks(s.batch as usize) {
+            writer.append(batch)?;
+            progress.inc(batch.len() as u64);
+        }
+        progress.finish();
+        let generator = json!({"operator": "import", "from": from, "settings": s.result_settings()});
+        let summary = writer.finish(&ctx.output_dir, s.range_max_m, generator)?;
+        let without = summary.frames_without_positions;
+        let grids = if without > 0 { format!(", {without} labelled by their grid alone") } else { String::new() };
+        Ok(Outcome {
+            metrics: json!({"frames": summary.frames, "vehicles": summary.vehicles(), "frames_without_positions": without}),
+            summary: format!("{} frames from {from}{grids}, {} vehicles", summary.frames, summary.vehicles()),
+        })
+    }
+}
+
+/// One manifest line.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Line {
+    image: String,
+    #[serde(default)]
+    episode: Option<String>,
+    #[serde(default)]
+    time: Option<f64>,
+    #[serde(default)]
+    scenario: Option<String>,
+    #[serde(default)]
+    actors: Option<Vec<LineActor>>,
+    #[serde(default)]
+    grid: Option<Value>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LineActor {
+    class: String,
+    x: f64,
+    y: f64,
+    heading: f64,
+    length: f64,
+    width: f64,
+    #[serde(default)]
+    speed: f64,
+    #[serde(default)]
+    lane_heading: Option<f64>,
+    /// Pixel position in the given image (`layout = "as-given"`), pixel centres at integer + 0.5.
+    #[serde(default)]
+    row: Option<f64>,
+    #[serde(default)]
+    col: Option<f64>,
+}
+
+/// A recording's image: its shape and values, as stored.
+struct Raw {
+    height: usize,
+    width: usize,
+    values: Vec<f32>,
+    /// The largest value its type holds (255 for uint8, 65,535 for 16-bit PNG), for `normalised`.
+    integer_max: Option<f32>,
+}
+
+fn read_manifest(dir: &Path, s: &ImportSettings) -> anyhow::Result<(Vec<Image>, Vec<Rendered>)> {
+    let shown = Path::new(&s.path).join(&s.manifest);
+    let text = std::fs::read_to_string(dir.join(&s.manifest)).with_context(|| {
+        format!("{}: no manifest `{}` in {} (set `manifest` to its name, or point `path` at an .mcap file)", shown.display(), s.manifest, s.path)
+    })?;
+    let view = match s.axes.layout {
+        Layout::RangeAzimuth => View::RangeAzimuth.name(),
+        Layout::AsGiven => "as-given".to_owned(),
+    };
+    let mut side = s.image;
+    let mut shape: Option<(usize, usize, String)> = None;
+    let mut last_time: BTreeMap<String, f64> = BTreeMap::new();
+    let mut frames = Vec::new();
+    for (n, text) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+        let at = format!("{}:{}", shown.display(), n + 1);
+        let line: Line = serde_json::from_str(text).map_err(|e| {
+            anyhow::anyhow!(
+                "{at}: {e}; a line is {{\"image\": \"frames/0001.npy\", \"episode\": \"...\", \"time\": 0.1, \"actors\": [{{\"class\": \"car\", \"x\": 12.0, \"y\": -1.5, \"heading\": 0.0, \"length\": 4.5, \"width\": 1.8}}]}} or {{\"image\": ..., \"grid\": {{...}}}}"
+            )
+        })?;
+        let raw = read_image(dir, &line.image).with_context(|| format!("{at}: image `{}`", line.image))?;
+        match &shape {
+            None => shape = Some((raw.height, raw.width, line.image.clone())),
+            Some((h, w, first)) if (*h, *w) != (raw.height, raw.width) => {
+                bail!("{at}: image `{}` is {}x{}, but `{first}` (the first frame's) is {h}x{w}; every image of a recording must have one shape", line.image, raw.height, raw.width)
+            }
+            Some(_) => {}
+        }
+        if let Some((row, col)) = (0..raw.values.len()).find(|&i| !raw.values[i].is_finite()).map(|i| (i / raw.width, i % raw.width)) {
+            bail!("{at}: image `{}` holds {} at row {row}, column {col}; every value must be a finite number", line.image, raw.values[row * raw.width + col]);
+        }
+        if let (Some(time), Some(episode)) = (line.time, &line.episode) {
+            if !time.is_finite() {
+                bail!("{at}: `time` must be a finite number of seconds, not {time}");
+            }
+            if let Some(&before) = last_time.get(episode).filter(|&&before| time <= before) {
+                bail!("{at}: `time` {time} does not follow the episode's previous frame ({before}); within an episode the lines must be in time order");
+            }
+            last_time.insert(episode.clone(), time);
+        }
+        if s.axes.layout == Layout::AsGiven && side == 0 {
+            if raw.height != raw.width {
+                bail!("{at}: image `{}` is {}x{}; kept as given (image = 0) it must be square, or set `image` to resize it", line.image, raw.height, raw.width);
+            }
+            side = raw.width;
+        }
+        let unit = normalise(&raw, &s.axes).with_context(|| format!("{at}: image `{}`", line.image))?;
+        let pixels = match s.axes.layout {
+            Layout::RangeAzimuth => resample_range_azimuth(&unit, raw.height, raw.width, side, s),
+            Layout::AsGiven => resize(&unit, raw.height, raw.width, side),
+        };
+        let bytes: Vec<u8> = pixels.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+        let scenario = line.scenario.clone().unwrap_or_else(|| s.scenario.clone());
+        let index = frames.len() as u64;
+        let mut frame = match (line.actors, line.grid) {
+            (Some(actors), None) => {
+                let actors = actors.into_iter().enumerate().map(|(k, a)| actor(k, a, &raw, side, s)).collect::<Result<Vec<_>, String>>().map_err(|e| anyhow::anyhow!("{at}: {e}"))?;
+                Frame::new(index, scenario, actors, std::slice::from_ref(&bytes))
+            }
+            (None, Some(grid)) => {
+                Grid::from_json(&grid).map_err(|e| anyhow::anyhow!("{at}: `grid`: {e}"))?;
+                Frame::with_grid(index, scenario, grid, std::slice::from_ref(&bytes))
+            }
+            (Some(_), Some(_)) => bail!("{at}: give either `actors` or `grid`, not both"),
+            (None, None) => bail!("{at}: no `actors` and no `grid`; give the frame's actors in the ego frame (an empty list for none) or the paper's grid JSON"),
+        };
+        frame.episode = line.episode;
+        frames.push((frame, vec![bytes]));
+    }
+    if frames.is_empty() {
+        bail!("{}: no frames; a manifest has one JSON line per frame", shown.display());
+    }
+    Ok((vec![Image { view: view.clone(), topic: format!("/radar/{view}"), size: side }], frames))
+}
+
+/// An image file: `.npy` (2-D, float32 or uint8) or `.png` (grayscale, 8 or 16 bits).
+fn read_image(dir: &Path, name: &str) -> anyhow::Result<Raw> {
+    let path = dir.join(name);
+    if !path.is_file() {
+        bail!("no such file in the recording");
+    }
+    match path.extension().and_then(|e| e.to_str()) {
+        Some("npy") => {
+            let npy = Npy::open(&path)?;
+            let [height, width] = npy.shape[..] else {
+                bail!("shape {:?}; valid: a 2-D array (rows, columns)", npy.shape);
+            };
+            let integer_max = (npy.dtype == rlmflow_stages::npy::Dtype::U8).then_some(255.0);
+            Ok(Raw { height, width, values: npy.all_f32()?, integer_max })
+        }
+        Some("png") => {
+            let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&path)?));
+            let mut reader = decoder.read_info()?;
+            let mut buf = vec![0u8; reader.output_buffer_size().context("the PNG is too large")?];
+            let info = reader.next_frame(&mut buf)?;
+            let (width, height) = (info.width as usize, info.height as usize);
+            let (values, max) = match (info.color_type, info.bit_depth) {
+                (png::ColorType::Grayscale, png::BitDepth::Eight) => (buf[..width * height].iter().map(|&v| f32::from(v)).collect(), 255.0),
+                (png::ColorType::Grayscale, png::BitDepth::Sixteen) => {
+                    (buf[..width * height * 2].chunks_exact(2).map(|b| f32::from(u16::from_be_bytes([b[0], b[1]]))).collect(), 65_535.0)
+                }
+                (color, depth) => bail!("a {color:?} PNG of {depth:?} bits; valid: grayscale, 8 or 16 bits"),
+            };
+            Ok(Raw { height, width, values, integer_max: Some(max) })
+        }
+        _ => bail!("unknown image type; valid: .npy (float32 or uint8) or .png (grayscale)"),
+    }
+}
+
+/// Values in [0, 1] as `axes.power` says to read them.
+fn normalise(raw: &Raw, axes: &Axes) -> anyhow::Result<Vec<f32>> {
+    let db: Vec<f32> = match axes.power {
+        Power::Normalised => {
+            return match raw.integer_max {
+                Some(max) => Ok(raw.values.iter().map(|v| v / max).collect()),
+                None => {
+                    let (lo, hi) = raw.values.iter().fold((f32::MAX, f32::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+                    if lo < 0.0 || hi > 1.0 {
+                        bail!("its values span [{lo}, {hi}], but power = \"normalised\" needs floats in [0, 1]; say power = \"linear\" or \"db\"");
+                    }
+                    Ok(raw.values.clone())
+                }
+            };
+        }
+        Power::Linear => {
+            if let Some(v) = raw.values.iter().find(|v| **v < 0.0) {
+                bail!("it holds a negative power ({v}); power = \"linear\" needs received power >= 0 (say power = \"db\" for decibels)");
+            }
+            raw.values.iter().map(|&v| if v > 0.0 { 10.0 * v.log10() } else { f32::NEG_INFINITY }).collect()
+        }
+        Power::Db => raw.values.clone(),
+    };
+    let peak = db.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
+    let range = axes.dynamic_range_db as f32;
+    Ok(db.iter().map(|&v| if peak.is_finite() && v.is_finite() { ((v - (peak - range)) / range).clamp(0.0, 1.0) } else { 0.0 }).collect())
+}
+
+/// Bilinear sample of `values` (height x width) at continuous (row, col), pixel centres at
+/// integer + 0.5; 0 outside.
+fn sample(values: &[f32], height: usize, width: usize, row: f64, col: f64) -> f32 {
+    let (r, c) = (row - 0.5, col - 0.5);
+    if r < -0.5 || c < -0.5 || r > height as f64 - 0.5 || c > width as f64 - 0.5 {
+        return 0.0;
+    }
+    let (r0, c0) = (r.floor().max(0.0) as usize, c.floor().max(0.0) as usize);
+    let (r1, c1) = ((r0 + 1).min(height - 1), (c0 + 1).min(width - 1));
+    let (fr, fc) = ((r - r0 as f64).clamp(0.0, 1.0) as f32, (c - c0 as f64).clamp(0.0, 1.0) as f32);
+    let at = |r: usize, c: usize| values[r * width + c];
+    (at(r0, c0) * (1.0 - fc) + at(r0, c1) * fc) * (1.0 - fr) + (at(r1, c0) * (1.0 - fc) + at(r1, c1) * fc) * fr
+}
+
+/// A range-azimuth map resampled into rlmflow's range-azimuth image of `side` pixels: each
+/// pixel's range and azimuth looked up in the map's axes; outside them, black.
+fn resample_range_azimuth(values: &[f32], height: usize, width: usize, side: usize, s: &ImportSettings) -> Vec<f32> {
+    let projection = Projection { view: View::RangeAzimuth, size: side, range_max_m: s.range_max_m, half_fov: 0.0 };
+    let (span, half) = (s.axes.range_span_m, s.axes.azimuth_span_deg.to_radians() / 2.0);
+    let mut out = vec![0f32; side * side];
+    for (p, v) in out.iter_mut().enumerate() {
+        let (x, y) = projection.point((p / side) as f64 + 0.5, (p % side) as f64 + 0.5);
+        let (range, azimuth) = (x.hypot(y), y.atan2(x)); // azimuth counter-clockwise (left) from ahead
+        if range > span || azimuth.abs() > half {
+            continue;
+        }
+        let row = match s.axes.rows {
+            Rows::NearFirst => range / span * height as f64,
+            Rows::FarFirst => (1.0 - range / span) * height as f64,
+        };
+        let col = match s.axes.columns {
+            Columns::LeftFirst => (half - azimuth) / (2.0 * half) * width as f64,
+            Columns::RightFirst => (azimuth + half) / (2.0 * half) * width as f64,
+        };
+        *v = sample(values, height, width, row, col);
+    }
+    out
+}
+
+/// An image resized to `side` x `side` (bilinear; the same image when the sizes agree).
+fn resize(values: &[f32], height: usize, width: usize, side: usize) -> Vec<f32> {
+    if (height, width) == (side, side) {
+        return values.to_vec();
+    }
+    let (sr, sc) = (height as f64 / side as f64, width as f64 / side as f64);
+    (0..side * side).map(|p| sample(values, height, width, ((p / side) as f64 + 0.5) * sr, ((p % side) as f64 + 0.5) * sc)).collect()
+}
+
+const CLASSES: &str = "car, truck, walker, sign:<name> (e.g. sign:stop)";
+
+fn actor(k: usize, a: LineActor, raw: &Raw, side: usize, s: &ImportSettings) -> Result<Actor, String> {
+    let known = matches!(a.class.as_str(), "car" | "truck" | "walker") || a.class.strip_prefix("sign:").is_some_and(|n| !n.is_empty());
+    if !known {
+        return Err(format!("actor {k}: unknown class `{}`; valid: {CLASSES}", a.class));
+    }
+    for (name, v) in [("x", a.x), ("y", a.y), ("heading", a.heading), ("length", a.length), ("width", a.width), ("speed", a.speed)] {
+        if !v.is_finite() {
+            return Err(format!("actor {k}: `{name}` must be a finite number, not {v}"));
+        }
+    }
+    let (row, col) = match (s.axes.layout, a.row, a.col) {
+        (Layout::RangeAzimuth, None, None) => Projection { view: View::RangeAzimuth, size: side, range_max_m: s.range_max_m, half_fov: 0.0 }.pixel(a.x, a.y),
+        (Layout::RangeAzimuth, _, _) => return Err(format!("actor {k}: `row`/`col` are for layout = \"as-given\"; with a range-azimuth layout the position comes from x and y")),
+        (Layout::AsGiven, Some(row), Some(col)) => (row * side as f64 / raw.height as f64, col * side as f64 / raw.width as f64),
+        (Layout::AsGiven, _, _) => {
+            return Err(format!(
+                "actor {k}: no `row` and `col`; with layout = \"as-given\" rlmflow cannot place it in the image: give its pixel position, or the image's axes (layout = \"range-azimuth\")"
+            ));
+        }
+    };
+    Ok(Actor { id: k as u32, class: a.class, x: a.x, y: a.y, heading: a.heading, length: a.length, width: a.width, speed: a.speed, lane_heading: a.lane_heading, row, col })
+}
+
+/// An MCAP file's frames: the `/actors` message (a Frame, JSON) and the `foxglove.RawImage`
+/// messages of each log time.
+fn read_mcap(file: &Path, s: &ImportSettings) -> anyhow::Result<(Vec<Image>, Vec<Rendered>)> {
+    use prost::Message as _;
+    let shown = PathBuf::from(file.file_name().unwrap_or_default());
+    let bytes = std::fs::read(file).with_context(|| format!("reading {}", shown.display()))?;
+    let mut images: Vec<Image> = Vec::new();
+    let mut by_time: BTreeMap<u64, (Option<Frame>, BTreeMap<usize, Vec<u8>>)> = BTreeMap::new();
+    for message in mcap::MessageStream::new(&bytes).with_context(|| format!("{}: not an MCAP file", shown.display()))? {
+        let message = message.with_context(|| format!("{}: a damaged record", shown.display()))?;
+        let topic = &message.channel.topic;
+        let at = format!("{}: message {} on {topic}", shown.display(), message.sequence);
+        let entry = by_time.entry(message.log_time).or_default();
+        if topic == ACTORS_TOPIC {
+            let frame: Frame = serde_json::from_slice(&message.data).with_context(|| format!("{at}: not a frame (JSON with index, id, scenario, actors)"))?;
+            entry.0 = Some(frame);
+        } else if message.channel.schema.as_ref().is_some_and(|schema| schema.name == "foxglove.RawImage") {
+            let image = foxglove::messages::RawImage::decode(&message.data[..]).with_context(|| format!("{at}: not a foxglove.RawImage"))?;
+            let side = image.width as usize;
+            if image.encoding != "mono8" || image.height != image.width || image.step != image.width || image.data.len() != side * side {
+                bail!("{at}: a {}x{} `{}` image; valid: square mono8 images, one byte per pixel", image.width, image.height, image.encoding);
+            }
+            let slot = match images.iter().position(|i| &i.topic == topic) {
+                Some(slot) => slot,
+                None => {
+                    let view = topic.strip_prefix("/radar/").unwrap_or(topic).to_owned();
+                    images.push(Image { view, topic: topic.clone(), size: side });
+                    images.len() - 1
+                }
+            };
+            if images[slot].size != side {
+                bail!("{at}: a {side}-pixel image, but the channel's first was {} pixels; every image of a channel must have one size", images[slot].size);
+            }
+            entry.1.insert(slot, image.data.to_vec());
+        }
+    }
+    if images.is_empty() {
+        bail!("{}: no foxglove.RawImage channel; the radar images must be RawImage messages (mono8)", shown.display());
+    }
+    let side = if s.image == 0 { images[0].size } else { s.image };
+    let mut frames = Vec::new();
+    for (time, (frame, mut pixels)) in by_time {
+        let Some(mut frame) = frame else { bail!("{}: the images at log time {time} ns have no {ACTORS_TOPIC} message", shown.display()) };
+        let mut views = Vec::new();
+        for (slot, image) in images.iter().enumerate() {
+            let data = pixels.remove(&slot).with_context(|| format!("{}: frame {} (log time {time} ns) has no image on {}", shown.display(), frame.index, image.topic))?;
+            views.push(if side == image.size {
+                data
+            } else {
+                let unit: Vec<f32> = data.iter().map(|&v| f32::from(v) / 255.0).collect();
+                resize(&unit, image.size, image.size, side).iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect()
+            });
+        }
+        if side != images[0].size {
+            let scale = side as f64 / images[0].size as f64;
+            frame.actors.iter_mut().for_each(|a| (a.row, a.col) = (a.row * scale, a.col * scale));
+        }
+        frame.index = frames.len() as u64;
+        frames.push((frame, views));
+    }
+    let images = images.into_iter().map(|i| Image { size: side, ..i }).collect();
+    Ok((images, frames))
+}
