@@ -653,17 +653,20 @@ impl Checker {
                 Ok(settings) => {
                     let mut tracked = Vec::new();
                     for &key in op.tracked_keys() {
-                        let Some(given) = settings.get(key).and_then(Value::as_str).filter(|p| !p.is_empty()) else { continue };
+                        let given = settings.get(key).and_then(Value::as_str).unwrap_or_default();
                         let source = std::path::absolute(dir.join(given)).unwrap_or_else(|_| dir.join(given));
-                        if source.exists() {
+                        if !given.is_empty() && source.exists() {
                             tracked.push((key.to_owned(), source));
-                        } else {
-                            let at = match &variant {
-                                Some((v, overrides)) if overrides.contains_key(key) => format!("{path}.variants.{v}.{key}"),
-                                _ => format!("{path}.{key}"),
-                            };
-                            let help = format!("a file or directory, relative to the pipeline file's directory ({})", dir.display());
-                            self.error(self.line(&at), &at, format!("`{given}` does not exist ({})", source.display()), Some(help));
+                            continue;
+                        }
+                        let at = match &variant {
+                            Some((v, overrides)) if overrides.contains_key(key) => format!("{path}.variants.{v}.{key}"),
+                            _ => format!("{path}.{key}"),
+                        };
+                        let help = Some(format!("a file or directory, relative to the pipeline file's directory ({})", dir.display()));
+                        let message = if given.is_empty() { "must be set".to_owned() } else { format!("`{given}` does not exist ({})", source.display()) };
+                        if reported.insert((at.clone(), message.clone())) {
+                            self.error(self.line(&at), &at, message, help);
                         }
                     }
                     checked.push(Variant { name: variant.map(|v| v.0), settings, shards: Vec::new(), tracked });

@@ -20,7 +20,7 @@ pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'stat
     /// Settings that name a file or directory outside the store (relative to the pipeline file)
     /// that the operator reads: the engine tracks each by content (its digest enters the key as
     /// an input in the slot of the setting's name, `ctx.input(key)`, a snapshot of it in the
-    /// store), so the path itself stays out of the key and out of the artifact.
+    /// store), so the path itself stays out of the key and out of the artifact. Each must be set.
     const TRACKED: &'static [&'static str] = &[];
 
     /// Checks that types cannot express ("impossible settings"). The error names the key.

@@ -142,9 +142,6 @@ impl Settings for ImportSettings {
     const TRACKED: &'static [&'static str] = &["path"];
 
     fn check(&self) -> Result<(), SettingError> {
-        if self.path.is_empty() {
-            return Err(SettingError::new("path", "must name a directory with a manifest, or an .mcap file (relative to the pipeline file)"));
-        }
         if self.image != 0 {
             SettingError::check_range("image", self.image, 8..=1024)?;
         }
@@ -157,7 +154,7 @@ impl Settings for ImportSettings {
             ));
         }
         SettingError::check_positive("axes.dynamic_range_db", self.axes.dynamic_range_db, 200.0)?;
-        if self.axes.layout == Layout::RangeAzimuth && self.image == 0 {
+        if self.axes.layout == Layout::RangeAzimuth && self.image == 0 && !self.path.ends_with(".mcap") {
             return Err(SettingError::new("image", "must be set (8..=1024) to resample a range-azimuth map; 0 keeps images as given only"));
         }
         SettingError::check_range("batch", self.batch, 1..=4_096)
@@ -531,4 +528,44 @@ fn read_mcap(file: &Path, s: &ImportSettings) -> anyhow::Result<(Vec<Image>, Vec
     }
     let images = images.into_iter().map(|i| Image { size: side, ..i }).collect();
     Ok((images, frames))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A spot of power at (x, y) in a front-facing map lands on the pixel the simulators' image
+    /// puts (x, y) on, whichever way the map's rows and columns run.
+    #[test]
+    fn a_range_azimuth_map_is_resampled_so_actors_sit_on_their_returns() {
+        let (rows, cols) = (50, 90);
+        let (x, y) = (20.0f64, 8.0f64);
+        for (row_order, col_order) in [(Rows::NearFirst, Columns::LeftFirst), (Rows::FarFirst, Columns::RightFirst)] {
+            let s = ImportSettings { image: 64, axes: Axes { rows: row_order, columns: col_order, ..Axes::default() }, ..ImportSettings::default() };
+            let mut values = vec![1e-3f32; rows * cols];
+            let (range, azimuth) = (x.hypot(y), y.atan2(x).to_degrees());
+            let row = match row_order {
+                Rows::NearFirst => range / 50.0 * rows as f64,
+                Rows::FarFirst => (1.0 - range / 50.0) * rows as f64,
+            } as usize;
+            let col = match col_order {
+                Columns::LeftFirst => (90.0 - azimuth) / 180.0 * cols as f64,
+                Columns::RightFirst => (azimuth + 90.0) / 180.0 * cols as f64,
+            } as usize;
+            // A spot as wide as an output pixel (64 columns over 360 degrees are 2.8 map columns).
+            for r in row - 2..=row + 2 {
+                for c in col - 4..=col + 4 {
+                    values[r * cols + c] = 1e3;
+                }
+            }
+            let raw = Raw { height: rows, width: cols, values, integer_max: None };
+            let unit = normalise(&raw, &s.axes).unwrap();
+            let image = resample_range_azimuth(&unit, rows, cols, 64, &s);
+            let placed = actor(0, LineActor { class: "car".into(), x, y, heading: 0.0, length: 4.5, width: 1.8, speed: 0.0, lane_heading: None, row: None, col: None }, &raw, 64, &s).unwrap();
+            let at = |r: f64, c: f64| image[r as usize * 64 + c as usize];
+            assert!(at(placed.row, placed.col) > 0.9, "{row_order:?} {col_order:?}: {}", at(placed.row, placed.col));
+            // Behind the ego, outside the map's 180 degrees: black.
+            assert_eq!(at(placed.row, 2.0), 0.0);
+        }
+    }
 }
