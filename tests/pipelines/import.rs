@@ -160,6 +160,20 @@ fn an_edited_image_reruns_the_import_and_is_named_and_a_touched_one_reruns_nothi
     std::fs::write(dir.join("recording/notes.txt"), "calibrated 2026-11-01").unwrap();
     let (_, status) = rlmflow(&dir, &["status", "p.toml"]);
     assert!(status.contains("notes.txt changed"), "{status}");
+    // Same key, same bytes: the import twice more, each in a fresh process.
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--check-determinism", "scenes"]);
+    assert!(ok && out.contains("same bytes"), "{out}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Frames labelled by their grid alone have no vehicle positions: a segmentation stage on them
+/// refuses, saying why, rather than train on empty masks.
+#[test]
+fn segmentation_refuses_frames_imported_without_positions() {
+    let pipeline = format!("{IMPORT_AND_LABELS}[stages.unet]\nkind = \"segment\"\noperator = \"unet\"\ndevice = \"cpu\"\nepochs = 1\nbatch = 8\nchannels = [4, 8]\n");
+    let dir = new_recording("import-segment", &pipeline);
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
+    assert!(!ok && out.contains("2 of the 36 frames were imported with a grid but no actors") && out.contains("segmentation needs actors with positions"), "{out}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
