@@ -243,7 +243,7 @@ fn pull(plan: &crate::plan::Plan, registry: &Registry, store: &Store, remote: &r
         if !selected[i] {
             continue;
         }
-        match remote.pull(store, &key)? {
+        match remote.pull(store, &key, &mut |_, _| {})? {
             rlmflow_remote::Pulled::Hit { record, bytes: b, .. } => {
                 println!("  pulled   {}  {:.1} MB", inst.label, b as f64 / 1e6);
                 outputs[i] = Some(record.output);

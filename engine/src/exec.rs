@@ -286,7 +286,7 @@ fn run_task(
     let key = request.key;
     for input in &request.preimage.inputs {
         use rlmflow_remote::Fetched;
-        let why = match cache.fetch_object(store, &input.digest)? {
+        let why = match cache.fetch_object(store, &input.digest, &mut |_, _| {})? {
             Fetched::Present | Fetched::Downloaded(_) => continue,
             Fetched::Missing => cache.down().unwrap_or_else(|| "the remote cache does not have it".into()),
             Fetched::Corrupt(why) => why,

@@ -458,10 +458,25 @@ impl Executor<'_> {
     /// Asks the remote cache for `key` after a local miss: a hit lands in the local store,
     /// verified, and finishes the instance as `pulled`.
     fn pull(&mut self, i: usize, key: &Digest) -> anyhow::Result<Option<ActionRecord>> {
-        let Some(remote) = self.remote() else { return Ok(None) };
-        let pulled = remote.pull(self.store, key)?;
-        let down = remote.newly_down();
         let label = self.plan.instances[i].label.clone();
+        let ui = self.ui.clone();
+        let Some(remote) = self.remote() else { return Ok(None) };
+        // A bar once the artifact starts to arrive (a miss shows none).
+        let mut bar: Option<ProgressBar> = None;
+        let mut progress = |done: u64, total: u64| {
+            let bar = bar.get_or_insert_with(|| {
+                let bar = ui.bar(&label);
+                bar.set_length(total);
+                bar.set_style(Ui::bytes_style());
+                bar
+            });
+            bar.set_position(done);
+        };
+        let pulled = remote.pull(self.store, key, &mut progress)?;
+        if let Some(bar) = bar {
+            bar.finish_and_clear();
+        }
+        let down = remote.newly_down();
         if let Some(why) = down {
             self.warn_remote_down(&why)?;
         }
@@ -698,6 +713,10 @@ impl Ui {
         bar.set_prefix(label.to_owned());
         bar.enable_steady_tick(std::time::Duration::from_millis(120));
         bar
+    }
+
+    fn bytes_style() -> ProgressStyle {
+        ProgressStyle::with_template("  {prefix} pulling [{bar:30}] {bytes}/{total_bytes} ({bytes_per_sec}, eta {eta})").unwrap().progress_chars("=> ")
     }
 
     fn bar_style() -> ProgressStyle {

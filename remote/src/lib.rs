@@ -149,10 +149,25 @@ impl Remote {
         }
     }
 
-    /// The whole body of `key`; `None` when it is absent or the remote is down.
-    fn get(&self, what: &str, key: &Key) -> Option<impl std::ops::Deref<Target = [u8]> + use<>> {
+    /// The whole body of `key`; `None` when it is absent or the remote is down. `progress`
+    /// hears the bytes received and the total as they arrive; the timeout bounds the wait for
+    /// each chunk, so a large artifact on a slow link is not cut off while it flows.
+    fn get(&self, what: &str, key: &Key, progress: &mut dyn FnMut(u64, u64)) -> Option<Vec<u8>> {
+        use futures_util::StreamExt as _;
         let found = self.call(what, self.objects.get(key)).ok()??;
-        self.call(what, found.bytes()).ok()?
+        let total = found.meta.size;
+        let mut stream = found.into_stream();
+        let mut body = Vec::with_capacity(total as usize);
+        loop {
+            match self.call(what, async { stream.next().await.transpose() }).ok()? {
+                Some(Some(chunk)) => {
+                    body.extend_from_slice(&chunk);
+                    progress(body.len() as u64, total);
+                }
+                Some(None) => return Some(body),
+                None => return None,
+            }
+        }
     }
 
     fn record_key(key: &Digest) -> Key {
@@ -165,21 +180,21 @@ impl Remote {
 
     /// Whether the remote holds `key`'s record and the object it names (a miss when it is down).
     pub fn holds(&self, key: &Digest) -> bool {
-        let Some(bytes) = self.get("reading a record", &Self::record_key(key)) else { return false };
+        let Some(bytes) = self.get("reading a record", &Self::record_key(key), &mut |_, _| {}) else { return false };
         let Ok(record) = serde_json::from_slice::<ActionRecord>(&bytes) else { return false };
         matches!(self.call("checking an object", self.objects.head(&Self::object_key(&record.output))), Ok(Some(_)))
     }
 
     /// Fetches `key`'s record and artifact into `store`, verified; a miss when the remote lacks
-    /// either or is down.
-    pub fn pull(&self, store: &Store, key: &Digest) -> anyhow::Result<Pulled> {
+    /// either or is down. `progress` hears the artifact's bytes as they arrive.
+    pub fn pull(&self, store: &Store, key: &Digest, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Pulled> {
         let clock = Instant::now();
-        let Some(bytes) = self.get("reading a record", &Self::record_key(key)) else { return Ok(Pulled::Miss) };
+        let Some(bytes) = self.get("reading a record", &Self::record_key(key), &mut |_, _| {}) else { return Ok(Pulled::Miss) };
         let record = match serde_json::from_slice::<ActionRecord>(&bytes) {
             Ok(r) if r.key == *key && r.preimage.key() == *key => r,
             _ => return Ok(Pulled::Corrupt { why: format!("the record of {} is not that key's", key.short()) }),
         };
-        let bytes = match self.fetch_object(store, &record.output)? {
+        let bytes = match self.fetch_object(store, &record.output, progress)? {
             Fetched::Present => 0,
             Fetched::Downloaded(bytes) => bytes,
             Fetched::Missing => return Ok(Pulled::Miss),
@@ -191,11 +206,11 @@ impl Remote {
 
     /// Fetches the artifact `digest` into `store`, verified, unless the store has it: what a
     /// cluster task does for each input it lacks.
-    pub fn fetch_object(&self, store: &Store, digest: &Digest) -> anyhow::Result<Fetched> {
+    pub fn fetch_object(&self, store: &Store, digest: &Digest, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Fetched> {
         if store.has_object(digest) {
             return Ok(Fetched::Present);
         }
-        let Some(tar) = self.get("reading an object", &Self::object_key(digest)) else { return Ok(Fetched::Missing) };
+        let Some(tar) = self.get("reading an object", &Self::object_key(digest), progress) else { return Ok(Fetched::Missing) };
         let dir = store.work_dir(digest)?;
         let unpacked = tar::Archive::new(&tar[..]).unpack(&dir);
         match unpacked.map_err(anyhow::Error::from).and_then(|()| Ok(hash_tree(&dir)?.digest)) {
@@ -259,7 +274,7 @@ impl Remote {
 
     /// A transcript [`Remote::put_transcript`] wrote, if the remote has it.
     pub fn transcript(&self, name: &str) -> Option<String> {
-        self.get("reading a transcript", &Self::transcript_key(name)).map(|bytes| String::from_utf8_lossy(&bytes).into_owned())
+        self.get("reading a transcript", &Self::transcript_key(name), &mut |_, _| {}).map(|bytes| String::from_utf8_lossy(&bytes).into_owned())
     }
 
     /// Removes a transcript its engine has read (and kept in the stage's log).
@@ -283,4 +298,30 @@ fn pack(dir: &Path) -> anyhow::Result<Vec<u8>> {
 
 fn remove_dir(dir: &Path) {
     let _ = std::fs::remove_dir_all(dir);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A download reports its bytes as they arrive, chunk by chunk, up to the whole.
+    #[test]
+    fn a_pull_reports_its_progress_in_chunks() {
+        let root = std::env::temp_dir().join(format!("rlmflow-remote-progress-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let (a, b) = (Store::open(&root.join("a")).unwrap(), Store::open(&root.join("b")).unwrap());
+        let dir = a.work_dir(&Digest::of(b"x")).unwrap();
+        std::fs::write(dir.join("data.bin"), vec![7u8; 100_000]).unwrap();
+        let digest = a.commit_tree(&dir).unwrap().digest;
+        let remote = Remote::open(&format!("file://{}", root.join("remote").display()), true, Duration::from_secs(5)).unwrap();
+        assert!(remote.push_object(&a, &digest, false).unwrap().is_some());
+        let mut heard = Vec::new();
+        assert!(matches!(remote.fetch_object(&b, &digest, &mut |done, total| heard.push((done, total))).unwrap(), Fetched::Downloaded(_)));
+        assert!(heard.len() > 1, "more than one chunk: {heard:?}");
+        let (done, total) = *heard.last().unwrap();
+        assert_eq!(done, total);
+        assert!(heard.windows(2).all(|w| w[0].0 < w[1].0));
+        assert!(b.has_object(&digest));
+        std::fs::remove_dir_all(&root).unwrap();
+    }
 }

@@ -416,7 +416,7 @@ impl OwnTask {
             }
         }
         if outcome == Some(true) && exit == Exit::Code(0) {
-            let why = match self.remote.pull(&self.engine, &self.key)? {
+            let why = match self.remote.pull(&self.engine, &self.key, &mut |_, _| {})? {
                 rlmflow_remote::Pulled::Hit { .. } => None,
                 rlmflow_remote::Pulled::Miss => Some(self.remote.down().unwrap_or_else(|| "the remote cache does not have it".into())),
                 rlmflow_remote::Pulled::Corrupt { why } => Some(why),
