@@ -181,32 +181,64 @@ impl Operator for Import {
     fn run(&self, s: &ImportSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         let source = ctx.input("path")?.to_path_buf();
         let mcap = std::fs::read_dir(&source)?.flatten().map(|e| e.path()).find(|p| p.extension().is_some_and(|e| e == "mcap"));
-        let (images, frames, from) = match mcap {
+        let mut sink = Sink { checkpoint: ctx.checkpoint_dir.clone(), batch: s.batch as usize, writer: None, pending: Vec::new(), seen: 0 };
+        let from = match mcap {
             Some(file) if !source.join(&s.manifest).exists() => {
-                let (images, frames) = read_mcap(&file, s).with_context(|| format!("{}", s.path))?;
-                (images, frames, "mcap")
+                let shown = if s.path.ends_with(".mcap") { PathBuf::from(&s.path) } else { Path::new(&s.path).join(file.file_name().unwrap_or_default()) };
+                read_mcap(&file, &shown, s, &mut sink)?;
+                "mcap"
             }
             _ => {
-                let (images, frames) = read_manifest(&source, s)?;
-                (images, frames, "manifest")
+                read_manifest(&source, s, ctx, &mut sink)?;
+                "manifest"
             }
         };
-        let mut writer = SceneWriter::resume(&ctx.checkpoint_dir, images).context("opening the checkpoint")?;
-        let progress = ctx.progress(frames.len() as u64, "frames");
-        progress.set_position(writer.done());
-        for batch in frames[writer.done() as usize..].chunks(s.batch as usize) {
-            writer.append(batch)?;
-            progress.inc(batch.len() as u64);
-        }
-        progress.finish();
         let generator = json!({"operator": "import", "from": from, "settings": s.result_settings()});
-        let summary = writer.finish(&ctx.output_dir, s.range_max_m, generator)?;
+        let summary = sink.finish(&ctx.output_dir, s.range_max_m, generator)?;
         let without = summary.frames_without_positions;
         let grids = if without > 0 { format!(", {without} labelled by their grid alone") } else { String::new() };
         Ok(Outcome {
             metrics: json!({"frames": summary.frames, "vehicles": summary.vehicles(), "frames_without_positions": without}),
             summary: format!("{} frames from {from}{grids}, {} vehicles", summary.frames, summary.vehicles()),
         })
+    }
+}
+
+/// Where read frames go: into the checkpointed writer in batches, so a recording larger than
+/// memory imports, and a killed import resumes after its last batch (frames before it are read
+/// again, for the checks, but not written twice).
+struct Sink {
+    checkpoint: PathBuf,
+    batch: usize,
+    writer: Option<SceneWriter>,
+    pending: Vec<Rendered>,
+    /// Frames read so far.
+    seen: u64,
+}
+
+impl Sink {
+    /// Takes the next frame; `images` describes every frame's images.
+    fn push(&mut self, images: &[Image], frame: Rendered) -> anyhow::Result<()> {
+        if self.writer.is_none() {
+            self.writer = Some(SceneWriter::resume(&self.checkpoint, images.to_vec()).context("opening the checkpoint")?);
+        }
+        let writer = self.writer.as_mut().expect("opened above");
+        self.seen += 1;
+        if self.seen > writer.done() {
+            self.pending.push(frame);
+            if self.pending.len() == self.batch {
+                writer.append(&std::mem::take(&mut self.pending))?;
+            }
+        }
+        Ok(())
+    }
+
+    fn finish(mut self, output: &Path, range_max_m: f64, generator: Value) -> anyhow::Result<rlmflow_stages::scenes::Summary> {
+        let mut writer = self.writer.take().context("the recording has no frames")?;
+        if !self.pending.is_empty() {
+            writer.append(&self.pending)?;
+        }
+        writer.finish(output, range_max_m, generator)
     }
 }
 
@@ -256,7 +288,7 @@ struct Raw {
     integer_max: Option<f32>,
 }
 
-fn read_manifest(dir: &Path, s: &ImportSettings) -> anyhow::Result<(Vec<Image>, Vec<Rendered>)> {
+fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink) -> anyhow::Result<()> {
     let shown = Path::new(&s.path).join(&s.manifest);
     let text = std::fs::read_to_string(dir.join(&s.manifest)).with_context(|| {
         format!("{}: no manifest `{}` in {} (set `manifest` to its name, or point `path` at an .mcap file)", shown.display(), s.manifest, s.path)
@@ -268,8 +300,13 @@ fn read_manifest(dir: &Path, s: &ImportSettings) -> anyhow::Result<(Vec<Image>, 
     let mut side = s.image;
     let mut shape: Option<(usize, usize, String)> = None;
     let mut last_time: BTreeMap<String, f64> = BTreeMap::new();
-    let mut frames = Vec::new();
-    for (n, text) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+    let mut images: Vec<Image> = Vec::new();
+    let lines: Vec<(usize, &str)> = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()).collect();
+    if lines.is_empty() {
+        bail!("{}: no frames; a manifest has one JSON line per frame", shown.display());
+    }
+    let progress = ctx.progress(lines.len() as u64, "frames");
+    for (index, (n, text)) in lines.into_iter().enumerate() {
         let at = format!("{}:{}", shown.display(), n + 1);
         let line: Line = serde_json::from_str(text).map_err(|e| {
             anyhow::anyhow!(
@@ -309,7 +346,7 @@ fn read_manifest(dir: &Path, s: &ImportSettings) -> anyhow::Result<(Vec<Image>, 
         };
         let bytes: Vec<u8> = pixels.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
         let scenario = line.scenario.clone().unwrap_or_else(|| s.scenario.clone());
-        let index = frames.len() as u64;
+        let index = index as u64;
         let mut frame = match (line.actors, line.grid) {
             (Some(actors), None) => {
                 let actors = actors.into_iter().enumerate().map(|(k, a)| actor(k, a, &raw, side, s)).collect::<Result<Vec<_>, String>>().map_err(|e| anyhow::anyhow!("{at}: {e}"))?;
@@ -323,12 +360,14 @@ fn read_manifest(dir: &Path, s: &ImportSettings) -> anyhow::Result<(Vec<Image>, 
             (None, None) => bail!("{at}: no `actors` and no `grid`; give the frame's actors in the ego frame (an empty list for none) or the paper's grid JSON"),
         };
         frame.episode = line.episode;
-        frames.push((frame, vec![bytes]));
+        if images.is_empty() {
+            images.push(Image { view: view.clone(), topic: format!("/radar/{view}"), size: side });
+        }
+        sink.push(&images, (frame, vec![bytes]))?;
+        progress.inc(1);
     }
-    if frames.is_empty() {
-        bail!("{}: no frames; a manifest has one JSON line per frame", shown.display());
-    }
-    Ok((vec![Image { view: view.clone(), topic: format!("/radar/{view}"), size: side }], frames))
+    progress.finish();
+    Ok(())
 }
 
 /// An image file: `.npy` (2-D, float32 or uint8) or `.png` (grayscale, 8 or 16 bits).
@@ -467,67 +506,92 @@ fn actor(k: usize, a: LineActor, raw: &Raw, side: usize, s: &ImportSettings) -> 
 }
 
 /// An MCAP file's frames: the `/actors` message (a Frame, JSON) and the `foxglove.RawImage`
-/// messages of each log time.
-fn read_mcap(file: &Path, s: &ImportSettings) -> anyhow::Result<(Vec<Image>, Vec<Rendered>)> {
-    use prost::Message as _;
-    let shown = PathBuf::from(file.file_name().unwrap_or_default());
-    let bytes = std::fs::read(file).with_context(|| format!("reading {}", shown.display()))?;
-    let mut images: Vec<Image> = Vec::new();
-    let mut by_time: BTreeMap<u64, (Option<Frame>, BTreeMap<usize, Vec<u8>>)> = BTreeMap::new();
-    for message in mcap::MessageStream::new(&bytes).with_context(|| format!("{}: not an MCAP file", shown.display()))? {
+/// messages of each log time. A first pass finds the image channels (in the order they first
+/// appear; the first is the primary image); the second hands each frame on once it is whole.
+fn read_mcap(file: &Path, shown: &Path, s: &ImportSettings, sink: &mut Sink) -> anyhow::Result<()> {
+    let opened = std::fs::File::open(file).with_context(|| format!("reading {}", shown.display()))?;
+    // SAFETY: the file is a snapshot in the store, read-only and never modified in place.
+    let bytes = unsafe { memmap2::Mmap::map(&opened) }.with_context(|| format!("reading {}", shown.display()))?;
+    let messages = || mcap::MessageStream::new(&bytes).with_context(|| format!("{}: not an MCAP file", shown.display()));
+    let mut channels: Vec<Image> = Vec::new();
+    for message in messages()? {
         let message = message.with_context(|| format!("{}: a damaged record", shown.display()))?;
-        let topic = &message.channel.topic;
-        let at = format!("{}: message {} on {topic}", shown.display(), message.sequence);
-        let entry = by_time.entry(message.log_time).or_default();
-        if topic == ACTORS_TOPIC {
-            let frame: Frame = serde_json::from_slice(&message.data).with_context(|| format!("{at}: not a frame (JSON with index, id, scenario, actors)"))?;
-            entry.0 = Some(frame);
-        } else if message.channel.schema.as_ref().is_some_and(|schema| schema.name == "foxglove.RawImage") {
-            let image = foxglove::messages::RawImage::decode(&message.data[..]).with_context(|| format!("{at}: not a foxglove.RawImage"))?;
-            let side = image.width as usize;
-            if image.encoding != "mono8" || image.height != image.width || image.step != image.width || image.data.len() != side * side {
-                bail!("{at}: a {}x{} `{}` image; valid: square mono8 images, one byte per pixel", image.width, image.height, image.encoding);
-            }
-            let slot = match images.iter().position(|i| &i.topic == topic) {
-                Some(slot) => slot,
-                None => {
-                    let view = topic.strip_prefix("/radar/").unwrap_or(topic).to_owned();
-                    images.push(Image { view, topic: topic.clone(), size: side });
-                    images.len() - 1
-                }
-            };
-            if images[slot].size != side {
-                bail!("{at}: a {side}-pixel image, but the channel's first was {} pixels; every image of a channel must have one size", images[slot].size);
-            }
-            entry.1.insert(slot, image.data.to_vec());
+        if is_raw_image(&message.channel) && !channels.iter().any(|c| c.topic == message.channel.topic) {
+            let size = (raw_image(shown, &message)?.len() as f64).sqrt() as usize;
+            let topic = message.channel.topic.clone();
+            channels.push(Image { view: topic.strip_prefix("/radar/").unwrap_or(&topic).to_owned(), topic, size });
         }
     }
-    if images.is_empty() {
+    if channels.is_empty() {
         bail!("{}: no foxglove.RawImage channel; the radar images must be RawImage messages (mono8)", shown.display());
     }
-    let side = if s.image == 0 { images[0].size } else { s.image };
-    let mut frames = Vec::new();
-    for (time, (frame, mut pixels)) in by_time {
-        let Some(mut frame) = frame else { bail!("{}: the images at log time {time} ns have no {ACTORS_TOPIC} message", shown.display()) };
-        let mut views = Vec::new();
-        for (slot, image) in images.iter().enumerate() {
-            let data = pixels.remove(&slot).with_context(|| format!("{}: frame {} (log time {time} ns) has no image on {}", shown.display(), frame.index, image.topic))?;
-            views.push(if side == image.size {
-                data
-            } else {
-                let unit: Vec<f32> = data.iter().map(|&v| f32::from(v) / 255.0).collect();
-                resize(&unit, image.size, image.size, side).iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect()
-            });
+    let side = if s.image == 0 { channels[0].size } else { s.image };
+    let images: Vec<Image> = channels.iter().map(|c| Image { size: side, ..c.clone() }).collect();
+
+    let mut pending: BTreeMap<u64, (Option<Frame>, BTreeMap<usize, Vec<u8>>)> = BTreeMap::new();
+    let mut index = 0;
+    for message in messages()? {
+        let message = message.with_context(|| format!("{}: a damaged record", shown.display()))?;
+        let topic = &message.channel.topic;
+        let entry = pending.entry(message.log_time).or_default();
+        if topic == ACTORS_TOPIC {
+            let frame: Frame = serde_json::from_slice(&message.data)
+                .with_context(|| format!("{}: message {} on {topic}: not a frame (JSON with index, id, scenario, actors)", shown.display(), message.sequence))?;
+            entry.0 = Some(frame);
+        } else if let Some(slot) = channels.iter().position(|c| &c.topic == topic) {
+            let data = raw_image(shown, &message)?;
+            if data.len() != channels[slot].size * channels[slot].size {
+                bail!("{}: message {} on {topic}: an image of {} bytes, but the channel's first was {} pixels square", shown.display(), message.sequence, data.len(), channels[slot].size);
+            }
+            entry.1.insert(slot, data);
         }
-        if side != images[0].size {
-            let scale = side as f64 / images[0].size as f64;
-            frame.actors.iter_mut().for_each(|a| (a.row, a.col) = (a.row * scale, a.col * scale));
+        let whole = entry.0.is_some() && entry.1.len() == channels.len();
+        if whole {
+            let (frame, mut pixels) = pending.remove(&message.log_time).expect("the entry above");
+            let mut frame = frame.expect("whole");
+            let views: Vec<Vec<u8>> = (0..channels.len()).map(|slot| resize_bytes(pixels.remove(&slot).expect("whole"), channels[slot].size, side)).collect();
+            if side != channels[0].size {
+                let scale = side as f64 / channels[0].size as f64;
+                frame.actors.iter_mut().for_each(|a| (a.row, a.col) = (a.row * scale, a.col * scale));
+            }
+            frame.index = index;
+            index += 1;
+            sink.push(&images, (frame, views))?;
         }
-        frame.index = frames.len() as u64;
-        frames.push((frame, views));
     }
-    let images = images.into_iter().map(|i| Image { size: side, ..i }).collect();
-    Ok((images, frames))
+    if let Some((time, (frame, pixels))) = pending.into_iter().next() {
+        let missing = match frame {
+            None => format!("no {ACTORS_TOPIC} message"),
+            Some(_) => format!("no image on {}", channels.iter().enumerate().find(|(slot, _)| !pixels.contains_key(slot)).map_or("", |(_, c)| c.topic.as_str())),
+        };
+        bail!("{}: the frame at log time {time} ns has {missing}; every frame needs its actors and one image per radar channel", shown.display());
+    }
+    Ok(())
+}
+
+fn is_raw_image(channel: &mcap::Channel<'_>) -> bool {
+    channel.schema.as_ref().is_some_and(|schema| schema.name == "foxglove.RawImage")
+}
+
+/// A `foxglove.RawImage` message's pixels: square, mono8, one byte per pixel.
+fn raw_image(shown: &Path, message: &mcap::Message<'_>) -> anyhow::Result<Vec<u8>> {
+    use prost::Message as _;
+    let at = format!("{}: message {} on {}", shown.display(), message.sequence, message.channel.topic);
+    let image = foxglove::messages::RawImage::decode(&message.data[..]).with_context(|| format!("{at}: not a foxglove.RawImage"))?;
+    let side = image.width as usize;
+    if image.encoding != "mono8" || image.height != image.width || image.step != image.width || image.data.len() != side * side {
+        bail!("{at}: a {}x{} `{}` image; valid: square mono8 images, one byte per pixel", image.width, image.height, image.encoding);
+    }
+    Ok(image.data.to_vec())
+}
+
+/// A mono8 image of `from` pixels square at `to` pixels square (the same bytes when equal).
+fn resize_bytes(data: Vec<u8>, from: usize, to: usize) -> Vec<u8> {
+    if from == to {
+        return data;
+    }
+    let unit: Vec<f32> = data.iter().map(|&v| f32::from(v) / 255.0).collect();
+    resize(&unit, from, from, to).iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect()
 }
 
 #[cfg(test)]
