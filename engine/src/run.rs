@@ -487,7 +487,7 @@ impl Executor<'_> {
                     json!({"stage": label, "status": "pulled", "key": key, "output": record.output, "bytes": bytes, "seconds": seconds, "saved_s": record.duration_s}),
                 )?;
                 self.ui.say(format!("  pulled   {label}  {:.1} MB in {seconds:.1}s ({:.1}s saved)", bytes as f64 / 1e6, record.duration_s));
-                Ok(Some(record))
+                Ok(Some(*record))
             }
             Pulled::Miss => Ok(None),
             Pulled::Corrupt { why } => {

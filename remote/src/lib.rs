@@ -66,7 +66,7 @@ pub enum Fetched {
 /// What a pull found.
 pub enum Pulled {
     /// The record and its artifact, now in the local store.
-    Hit { record: ActionRecord, bytes: u64, seconds: f64 },
+    Hit { record: Box<ActionRecord>, bytes: u64, seconds: f64 },
     Miss,
     /// The remote's artifact is not the one its record names (`why`); nothing entered the store.
     Corrupt { why: String },
@@ -201,7 +201,7 @@ impl Remote {
             Fetched::Corrupt(why) => return Ok(Pulled::Corrupt { why }),
         };
         store.write_record(&record)?;
-        Ok(Pulled::Hit { record, bytes, seconds: clock.elapsed().as_secs_f64() })
+        Ok(Pulled::Hit { record: Box::new(record), bytes, seconds: clock.elapsed().as_secs_f64() })
     }
 
     /// Fetches the artifact `digest` into `store`, verified, unless the store has it: what a

@@ -78,7 +78,7 @@ impl Training {
         }
         SettingError::check_range("batch", self.batch, 1..=65_536)?;
         SettingError::check_range("accumulate", self.accumulate, 1..=self.batch)?;
-        if self.batch % self.accumulate != 0 {
+        if !self.batch.is_multiple_of(self.accumulate) {
             return Err(SettingError::new("accumulate", format!("must divide `batch` ({}) into equal micro-batches; {} does not", self.batch, self.accumulate)));
         }
         SettingError::check_positive("lr", self.lr, 1.0)?;

@@ -397,10 +397,10 @@ impl OwnTask {
         match self.remote.transcript(transcript) {
             Some(text) => {
                 for line in text.lines() {
-                    if let Some(Ok(message)) = line.strip_prefix(crate::exec::PREFIX).map(serde_json::from_str::<Message>) {
-                        if !matches!(message, Message::Progress { .. } | Message::Event { .. } | Message::Waiting) {
-                            outcome = Some(matches!(message, Message::Done { .. } | Message::Reused));
-                        }
+                    if let Some(Ok(message)) = line.strip_prefix(crate::exec::PREFIX).map(serde_json::from_str::<Message>)
+                        && !matches!(message, Message::Progress { .. } | Message::Event { .. } | Message::Waiting)
+                    {
+                        outcome = Some(matches!(message, Message::Done { .. } | Message::Reused));
                     }
                     forward_line(line, id, tx, log);
                 }

@@ -45,7 +45,7 @@ impl Stat {
 }
 
 /// Items grouped into rows by their instance without its seed, in order of first appearance.
-pub fn rows<'a, T>(items: &'a [T], instance: impl Fn(&T) -> &Instance) -> Vec<(Instance, Vec<&'a T>)> {
+pub fn rows<T>(items: &[T], instance: impl Fn(&T) -> &Instance) -> Vec<(Instance, Vec<&T>)> {
     let mut rows: Vec<(Instance, Vec<&T>)> = Vec::new();
     for item in items {
         let row = instance(item).row();

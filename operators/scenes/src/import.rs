@@ -528,7 +528,8 @@ fn read_mcap(file: &Path, shown: &Path, s: &ImportSettings, sink: &mut Sink) -> 
     let side = if s.image == 0 { channels[0].size } else { s.image };
     let images: Vec<Image> = channels.iter().map(|c| Image { size: side, ..c.clone() }).collect();
 
-    let mut pending: BTreeMap<u64, (Option<Frame>, BTreeMap<usize, Vec<u8>>)> = BTreeMap::new();
+    // By log time: the frame's actors once seen, and its images by channel.
+    let mut pending: BTreeMap<u64, Partial> = BTreeMap::new();
     let mut index = 0;
     for message in messages()? {
         let message = message.with_context(|| format!("{}: a damaged record", shown.display()))?;
@@ -568,6 +569,8 @@ fn read_mcap(file: &Path, shown: &Path, s: &ImportSettings, sink: &mut Sink) -> 
     }
     Ok(())
 }
+
+type Partial = (Option<Frame>, BTreeMap<usize, Vec<u8>>);
 
 fn is_raw_image(channel: &mcap::Channel<'_>) -> bool {
     channel.schema.as_ref().is_some_and(|schema| schema.name == "foxglove.RawImage")

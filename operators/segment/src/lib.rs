@@ -146,7 +146,7 @@ impl UnetSettings {
     /// validated, and again by the worker on the scenes it reads.
     pub fn check_depth(&self, image: u64) -> Result<(), SettingError> {
         let divisor = 1u64 << (self.channels.len() - 1);
-        if image % divisor != 0 {
+        if !image.is_multiple_of(divisor) {
             return Err(SettingError::new("channels", format!("{} levels need an image side divisible by {divisor}; the scenes have {image}", self.channels.len())));
         }
         Ok(())
