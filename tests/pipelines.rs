@@ -985,10 +985,15 @@ fn every_setting_of_every_operator_enters_the_key_or_leaves_the_bytes_alone() {
                         .output()
                         .unwrap();
                     assert!(out.status.success(), "`{name}` with {setting} = {value}: {}", String::from_utf8_lossy(&out.stderr));
-                    output_digest(&dir, "walk", "x")
+                    let digest = output_digest(&dir, "walk", "x");
+                    std::fs::remove_dir_all(&dir).unwrap();
+                    digest
                 })
                 .collect();
             assert_eq!(digests[0], digests[1], "`{name}`: `{setting}` changed the output bytes");
         }
+    }
+    for dir in [ci, llm_dir] {
+        std::fs::remove_dir_all(dir).unwrap();
     }
 }

@@ -58,6 +58,15 @@ impl Scratch {
     }
 }
 
+/// A passing test leaves nothing behind; a failing one keeps its directory for a look.
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = fs::remove_dir_all(&self.dir);
+        }
+    }
+}
+
 pub fn text(bytes: &[u8]) -> String {
     String::from_utf8_lossy(bytes).into_owned()
 }

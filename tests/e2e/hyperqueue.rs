@@ -194,6 +194,11 @@ fn workers_with_stores_of_their_own_share_only_the_remote_and_give_the_bytes_of_
     let other = failed.of("stage_finished").into_iter().find(|e| e["stage"] == "other").unwrap().clone();
     assert_eq!(other["status"], "failed");
     assert_eq!(other["error"], "asked to fail", "{other}");
+    // The failed task's output stays on its worker (here, this machine's temporary directory).
+    let run = failed.of("run_started")[0]["run"].as_str().unwrap().to_owned();
+    let kept: Vec<_> = fs::read_dir(std::env::temp_dir()).unwrap().flatten().map(|e| e.path()).filter(|p| p.to_string_lossy().contains(&format!("rlmflow-{run}-other."))).collect();
+    assert_eq!(kept.len(), 2, "its stdout and stderr: {kept:?}");
+    kept.iter().for_each(|p| fs::remove_file(p).unwrap());
 }
 
 #[test]

@@ -263,7 +263,7 @@ impl Task {
                 Some(own) => {
                     let transcript = format!("{}/{name}.{attempt}", own.run);
                     let cwd = std::env::temp_dir();
-                    let [stdout, stderr] = ["stdout", "stderr"].map(|ext| cwd.join(format!("rlmflow-{name}.{attempt}.{ext}")));
+                    let [stdout, stderr] = ["stdout", "stderr"].map(|ext| cwd.join(format!("rlmflow-{}-{name}.{attempt}.{ext}", own.run)));
                     let job = self.submit(&name, own.args(&self.launch, &transcript), &cwd, [&stdout, &stderr], Some(&own.request))?;
                     let reason = self.wait(job)?;
                     let (exit, outcome) = own.finish(&reason, &transcript, &stderr, id, tx, log)?;
