@@ -265,7 +265,7 @@ impl Task {
                     let cwd = std::env::temp_dir();
                     let [stdout, stderr] = ["stdout", "stderr"].map(|ext| cwd.join(format!("rlmflow-{}-{name}.{attempt}.{ext}", own.run)));
                     let job = self.submit(&name, own.args(&self.launch, &transcript), &cwd, [&stdout, &stderr], Some(&own.request))?;
-                    let reason = self.wait(job)?;
+                    let reason = self.wait(job, || {})?;
                     let (exit, outcome) = own.finish(&reason, &transcript, &stderr, id, tx, log)?;
                     (job, exit, outcome)
                 }
@@ -305,10 +305,12 @@ impl Task {
             .with_context(|| format!("submitting {}", l.label))
     }
 
-    /// Waits for the job to end; returns HyperQueue's reason it failed ("" when it did not).
-    fn wait(&self, job: u64) -> anyhow::Result<String> {
+    /// Waits for the job to end, calling `between` after each look at its state; returns
+    /// HyperQueue's reason it failed ("" when it did not).
+    fn wait(&self, job: u64, mut between: impl FnMut()) -> anyhow::Result<String> {
         loop {
             let state: Option<String> = self.client.lock().unwrap().call("status", |py| Ok(vec![job.into_pyobject(py)?.into_any()]))?;
+            between();
             match state {
                 Some(reason) => return Ok(reason),
                 None => std::thread::sleep(POLL),
@@ -322,19 +324,10 @@ impl Task {
         let mut tail = Tail::default();
         let mut outcome = false;
         let mut forward = |line: &str| {
-            if let Some(Ok(message)) = line.strip_prefix(crate::exec::PREFIX).map(serde_json::from_str::<Message>) {
-                outcome |= !matches!(message, Message::Progress { .. } | Message::Event { .. } | Message::Waiting);
-            }
+            outcome |= outcome_of(line).is_some();
             forward_line(line, id, tx, log);
         };
-        let reason = loop {
-            let state: Option<String> = self.client.lock().unwrap().call("status", |py| Ok(vec![job.into_pyobject(py)?.into_any()]))?;
-            tail.read(stdout, &mut forward);
-            match state {
-                Some(reason) => break reason,
-                None => std::thread::sleep(POLL),
-            }
-        };
+        let reason = self.wait(job, || tail.read(stdout, &mut forward))?;
         tail.read(stdout, &mut forward);
         tail.finish(&mut forward);
         let exit = if reason.is_empty() { Exit::Code(0) } else { exit_of(&reason) };
@@ -397,11 +390,7 @@ impl OwnTask {
         match self.remote.transcript(transcript) {
             Some(text) => {
                 for line in text.lines() {
-                    if let Some(Ok(message)) = line.strip_prefix(crate::exec::PREFIX).map(serde_json::from_str::<Message>)
-                        && !matches!(message, Message::Progress { .. } | Message::Event { .. } | Message::Waiting)
-                    {
-                        outcome = Some(matches!(message, Message::Done { .. } | Message::Reused));
-                    }
+                    outcome = outcome_of(line).or(outcome);
                     forward_line(line, id, tx, log);
                 }
                 self.remote.remove_transcript(transcript);
@@ -428,6 +417,16 @@ impl OwnTask {
             }
         }
         Ok((exit, outcome.is_some()))
+    }
+}
+
+/// Whether a line of a task's output reports how the action ended: `Some(true)` when it is done
+/// or was reused, `Some(false)` when it failed or found an input corrupt; `None` for anything
+/// else (progress, events, other output).
+fn outcome_of(line: &str) -> Option<bool> {
+    match line.strip_prefix(crate::exec::PREFIX).map(serde_json::from_str::<Message>)? {
+        Ok(Message::Progress { .. } | Message::Event { .. } | Message::Waiting) | Err(_) => None,
+        Ok(message) => Some(matches!(message, Message::Done { .. } | Message::Reused)),
     }
 }
 

@@ -344,7 +344,7 @@ fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink)
             Layout::RangeAzimuth => resample_range_azimuth(&unit, raw.height, raw.width, side, s),
             Layout::AsGiven => resize(&unit, raw.height, raw.width, side),
         };
-        let bytes: Vec<u8> = pixels.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+        let bytes = to_bytes(&pixels);
         let scenario = line.scenario.clone().unwrap_or_else(|| s.scenario.clone());
         let index = index as u64;
         let mut frame = match (line.actors, line.grid) {
@@ -446,10 +446,15 @@ fn sample(values: &[f32], height: usize, width: usize, row: f64, col: f64) -> f3
     (at(r0, c0) * (1.0 - fc) + at(r0, c1) * fc) * (1.0 - fr) + (at(r1, c0) * (1.0 - fc) + at(r1, c1) * fc) * fr
 }
 
+/// rlmflow's range-azimuth image of `side` pixels out to `range_max_m`, where actors are placed.
+fn range_azimuth(side: usize, s: &ImportSettings) -> Projection {
+    Projection { view: View::RangeAzimuth, size: side, range_max_m: s.range_max_m, half_fov: 0.0 }
+}
+
 /// A range-azimuth map resampled into rlmflow's range-azimuth image of `side` pixels: each
 /// pixel's range and azimuth looked up in the map's axes; outside them, black.
 fn resample_range_azimuth(values: &[f32], height: usize, width: usize, side: usize, s: &ImportSettings) -> Vec<f32> {
-    let projection = Projection { view: View::RangeAzimuth, size: side, range_max_m: s.range_max_m, half_fov: 0.0 };
+    let projection = range_azimuth(side, s);
     let (span, half) = (s.axes.range_span_m, s.axes.azimuth_span_deg.to_radians() / 2.0);
     let mut out = vec![0f32; side * side];
     for (p, v) in out.iter_mut().enumerate() {
@@ -493,7 +498,7 @@ fn actor(k: usize, a: LineActor, raw: &Raw, side: usize, s: &ImportSettings) -> 
         }
     }
     let (row, col) = match (s.axes.layout, a.row, a.col) {
-        (Layout::RangeAzimuth, None, None) => Projection { view: View::RangeAzimuth, size: side, range_max_m: s.range_max_m, half_fov: 0.0 }.pixel(a.x, a.y),
+        (Layout::RangeAzimuth, None, None) => range_azimuth(side, s).pixel(a.x, a.y),
         (Layout::RangeAzimuth, _, _) => return Err(format!("actor {k}: `row`/`col` are for layout = \"as-given\"; with a range-azimuth layout the position comes from x and y")),
         (Layout::AsGiven, Some(row), Some(col)) => (row * side as f64 / raw.height as f64, col * side as f64 / raw.width as f64),
         (Layout::AsGiven, _, _) => {
@@ -588,13 +593,18 @@ fn raw_image(shown: &Path, message: &mcap::Message<'_>) -> anyhow::Result<Vec<u8
     Ok(image.data.to_vec())
 }
 
+/// Values in [0, 1] as an image's bytes (value / 255).
+fn to_bytes(values: &[f32]) -> Vec<u8> {
+    values.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect()
+}
+
 /// A mono8 image of `from` pixels square at `to` pixels square (the same bytes when equal).
 fn resize_bytes(data: Vec<u8>, from: usize, to: usize) -> Vec<u8> {
     if from == to {
         return data;
     }
     let unit: Vec<f32> = data.iter().map(|&v| f32::from(v) / 255.0).collect();
-    resize(&unit, from, from, to).iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect()
+    to_bytes(&resize(&unit, from, from, to))
 }
 
 #[cfg(test)]
