@@ -1,5 +1,6 @@
 //! `cargo bench -p rlmflow-e2e --bench text`: the text half of the pipeline on a corpus of
-//! procedural scenes. Labels frames/s and template captions/s on one core; parser captions/s on
+//! procedural scenes. `import` frames/s of those scenes, from their MCAP and from a manifest of
+//! `.npy` images; labels frames/s and template captions/s on one core; parser captions/s on
 //! one core against its target (>= 50,000, printed as a ratio; above 1.00 meets it); BPE
 //! training plus tokenisation captions/s on one core and on every core.
 
@@ -9,7 +10,7 @@ use std::time::Instant;
 use rlmflow_captions::{Template, TemplateSettings};
 use rlmflow_labels::{EgoGrid, EgoGridSettings};
 use rlmflow_radar::RadarConfig;
-use rlmflow_scenes::{Procedural, ProceduralSettings};
+use rlmflow_scenes::{Axes, Import, ImportSettings, Layout, Power, Procedural, ProceduralSettings};
 use rlmflow_stages::captions::Captions;
 use rlmflow_stages::{Context, Operator};
 use rlmflow_tokens::{Bpe, BpeSettings};
@@ -33,6 +34,38 @@ fn stage<O: Operator>(root: &Path, name: &str, op: &O, s: &O::Settings, inputs: 
     (out, t0.elapsed().as_secs_f64())
 }
 
+/// A directory holding the scenes' MCAP file alone, as a recording to import.
+fn mcap_recording(root: &Path, scenes: &Path, image: usize) -> PathBuf {
+    let dir = root.join(format!("mcap-recording-{image}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::copy(scenes.join(rlmflow_stages::scenes::MCAP), dir.join("drive.mcap")).unwrap();
+    dir
+}
+
+/// The scenes as a manifest recording: each image a uint8 `.npy` kept as given, each actor with
+/// its pixel.
+fn manifest_recording(root: &Path, scenes: &Path, image: usize) -> PathBuf {
+    use rlmflow_stages::npy::{Dtype, NpyWriter};
+    let dir = root.join(format!("manifest-recording-{image}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let scenes = rlmflow_stages::scenes::Scenes::open(scenes).unwrap();
+    let mut manifest = String::new();
+    for i in 0..scenes.len() {
+        let mut npy = NpyWriter::create(&dir.join(format!("{i:06}.npy")), Dtype::U8, image, &[image]).unwrap();
+        scenes.heatmap(i).unwrap().chunks(image).for_each(|row| npy.write_u8(row).unwrap());
+        npy.finish().unwrap();
+        let frame = scenes.frame(i).unwrap();
+        let actors: Vec<serde_json::Value> = frame
+            .actors
+            .iter()
+            .map(|a| serde_json::json!({"class": a.class, "x": a.x, "y": a.y, "heading": a.heading, "length": a.length, "width": a.width, "row": a.row, "col": a.col}))
+            .collect();
+        manifest += &format!("{}\n", serde_json::json!({"image": format!("{i:06}.npy"), "actors": actors}));
+    }
+    std::fs::write(dir.join("manifest.jsonl"), manifest).unwrap();
+    dir
+}
+
 fn main() {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let root = std::env::temp_dir().join(format!("rlmflow-bench-text-{}", std::process::id()));
@@ -47,6 +80,13 @@ fn main() {
             ..ProceduralSettings::default()
         };
         let (scenes_dir, _) = stage(&root, &format!("scenes-{image}"), &Procedural, &scenes, &[], cores);
+        for (from, recording) in [("MCAP", mcap_recording(&root, &scenes_dir, image)), ("manifest", manifest_recording(&root, &scenes_dir, image))] {
+            // The manifest's images are kept as given, so the actors keep their pixels.
+            let axes = Axes { layout: Layout::AsGiven, power: Power::Normalised, ..Axes::default() };
+            let settings = ImportSettings { path: format!("{from}-{image}"), image: 0, axes, ..ImportSettings::default() };
+            let (_, t) = stage(&root, &format!("import-{from}-{image}"), &Import, &settings, &[("path", &recording)], 1);
+            println!("  import from {from:8}, {image:3} px, one core     {:>10.0} frames/s", FRAMES as f64 / t);
+        }
         let (labels_dir, t) = stage(&root, &format!("labels-{image}"), &EgoGrid, &EgoGridSettings::default(), &[("scenes", &scenes_dir)], 1);
         println!("  labels (ego-grid), {image:3} px masks, one core   {:>10.0} frames/s", FRAMES as f64 / t);
         let (dir, t) = stage(&root, &format!("captions-{image}"), &Template, &TemplateSettings::default(), &[("labels", &labels_dir)], 1);

@@ -15,7 +15,7 @@ mod writer;
 pub use concat::{Concat, ConcatSettings};
 #[cfg(feature = "highway")]
 pub use highway::{HighwayEnv, HighwaySettings, SCENARIOS, ScenarioMix};
-pub use import::{Import, ImportSettings};
+pub use import::{Axes, Import, ImportSettings, Layout, Power};
 pub use procedural::{Procedural, ProceduralSettings};
 pub use render::{Rendered, Renderer, Scene, Vehicle};
 pub use writer::SceneWriter;
