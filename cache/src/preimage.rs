@@ -29,6 +29,10 @@ pub struct Preimage {
     pub seed: u64,
     /// Sorted by slot, then label.
     pub inputs: Vec<InputDigest>,
+    /// The class of machines that compute the same bytes, for an action whose bytes depend on
+    /// its numeric kernels (`cpu/x86-64-v3/portable`); absent where they do not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub platform: Option<String>,
 }
 
 /// One field-level difference between two preimages: why an action is not fresh.
@@ -41,6 +45,7 @@ pub enum Change {
     InputChanged { slot: String, label: String },
     InputAdded { slot: String, label: String },
     InputRemoved { slot: String, label: String },
+    Platform { old: Option<String>, new: Option<String> },
 }
 
 impl fmt::Display for Change {
@@ -57,6 +62,10 @@ impl fmt::Display for Change {
             Change::InputChanged { slot, label } => write!(f, "input {} changed", input(slot, label)),
             Change::InputAdded { slot, label } => write!(f, "input {} added", input(slot, label)),
             Change::InputRemoved { slot, label } => write!(f, "input {} removed", input(slot, label)),
+            Change::Platform { old, new } => {
+                let show = |p: &Option<String>| p.clone().unwrap_or_else(|| "(none)".to_owned());
+                write!(f, "numeric platform {} -> {}", show(old), show(new))
+            }
         }
     }
 }
@@ -80,6 +89,11 @@ impl Preimage {
             field(input.slot.as_bytes());
             field(input.label.as_bytes());
             field(&input.digest.0);
+        }
+        // Absent for most actions, so their keys are what they were before the field existed.
+        if let Some(platform) = &self.platform {
+            field(b"platform");
+            field(platform.as_bytes());
         }
         h.finalize().into()
     }
@@ -111,6 +125,9 @@ impl Preimage {
             {
                 changes.push(Change::InputChanged { slot: new.slot.clone(), label: new.label.clone() });
             }
+        }
+        if self.platform != old.platform {
+            changes.push(Change::Platform { old: old.platform.clone(), new: self.platform.clone() });
         }
         changes
     }
@@ -182,6 +199,7 @@ mod tests {
             config,
             seed: 17,
             inputs: vec![InputDigest { slot: "scenes".into(), label: String::new(), digest: Digest::of(b"s") }],
+            platform: None,
         }
     }
 
@@ -194,6 +212,19 @@ mod tests {
         let mut c = a.clone();
         c.seed = 18;
         assert_ne!(a.key(), c.key());
+    }
+
+    #[test]
+    fn a_platform_class_enters_the_key_and_the_diff() {
+        let plain = preimage(json!({}));
+        let mut portable = plain.clone();
+        portable.platform = Some("cpu/x86-64-v3/portable".into());
+        let mut native = plain.clone();
+        native.platform = Some("cpu/x86-64/native/AMD EPYC/avx2+fma".into());
+        assert_ne!(plain.key(), portable.key());
+        assert_ne!(portable.key(), native.key());
+        let shown: Vec<String> = native.diff(&portable).iter().map(|c| c.to_string()).collect();
+        assert_eq!(shown, ["numeric platform cpu/x86-64-v3/portable -> cpu/x86-64/native/AMD EPYC/avx2+fma"]);
     }
 
     #[test]

@@ -31,6 +31,10 @@ pub struct ActionRecord {
     pub duration_s: f64,
     pub metrics: Value,
     pub summary: String,
+    /// The numeric platform it ran on (CPU, kernel pins, threads, libraries, GPU), for an action
+    /// whose bytes depend on it: provenance, outside the key (the key holds its class).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub platform: Option<Value>,
 }
 
 /// Everything `rlmflow exec` needs to run an action, stored before it runs so that the same
@@ -633,7 +637,7 @@ pub(crate) mod tests {
 
     pub(crate) fn record_for(store: &Store, seed: u64, content: &[u8]) -> ActionRecord {
         let preimage =
-            Preimage { operator: "op".into(), operator_version: 1, config: serde_json::json!({}), seed, inputs: Vec::<InputDigest>::new() };
+            Preimage { operator: "op".into(), operator_version: 1, config: serde_json::json!({}), seed, inputs: Vec::<InputDigest>::new(), platform: None };
         let key = preimage.key();
         let work = store.work_dir(&key).unwrap();
         fs::create_dir_all(work.join("out")).unwrap();
@@ -649,6 +653,7 @@ pub(crate) mod tests {
             duration_s: 0.1,
             metrics: Value::Null,
             summary: String::new(),
+            platform: None,
         };
         store.write_record(&record).unwrap();
         record

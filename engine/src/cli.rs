@@ -92,8 +92,8 @@ enum Command {
         #[arg(long)]
         verify_inputs: bool,
         /// Run what this stage needs, then run each of its actions twice in fresh processes
-        /// with different thread counts, into scratch, and compare the outputs byte for byte
-        /// (repeatable). Exits 1 and names the first differing file if they differ.
+        /// with different thread counts, the second asking every numeric library for other
+        /// kernels, into scratch, and compare the outputs byte for byte (repeatable). Exits 1 and names the first differing file if they differ.
         #[arg(long, value_name = "STAGE")]
         check_determinism: Vec<String>,
         #[command(flatten)]
@@ -260,9 +260,11 @@ fn pull(plan: &crate::plan::Plan, registry: &Registry, store: &Store, remote: &r
     Ok((pulled, bytes))
 }
 
-/// The pipeline's plan, with the content of every tracked path (recorded in `store`, if any).
-fn planned<'p>(pipeline: &'p Pipeline, store: Option<&Store>) -> anyhow::Result<crate::plan::Plan<'p>> {
+/// The pipeline's plan for a run on `device`, with the content of every tracked path (recorded
+/// in `store`, if any).
+fn planned<'p>(pipeline: &'p Pipeline, store: Option<&Store>, device: Device) -> anyhow::Result<crate::plan::Plan<'p>> {
     let mut plan = plan(pipeline);
+    plan.platform = crate::platform::Platform::detect(device);
     plan.fingerprint(store)?;
     Ok(plan)
 }
@@ -281,7 +283,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             }
             let root = store_root(&p, &store);
             let existing = Store::open_existing(&root)?;
-            let plan = planned(&p, existing.as_ref())?;
+            let plan = planned(&p, existing.as_ref(), device)?;
             let selected = plan.select(&only)?;
             let states = assess(&plan, registry, existing.as_ref())?;
             let runs = crate::run::will_run(&states, &selected);
@@ -320,7 +322,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         Command::Status { pipeline, json, store, remote } => {
             let p = config::load(&pipeline, registry)?;
             let store = Store::open_existing(&store_root(&p, &store))?;
-            let plan = planned(&p, store.as_ref())?;
+            let plan = planned(&p, store.as_ref(), Device::Cpu)?;
             let all = vec![true; plan.instances.len()];
             let states = assess(&plan, registry, store.as_ref())?;
             let fits = crate::footprint::fits(&plan, registry, rlmflow_stages::Device::Auto, &crate::run::will_run(&states, &all));
@@ -335,7 +337,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         Command::Push(Transfer { pipeline, only, store, remote }) => {
             let p = config::load(&pipeline, registry)?;
             let store = Store::open_existing(&store_root(&p, &store))?.context("the pipeline has not run yet; nothing to push")?;
-            let plan = planned(&p, Some(&store))?;
+            let plan = planned(&p, Some(&store), Device::Cpu)?;
             let selected = plan.select(&only)?;
             let settings = remote.settings(&p).context("no remote cache: set `[pipeline] remote` or give --remote")?;
             let remote = config::RemoteSettings { push: true, ..settings }.open()?;
@@ -357,7 +359,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         Command::Pull(Transfer { pipeline, only, store, remote }) => {
             let p = config::load(&pipeline, registry)?;
             let store = Store::open(&store_root(&p, &store))?;
-            let plan = planned(&p, Some(&store))?;
+            let plan = planned(&p, Some(&store), Device::Cpu)?;
             let selected = plan.select(&only)?;
             let settings = remote.settings(&p).context("no remote cache: set `[pipeline] remote` or give --remote")?;
             let remote = settings.open()?;
@@ -408,7 +410,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             config::check_name(&name).map_err(|problem| anyhow::anyhow!("the pin name {problem}"))?;
             let p = config::load(&pipeline, registry)?;
             let store = Store::open_existing(&store_root(&p, &store))?.context("the pipeline has not run yet; nothing to pin")?;
-            let plan = planned(&p, Some(&store))?;
+            let plan = planned(&p, Some(&store), Device::Cpu)?;
             let states = assess(&plan, registry, Some(&store))?;
             let keys: std::collections::BTreeMap<String, Digest> = states
                 .iter()
@@ -511,7 +513,7 @@ fn instances_of(plan: &crate::plan::Plan, stage: &str) -> anyhow::Result<Vec<usi
 fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
     let p = config::load(file, registry)?;
     let store = Store::open_existing(&store_root(&p, arg))?;
-    let plan = planned(&p, store.as_ref())?;
+    let plan = planned(&p, store.as_ref(), Device::Cpu)?;
     let states = assess(&plan, registry, store.as_ref())?;
     let last = match &store {
         Some(s) => s.last_keys(&p.name)?,
@@ -561,7 +563,7 @@ fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> any
 fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
     let p = config::load(file, registry)?;
     let store = Store::open_existing(&store_root(&p, arg))?;
-    let plan = planned(&p, store.as_ref())?;
+    let plan = planned(&p, store.as_ref(), Device::Cpu)?;
     let states = assess(&plan, registry, store.as_ref())?;
     for i in instances_of(&plan, stage)? {
         let label = &plan.instances[i].label;
@@ -577,6 +579,10 @@ fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow
                 }
                 if !r.metrics.is_null() {
                     println!("  metrics: {}", canonical_json(&r.metrics));
+                }
+                // A record from before its operator kept one, or a damaged one, shows none.
+                if let Some(platform) = r.platform.clone().and_then(|p| serde_json::from_value::<rlmflow_stages::numerics::PlatformRecord>(p).ok()) {
+                    platform.to_string().lines().for_each(|line| println!("  {line}"));
                 }
             }
             (Freshness::Stale { reasons, .. }, _) => println!("{label}: not computed yet ({})", reasons.join("; ")),

@@ -7,7 +7,10 @@
 //! through the normal executor, then runs each of the stage's actions twice, each in a fresh
 //! `rlmflow exec` process (so hash seeds, allocator addresses and global RNGs differ; Python's
 //! hash seed is randomised) with a different thread count, into scratch directories, and
-//! compares the two output trees. A difference names the files and the first differing byte.
+//! compares the two output trees. The second process's environment asks every numeric library
+//! for other kernels than the first's (AVX-512 where the machine has it, older instruction sets
+//! where not; `rlmflow_stages::numerics::other_kernels`), so an operator whose bytes follow the
+//! CPU's kernels, unpinned, shows it here on one machine. A difference names the files and the first differing byte.
 //! Nothing is committed; the scratch outputs of a failed check stay in the store's `tmp/` for
 //! inspection (`gc` removes them).
 
@@ -37,6 +40,8 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
     }
     let states = assess(plan, registry, Some(store))?;
     let threads = [opts.jobs, (opts.jobs / 2).max(1)];
+    let other_kernels = rlmflow_stages::numerics::other_kernels(plan.platform.cpu());
+    let environments: [&[(&str, &str)]; 2] = [&[], &other_kernels];
     let mut all_same = true;
     for (i, inst) in plan.instances.iter().enumerate().filter(|(i, _)| targets[*i]) {
         let (key, preimage, stored) = match &states[i] {
@@ -51,16 +56,20 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
         println!("check-determinism {} (key {})", inst.label, key.short());
         let exe = crate::exec::executable(registry.get(&inst.operator).expect("validated operator"))?;
         let mut attempts: Vec<(PathBuf, Digest)> = Vec::new();
-        for (attempt, &n) in threads.iter().enumerate() {
+        for (attempt, (&n, env)) in threads.iter().zip(environments).enumerate() {
             let scratch = store.root().join("tmp").join(format!("check-{}-{}-{attempt}", key.hex(), std::process::id()));
             let _ = std::fs::remove_dir_all(&scratch);
             std::fs::create_dir_all(&scratch)?;
             let clock = Instant::now();
             // The attempt reports its output's tree digest; manifests are read only to explain a difference.
-            let digest =
-                attempt_in_fresh_process(&exe, store, &key, n, opts, &scratch).with_context(|| format!("{}: attempt {}", inst.label, attempt + 1))?;
+            let digest = attempt_in_fresh_process(&exe, store, &key, n, env, opts, &scratch)
+                .with_context(|| format!("{}: attempt {}", inst.label, attempt + 1))?;
             let threads = if n == 1 { "1 thread".to_owned() } else { format!("{n} threads") };
-            println!("  attempt {} (fresh process, {threads}): output {} in {:.1}s", attempt + 1, digest.short(), clock.elapsed().as_secs_f64());
+            let kernels = match env.is_empty() {
+                true => String::new(),
+                false => format!(", asking for other kernels: {}", env.iter().map(|(k, v)| format!("{k}={v}")).collect::<Vec<_>>().join(" ")),
+            };
+            println!("  attempt {} (fresh process, {threads}{kernels}): output {} in {:.1}s", attempt + 1, digest.short(), clock.elapsed().as_secs_f64());
             attempts.push((scratch, digest));
         }
         let [(dir_a, a), (dir_b, b)] = <[_; 2]>::try_from(attempts).expect("two attempts");
@@ -85,8 +94,17 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
     Ok(all_same)
 }
 
-/// Runs `rlmflow exec KEY --scratch DIR` and waits for its output digest.
-fn attempt_in_fresh_process(exe: &Path, store: &Store, key: &Digest, threads: usize, opts: &RunOptions, scratch: &Path) -> anyhow::Result<Digest> {
+/// Runs `rlmflow exec KEY --scratch DIR` with `env` added to its environment and waits for its
+/// output digest.
+fn attempt_in_fresh_process(
+    exe: &Path,
+    store: &Store,
+    key: &Digest,
+    threads: usize,
+    env: &[(&str, &str)],
+    opts: &RunOptions,
+    scratch: &Path,
+) -> anyhow::Result<Digest> {
     let log = scratch.join("exec.log");
     let mut child = Command::new(exe)
         .arg("exec")
@@ -101,6 +119,7 @@ fn attempt_in_fresh_process(exe: &Path, store: &Store, key: &Digest, threads: us
         .arg(scratch)
         // Python's string hashes differ in every attempt, whatever the caller's environment says.
         .env("PYTHONHASHSEED", "random")
+        .envs(env.iter().copied())
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(std::fs::File::create(&log)?)

@@ -13,6 +13,7 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use rlmflow_cache::{ActionRecord, ActionRequest, Digest, Store, hash_tree, now_rfc3339};
+use rlmflow_stages::numerics::{PlatformRecord, Target};
 use rlmflow_stages::{Context, Device, DynOperator, Input, Outcome, Registry, Reporter};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -112,6 +113,10 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
     let work = store.work_dir(&key)?;
     let output_dir = work.join("out");
     let checkpoint_dir = store.checkpoint_dir(&key);
+    let (device, platform) = match pin_platform(registry, op, &request, device) {
+        Ok(pinned) => pinned,
+        Err(message) => return Ok(fail(message)),
+    };
     let started = now_rfc3339();
     let clock = Instant::now();
     let dirs = Dirs { output: output_dir.clone(), checkpoint: checkpoint_dir.clone(), responses: store.responses_dir(&request.preimage.operator) };
@@ -131,6 +136,7 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
         duration_s,
         metrics: outcome.metrics,
         summary: outcome.summary,
+        platform: platform.map(|p| serde_json::to_value(p).expect("a platform record serialises")),
     })?;
     let _ = std::fs::remove_dir_all(&checkpoint_dir);
     let _ = std::fs::remove_dir_all(&work);
@@ -149,6 +155,10 @@ pub fn exec_scratch(registry: &Registry, store: &Path, key: Digest, threads: usi
     let inputs = match inputs(&store, &request)? {
         Ok(inputs) => inputs,
         Err(code) => return Ok(code),
+    };
+    let device = match pin_platform(registry, op, &request, device) {
+        Ok((device, _)) => device,
+        Err(message) => return Ok(fail(message)),
     };
     let output_dir = scratch.join("out");
     let dirs = Dirs { output: output_dir.clone(), checkpoint: scratch.join("checkpoint"), responses: store.responses_dir(&request.preimage.operator) };
@@ -191,8 +201,27 @@ fn inputs(store: &Store, request: &ActionRequest) -> anyhow::Result<Result<BTree
     Ok(Ok(inputs))
 }
 
-/// Runs the operator with its output and checkpoint directories; `Ok(Err(message))` when it
-/// fails or panics.
+/// For an operator whose bytes depend on its kernels: checks that this machine computes the
+/// numeric platform class its key was planned for, pins this process's kernel choices (whatever
+/// the caller's environment says), and returns the device it computes on with the platform
+/// record for its provenance. Other operators run as asked, with no record. `Err` says why the
+/// action must not run here.
+fn pin_platform(registry: &Registry, op: &dyn DynOperator, request: &ActionRequest, device: Device) -> Result<(Device, Option<PlatformRecord>), String> {
+    let resources = op.resources(&request.settings);
+    let Some(kernels) = resources.kernels else { return Ok((device, None)) };
+    let target = Target::of(kernels.device, device, crate::dispatch::cuda_present());
+    // A model operator computes with its own `threads` setting (part of its key).
+    let record = PlatformRecord::new(kernels.numerics, target, resources.threads, registry.libraries());
+    if let Some(planned) = request.preimage.platform.as_ref().filter(|p| **p != record.class) {
+        return Err(format!(
+            "this action's key is for numeric platform `{planned}`, and this machine computes `{}`: it would store other bytes under the key. Run it on a machine of that class, or plan the run here",
+            record.class
+        ));
+    }
+    rlmflow_stages::numerics::apply(kernels.numerics, &record.cpu, target);
+    Ok((target.device(), Some(record)))
+}
+
 /// Where one attempt at an action writes: its output, its checkpoints, and the store's
 /// directory of its operator's outside answers.
 struct Dirs {
@@ -201,6 +230,8 @@ struct Dirs {
     responses: PathBuf,
 }
 
+/// Runs the operator with its output and checkpoint directories; `Ok(Err(message))` when it
+/// fails or panics.
 fn run_operator(
     op: &dyn DynOperator,
     request: &ActionRequest,

@@ -10,6 +10,7 @@ use rlmflow_stages::{Arity, InstanceId, Part, Registry};
 use serde_json::Value;
 
 use crate::config::{Pipeline, SEED_DIMENSION, suggest};
+use crate::platform::Platform;
 
 /// One stage run for one combination of upstream variants; a sharded stage's instance is its
 /// parts (`scenes#0`, `scenes#1`, ...) and the merge of them (`scenes`), which consumers read.
@@ -46,8 +47,12 @@ pub struct Plan<'p> {
     pub instances: Vec<Instance>,
     /// The content of every tracked path ([`Plan::fingerprint`]).
     pub tracked: BTreeMap<PathBuf, Digest>,
+    /// The machine's numeric platform, for the keys of actions whose bytes depend on it.
+    pub platform: Platform,
 }
 
+/// Every instance of `pipeline`, keyed for a run on this machine with the default `--device`
+/// (set [`Plan::platform`] for another).
 pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
     let mut instances: Vec<Instance> = Vec::new();
     let mut dims_of: Vec<Vec<String>> = Vec::new();
@@ -152,7 +157,7 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
         }
         dims_of.push(dims);
     }
-    Plan { pipeline, instances, tracked: BTreeMap::new() }
+    Plan { pipeline, instances, tracked: BTreeMap::new(), platform: Platform::detect(rlmflow_stages::Device::Cpu) }
 }
 
 fn restrict(a: &BTreeMap<String, String>, dims: &[String]) -> BTreeMap<String, String> {
@@ -261,7 +266,8 @@ impl Plan<'_> {
             }
         }
         let seed = inst.assignment.get(SEED_DIMENSION).map_or(self.pipeline.seed, |s| s.parse().expect("seeds are integers"));
-        Some(Preimage { operator: inst.operator.clone(), operator_version: op.spec().version, config, seed, inputs })
+        let platform = op.resources(&inst.settings).kernels.map(|k| self.platform.class(k));
+        Some(Preimage { operator: inst.operator.clone(), operator_version: op.spec().version, config, seed, inputs, platform })
     }
 }
 
@@ -691,7 +697,7 @@ operator = "od"
         let root = std::env::temp_dir().join(format!("rlmflow-why-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&root);
         let store = Store::open(&root).unwrap();
-        let preimage = Preimage { operator: "llm".into(), operator_version: 1, config: serde_json::json!({}), seed: 0, inputs: vec![] };
+        let preimage = Preimage { operator: "llm".into(), operator_version: 1, config: serde_json::json!({}), seed: 0, inputs: vec![], platform: None };
         let key = preimage.key();
         let reasons = |resumes: &str| why(Some(&store), Some(&key), &key, &preimage, "captions", resumes).unwrap();
         assert_eq!(reasons("its checkpoint"), ["its last attempt did not finish"]);

@@ -327,10 +327,12 @@ impl Executor<'_> {
     fn write_provenance(&self, wall: f64, executor: &str) -> anyhow::Result<PathBuf> {
         let p = self.plan.pipeline;
         let mut md = format!(
-            "# Run {}\n\n`{}` (pipeline `{}`), {executor}, {wall:.1} s. Seconds are this run's for an instance that ran, the original computation's for one reused.\n\n| instance | status | seconds | key | output |\n|---|---|---|---|---|\n",
+            "# Run {}\n\n`{}` (pipeline `{}`), {executor}, {wall:.1} s, planned on {} ({}). Seconds are this run's for an instance that ran, the original computation's for one reused. A model action's numeric platform is the class of machines that compute its bytes (`rlmflow show` prints the CPU, kernels and libraries it ran with).\n\n| instance | status | seconds | key | output | platform |\n|---|---|---|---|---|---|\n",
             self.run,
             p.file.display(),
-            p.name
+            p.name,
+            self.plan.platform.cpu().model,
+            self.plan.platform.cpu().extensions.join(" "),
         );
         for (i, inst) in self.plan.instances.iter().enumerate() {
             let Some((outcome, secs)) = self.results[i] else { continue };
@@ -343,7 +345,9 @@ impl Executor<'_> {
             };
             let key = self.keys[i].map_or("-".to_owned(), |k| k.to_string());
             let output = if let State::Done { output } = &self.states[i] { output.to_string() } else { "-".to_owned() };
-            md += &format!("| {} | {status} | {secs:.1} | {key} | {output} |\n", inst.label);
+            let record = self.keys[i].and_then(|k| self.store.record(&k).ok().flatten());
+            let platform = record.and_then(|r| r.preimage.platform).unwrap_or_else(|| "-".to_owned());
+            md += &format!("| {} | {status} | {secs:.1} | {key} | {output} | {platform} |\n", inst.label);
         }
         let path = self.store.run_dir(&self.run).join("provenance.md");
         std::fs::write(&path, md).with_context(|| format!("writing {}", path.display()))?;

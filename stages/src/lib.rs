@@ -11,6 +11,8 @@
 //!   [`identity`]: frame identities, the split rule and the train/test overlap check.
 //! * [`scenes`], [`labels`], [`captions`], [`tokens`], [`encoder`], [`probe`]: each artifact's directory layout, its
 //!   writer-side line formats and its reader; [`npy`] for their dense arrays.
+//! * [`numerics`]: the numeric platform a model action's bytes depend on: its kernel pins and the
+//!   class of machines that share its results.
 //! * [`training`]: the settings every training operator shares; [`weights`]: the check of a
 //!   weights file a setting names; [`memory`]: a training action's memory, estimated from shapes; [`item_seed`]: the seed rule of every per-item draw.
 //!
@@ -26,6 +28,7 @@ pub mod kind;
 pub mod labels;
 pub mod memory;
 pub mod npy;
+pub mod numerics;
 pub mod operator;
 pub mod probe;
 pub mod scenes;
@@ -41,6 +44,7 @@ pub use operator::{
     Sharding, Share,
 };
 pub use memory::Footprint;
+pub use numerics::{Kernels, Numerics};
 pub use training::Training;
 
 /// The seed of item `index` (a frame, an epoch) of a run seeded `seed`: each item's draws come

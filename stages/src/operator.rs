@@ -107,11 +107,14 @@ pub struct Resources {
     /// It cannot run without a CUDA device (its `device` names one): a run checks for one before
     /// anything starts.
     pub needs_cuda: bool,
+    /// Its bytes depend on the kernels it computes with (libtorch's): the engine pins them and
+    /// keys the action by its numeric platform class (see [`crate::numerics`]).
+    pub kernels: Option<crate::Kernels>,
 }
 
 impl Default for Resources {
     fn default() -> Self {
-        Resources { threads: 1, gpu: false, needs_cuda: false }
+        Resources { threads: 1, gpu: false, needs_cuda: false, kernels: None }
     }
 }
 
@@ -494,11 +497,23 @@ fn unknown_field(message: &str) -> Option<(String, Vec<String>)> {
 pub struct Registry {
     pub catalog: Catalog,
     operators: Vec<Box<dyn DynOperator>>,
+    libraries: Vec<&'static str>,
 }
 
 impl Registry {
     pub fn new(catalog: Catalog) -> Self {
-        Registry { catalog, operators: Vec::new() }
+        Registry { catalog, operators: Vec::new(), libraries: Vec::new() }
+    }
+
+    /// Names a numeric library this binary's operators compute with (`libtorch 2.11.0`), for
+    /// the provenance of the actions whose bytes depend on it.
+    pub fn add_library(&mut self, name: &'static str) -> &mut Self {
+        self.libraries.push(name);
+        self
+    }
+
+    pub fn libraries(&self) -> &[&'static str] {
+        &self.libraries
     }
 
     /// Adds an operator. Panics if its kind is unknown or its name taken: both are programming

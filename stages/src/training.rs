@@ -7,7 +7,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::{Device, InputOutlines, Outline, Resources, SettingError};
+use crate::{Device, InputOutlines, Kernels, Numerics, Outline, Resources, SettingError};
 
 /// One training run's schedule, optimiser and placement.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -46,6 +46,10 @@ pub struct Training {
     /// add in an order that depends on the thread count, so the same key must mean the same
     /// count, whatever the scheduler grants.
     pub threads: usize,
+    /// `portable` (one kernel path on every machine of a class, so results are shared across
+    /// CPU models) or `native` (the fastest kernels this machine has; results shared only with
+    /// machines of the same CPU model). See `rlmflow_stages::numerics`.
+    pub numerics: Numerics,
 }
 
 impl Default for Training {
@@ -64,6 +68,7 @@ impl Default for Training {
             clip_norm: 4.0,
             device: Device::Auto,
             threads: 2,
+            numerics: Numerics::Portable,
         }
     }
 }
@@ -116,7 +121,12 @@ impl Training {
     /// What a training stage asks of the machine: its threads, a GPU unless it names the CPU,
     /// and a CUDA device when it names one.
     pub fn resources(&self) -> Resources {
-        Resources { threads: self.threads, gpu: self.device != Device::Cpu, needs_cuda: matches!(self.device, Device::Cuda(_)) }
+        Resources {
+            threads: self.threads,
+            gpu: self.device != Device::Cpu,
+            needs_cuda: matches!(self.device, Device::Cuda(_)),
+            kernels: Some(Kernels { numerics: self.numerics, device: self.device }),
+        }
     }
 }
 
@@ -163,11 +173,12 @@ mod tests {
     fn a_device_is_a_string_in_settings() {
         let t: Training = serde_json::from_value(serde_json::json!({
             "epochs": 1, "batch": 2, "accumulate": 1, "lr": 0.1, "warmup_epochs": 0.0, "warmup_lr": 0.0, "min_lr": 0.0, "betas": [0.9, 0.99],
-            "eps": 1e-8, "weight_decay": 0.0, "clip_norm": 1.0, "device": "cuda:1", "threads": 1
+            "eps": 1e-8, "weight_decay": 0.0, "clip_norm": 1.0, "device": "cuda:1", "threads": 1, "numerics": "native"
         }))
         .unwrap();
         assert_eq!(t.device, Device::Cuda(1));
         assert_eq!(serde_json::to_value(&t).unwrap()["device"], "cuda:1");
-        assert_eq!(t.resources(), Resources { threads: 1, gpu: true, needs_cuda: true });
+        let kernels = Some(Kernels { numerics: Numerics::Native, device: Device::Cuda(1) });
+        assert_eq!(t.resources(), Resources { threads: 1, gpu: true, needs_cuda: true, kernels });
     }
 }

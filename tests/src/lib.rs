@@ -12,7 +12,7 @@ use std::time::Duration;
 
 use anyhow::bail;
 use rlmflow_stages::{
-    Catalog, Context, Items, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding, Slot, StageKind,
+    Catalog, Context, Device, Items, Kernels, Numerics, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding, Slot, StageKind,
 };
 use serde::{Deserialize, Serialize};
 
@@ -63,11 +63,14 @@ pub struct WriteTextSettings {
     pub cuda: bool,
     /// Appends the process id to the text: the kind of bug `run --check-determinism` finds.
     pub nondeterministic: bool,
+    /// Its bytes follow the numeric kernels, as a model operator's do: it appends every kernel
+    /// variable of its environment to the text, so a choice that reaches it shows.
+    pub numerics: Option<Numerics>,
 }
 
 impl Default for WriteTextSettings {
     fn default() -> Self {
-        WriteTextSettings { text: "hello".into(), steps: 0, step_ms: 0, fail: false, panic: false, threads: 1, gpu: false, cuda: false, nondeterministic: false }
+        WriteTextSettings { text: "hello".into(), steps: 0, step_ms: 0, fail: false, panic: false, threads: 1, gpu: false, cuda: false, nondeterministic: false, numerics: None }
     }
 }
 
@@ -89,7 +92,8 @@ impl Operator for WriteText {
         OperatorSpec { name: "write-text", kind: "source", version, inputs: None, summary: "writes a text" }
     }
     fn resources(&self, s: &WriteTextSettings) -> Resources {
-        Resources { threads: s.threads, gpu: s.gpu || s.cuda, needs_cuda: s.cuda }
+        let device = if s.cuda { Device::Cuda(0) } else { Device::Cpu };
+        Resources { threads: s.threads, gpu: s.gpu || s.cuda, needs_cuda: s.cuda, kernels: s.numerics.map(|numerics| Kernels { numerics, device }) }
     }
     /// A shard writes a range of the text's characters (each with every step).
     fn sharding(&self) -> Option<Sharding<WriteTextSettings>> {
@@ -125,7 +129,12 @@ impl Operator for WriteText {
         }
         progress.finish();
         ctx.event("wrote", serde_json::json!({"bytes": s.text.len()}));
-        let text = if s.nondeterministic { format!("{} {}", s.text, std::process::id()) } else { s.text.clone() };
+        let mut text = if s.nondeterministic { format!("{} {}", s.text, std::process::id()) } else { s.text.clone() };
+        if s.numerics.is_some() {
+            for var in rlmflow_stages::numerics::KERNEL_VARIABLES {
+                text += &format!("\n{var}={}", std::env::var(var).unwrap_or_default());
+            }
+        }
         fs::write(ctx.output_dir.join("text.txt"), text)?;
         Ok(Outcome { metrics: serde_json::json!({"chars": s.text.len()}), summary: format!("{} chars", s.text.len()) })
     }

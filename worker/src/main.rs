@@ -16,6 +16,8 @@ fn registry() -> Registry {
     registry.add(rlmflow_probe_torch::Clipcap);
     registry.add(rlmflow_segment_torch::Pup);
     registry.add(rlmflow_segment_torch::Unet);
+    // tch 0.24's build accepts exactly this libtorch (python/libtorch.lock pins its wheel).
+    registry.add_library("libtorch 2.11.0");
     registry
 }
 

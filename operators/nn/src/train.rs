@@ -19,6 +19,7 @@ use anyhow::{Context as _, bail};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
+use rlmflow_stages::numerics::Target;
 use rlmflow_stages::{Context, Device, Training};
 use serde_json::{Value, json};
 use tch::{Tensor, nn};
@@ -28,20 +29,19 @@ use crate::optim::{AdamW, warmup_cosine};
 const STATE: &str = "state.safetensors";
 const LOG: &str = "state.json";
 
-/// The device to train on for a `device` setting, given the engine's choice for the action:
-/// `auto` takes the engine's GPU, else CUDA when libtorch has one, else the CPU.
+/// The device to train on for a `device` setting, given the engine's choice for the action
+/// (`rlmflow_stages::numerics::Target::of`, the rule the action's key was planned by). On CUDA,
+/// cuDNN's autotuner stays off: it picks kernels by timing them, so two runs could differ.
 pub fn resolve_device(setting: Device, engine: Device) -> anyhow::Result<tch::Device> {
-    let cuda = |n: usize| {
-        if !tch::Cuda::is_available() {
-            bail!("device `{setting}`: this machine has no CUDA device libtorch can use");
+    match Target::of(setting, engine, tch::Cuda::is_available()) {
+        Target::Cpu => Ok(tch::Device::Cpu),
+        Target::Cuda(_) if !tch::Cuda::is_available() => bail!(
+            "device `{setting}`: this machine has no CUDA device libtorch can use (its libtorch is a CPU build, or the driver is missing): point `LD_LIBRARY_PATH` at a CUDA build of torch 2.11, or set the stage's `device = \"cpu\"`"
+        ),
+        Target::Cuda(n) => {
+            tch::Cuda::cudnn_set_benchmark(false);
+            Ok(tch::Device::Cuda(n))
         }
-        Ok(tch::Device::Cuda(n))
-    };
-    match (setting, engine) {
-        (Device::Cpu, _) => Ok(tch::Device::Cpu),
-        (Device::Cuda(n), _) | (Device::Auto, Device::Cuda(n)) => cuda(n),
-        (Device::Auto, _) if tch::Cuda::is_available() => Ok(tch::Device::Cuda(0)),
-        (Device::Auto, _) => Ok(tch::Device::Cpu),
     }
 }
 

@@ -19,7 +19,7 @@ use rlmflow_stages::encoder::{Distance, Head, ModelConfig, Stem, TextConfig, Vis
 use rlmflow_stages::grid::CELLS;
 use rlmflow_stages::weights::{Expected, check_init};
 use rlmflow_stages::memory::{FLOAT, LOWER_BY_ACCUMULATING, TRAINED};
-use rlmflow_stages::{Device, Footprint, InWorker, InputOutlines, ModelOutline, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
+use rlmflow_stages::{Device, Footprint, InWorker, Numerics, InputOutlines, ModelOutline, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
 /// The binary the torch operators run in.
@@ -108,6 +108,7 @@ impl Default for ClipSettings {
                 clip_norm: 1.0,
                 device: Device::Auto,
                 threads: 2,
+                numerics: Numerics::Portable,
             },
         }
     }

@@ -2,7 +2,7 @@
 //! resources. They run in the `rlmflow-torch` worker (`operators/probe/torch`); every probe keeps
 //! the encoder frozen and scores with `rlmflow_stages::probe::score`.
 //!
-//! `linear`: closed-form ridge regression (faer) to the 48 cell counts, rounded and clipped at
+//! `linear`: closed-form ridge regression (libtorch, double precision) to the 48 cell counts, rounded and clipped at
 //! zero, from the frozen encoder's features (two rows: the projected CLS embedding and the mean
 //! of the patch tokens) or, with `source = "pixels"`, from the raw radar image: the pixel
 //! baseline, which reads no encoder (give its stage `inputs = { encoder = [] }` so it does not fan
@@ -26,7 +26,7 @@
 
 use rlmflow_stages::weights::{Expected, check_init};
 use rlmflow_stages::memory::{self, Blocks, FLOAT, TRAINED};
-use rlmflow_stages::{Footprint, InWorker, InputOutlines, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
+use rlmflow_stages::{Device, Footprint, InWorker, InputOutlines, Kernels, Numerics, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
 use serde::{Deserialize, Serialize};
 
 /// The binary the probes run in.
@@ -51,6 +51,9 @@ pub struct LinearSettings {
     /// CPU threads libtorch uses for the encoder's features, 1..=256 (part of the result, as in
     /// pretraining).
     pub threads: usize,
+    /// `portable` or `native` kernels for the encoder's features and the ridge (as in
+    /// pretraining; see `rlmflow_stages::numerics`).
+    pub numerics: Numerics,
     /// Run even when some test frames are among those the encoder trained on or its tokenizer
     /// learnt from (a deliberate study; the report flags the row). Off: such an overlap stops
     /// the stage.
@@ -64,6 +67,7 @@ impl Default for LinearSettings {
             lambdas: vec![1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0],
             holdout: 0.2,
             threads: 2,
+            numerics: Numerics::Portable,
             allow_test_overlap: false,
         }
     }
@@ -225,14 +229,15 @@ pub fn linear_spec() -> OperatorSpec {
     OperatorSpec {
         name: "linear",
         kind: "probe",
-        version: 2,
+        version: 3,
         inputs: Some(&["encoder", "scenes", "labels"]),
-        summary: "closed-form ridge (faer) from frozen encoder features or raw pixels to the 48 cell counts",
+        summary: "closed-form ridge (libtorch) from frozen encoder features or raw pixels to the 48 cell counts",
     }
 }
 
 pub fn linear_resources(s: &LinearSettings) -> Resources {
-    Resources { threads: s.threads, ..Resources::default() }
+    // Features come from the encoder on the run's device (`auto`: CUDA where there is one).
+    Resources { threads: s.threads, kernels: Some(Kernels { numerics: s.numerics, device: Device::Auto }), ..Resources::default() }
 }
 
 /// `linear` as `rlmflow` registers it: validated and planned here, run by the worker.

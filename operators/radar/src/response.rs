@@ -4,8 +4,8 @@
 use std::f64::consts::PI;
 
 use rand::{Rng, RngExt};
-use rustfft::FftPlanner;
 use rustfft::num_complex::Complex64;
+use rustfft::{FftPlanner, FftPlannerScalar};
 
 use crate::RadarConfig;
 use crate::scatter::Scatterer;
@@ -112,7 +112,31 @@ fn fast(cfg: &RadarConfig, scatterers: &[Scatterer], noise: bool, rng: &mut impl
     RangeAngle { ranges: n, angles: m, power }
 }
 
+/// The FFTs of the exact path: rustfft's scalar planner on every machine. Its default planner
+/// picks AVX, SSE or NEON code at run time, and those round differently, so the same key would
+/// give other scenes on another CPU (the test below shows the difference).
 fn exact(cfg: &RadarConfig, scatterers: &[Scatterer], noise: bool, rng: &mut impl Rng) -> RangeAngle {
+    exact_with(&mut FftPlannerScalar::new(), cfg, scatterers, noise, rng)
+}
+
+/// A planner of forward FFTs.
+trait Plan {
+    fn forward(&mut self, len: usize) -> std::sync::Arc<dyn rustfft::Fft<f64>>;
+}
+
+impl Plan for FftPlannerScalar<f64> {
+    fn forward(&mut self, len: usize) -> std::sync::Arc<dyn rustfft::Fft<f64>> {
+        self.plan_fft_forward(len)
+    }
+}
+
+impl Plan for FftPlanner<f64> {
+    fn forward(&mut self, len: usize) -> std::sync::Arc<dyn rustfft::Fft<f64>> {
+        self.plan_fft_forward(len)
+    }
+}
+
+fn exact_with(planner: &mut impl Plan, cfg: &RadarConfig, scatterers: &[Scatterer], noise: bool, rng: &mut impl Rng) -> RangeAngle {
     let (n, k, m) = (cfg.range_samples, cfg.antennas, cfg.angle_bins);
     let dr = cfg.range_resolution();
     // The ADC cube: k antennas by n fast-time samples.
@@ -143,8 +167,7 @@ fn exact(cfg: &RadarConfig, scatterers: &[Scatterer], noise: bool, rng: &mut imp
         }
     }
     let (wn, wk) = (hann(n), hann(k));
-    let mut planner = FftPlanner::new();
-    let range_fft = planner.plan_fft_forward(n);
+    let range_fft = planner.forward(n);
     for ant in 0..k {
         let row = &mut cube[ant * n..(ant + 1) * n];
         for (c, w) in row.iter_mut().zip(&wn) {
@@ -152,7 +175,7 @@ fn exact(cfg: &RadarConfig, scatterers: &[Scatterer], noise: bool, rng: &mut imp
         }
         range_fft.process(row);
     }
-    let angle_fft = planner.plan_fft_forward(m);
+    let angle_fft = planner.forward(m);
     let mut power = vec![0.0; n * m];
     let mut column = vec![Complex64::new(0.0, 0.0); m];
     for bin in 0..n {
@@ -202,6 +225,28 @@ mod tests {
             assert!((f - e).abs() < peak * 10f64.powf(-4.5), "fast {f:e} vs exact {e:e} (peak {peak:e})");
         }
         assert!(compared >= 5 * 12, "compared only {compared} cells");
+    }
+
+    /// The exact path's bytes are the scalar FFT's on every CPU. Where this machine's planner
+    /// picks vector code, the test says whether that code rounds differently (the reason for the
+    /// pin); it fails only if the exact path stops being the scalar one.
+    #[test]
+    fn the_exact_path_computes_with_the_scalar_fft_on_every_cpu() {
+        let cfg = RadarConfig::default();
+        let run = |planner: Option<&mut FftPlanner<f64>>| {
+            let mut rng = ChaCha8Rng::seed_from_u64(9);
+            match planner {
+                Some(p) => exact_with(p, &cfg, &scatterers(), true, &mut rng).power,
+                None => range_angle(&cfg, &scatterers(), Path::Exact, true, &mut rng).power,
+            }
+        };
+        let pinned = run(None);
+        let mut scalar = FftPlannerScalar::new();
+        let by_scalar = exact_with(&mut scalar, &cfg, &scatterers(), true, &mut ChaCha8Rng::seed_from_u64(9)).power;
+        assert!(pinned.iter().zip(&by_scalar).all(|(a, b)| a.to_bits() == b.to_bits()), "the exact path is not the scalar FFT's");
+        let by_default = run(Some(&mut FftPlanner::new()));
+        let differing = pinned.iter().zip(&by_default).filter(|(a, b)| a.to_bits() != b.to_bits()).count();
+        println!("this CPU's default FFT planner differs from the scalar one in {differing} of {} cells", pinned.len());
     }
 
     #[test]

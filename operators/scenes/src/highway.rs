@@ -141,7 +141,7 @@ impl Operator for HighwayEnv {
         OperatorSpec {
             name: "highway-env",
             kind: "scenes",
-            version: 5,
+            version: 6,
             inputs: None,
             summary: "traffic simulated by highway-env (highway, merge, roundabout, intersection, two-way, divided), rendered by the radar model",
         }

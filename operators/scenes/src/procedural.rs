@@ -133,7 +133,7 @@ impl Operator for Procedural {
         OperatorSpec {
             name: "procedural",
             kind: "scenes",
-            version: 5,
+            version: 6,
             inputs: None,
             summary: "vehicles placed on sampled road layouts to cover every grid cell, rendered by the radar model",
         }

@@ -34,7 +34,6 @@ impl Operator for Linear {
     }
 
     fn run(&self, s: &LinearSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-        faer::set_global_parallelism(faer::Par::Seq);
         tch::set_num_threads(s.threads as i32);
         let data = Frames::load(ctx, Need::default())?;
         let labels = &data.labels;

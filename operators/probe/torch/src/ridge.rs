@@ -1,19 +1,25 @@
-//! Closed-form ridge regression on faer: features standardised by their training mean and
-//! standard deviation, targets centred, then (XᵀX + λ n I) W = Xᵀ Y solved by Cholesky, or with
-//! more features than rows its dual, W = Xᵀ (XXᵀ + λ n I)⁻¹ Y (the same W, a smaller system). Every
-//! product runs sequentially, so the result does not depend on a thread count.
+//! Closed-form ridge regression on libtorch, in double precision: features standardised by their
+//! training mean and standard deviation, targets centred, then (XᵀX + λ n I) W = Xᵀ Y solved by
+//! Cholesky, or with more features than rows its dual, W = Xᵀ (XXᵀ + λ n I)⁻¹ Y (the same W, a
+//! smaller system). The products and the factorisation run in MKL under the action's kernel
+//! pins (`rlmflow_stages::numerics`) with the action's thread count, so the weights are the same
+//! bytes on every machine of its class; a Rust linear-algebra crate picks AVX-512 or AVX2 code
+//! by the CPU it finds, which no setting pins.
 
 use anyhow::Context as _;
-use faer::linalg::matmul::matmul;
-use faer::linalg::solvers::Solve;
-use faer::{Accum, Mat, Par, Side};
+use rlmflow_nn::tch::{Device, Kind, Tensor};
 
 pub struct Ridge {
-    mean: Vec<f64>,
-    scale: Vec<f64>,
-    target_mean: Vec<f64>,
+    mean: Tensor,
+    scale: Tensor,
+    target_mean: Tensor,
     /// features x targets.
-    weights: Mat<f64>,
+    weights: Tensor,
+}
+
+/// `rows` x `width` values as a double tensor on the CPU.
+fn matrix(values: &[f64], width: usize) -> Tensor {
+    Tensor::from_slice(values).view([(values.len() / width) as i64, width as i64])
 }
 
 impl Ridge {
@@ -22,57 +28,39 @@ impl Ridge {
     pub fn fit(x: &[f64], features: usize, y: &[f64], targets: usize, lambda: f64) -> anyhow::Result<Ridge> {
         let n = x.len() / features;
         assert_eq!(y.len(), n * targets, "one target row per feature row");
-        let column_mean =
-            |data: &[f64], width: usize| -> Vec<f64> { (0..width).map(|j| (0..n).map(|i| data[i * width + j]).sum::<f64>() / n as f64).collect() };
-        let mean = column_mean(x, features);
-        let scale: Vec<f64> = (0..features)
-            .map(|j| {
-                let var = (0..n).map(|i| (x[i * features + j] - mean[j]).powi(2)).sum::<f64>() / n as f64;
-                if var > 1e-12 { var.sqrt() } else { 1.0 }
-            })
-            .collect();
-        let target_mean = column_mean(y, targets);
-        let xs = Mat::from_fn(n, features, |i, j| (x[i * features + j] - mean[j]) / scale[j]);
-        let yc = Mat::from_fn(n, targets, |i, j| y[i * targets + j] - target_mean[j]);
+        let (x, y) = (matrix(x, features), matrix(y, targets));
+        let mean = x.mean_dim(0, true, Kind::Double);
+        let var = (&x - &mean).square().mean_dim(0, true, Kind::Double);
+        // A constant feature keeps its scale (it standardises to 0 either way).
+        let scale = var.sqrt().where_self(&var.gt(1e-12), &var.ones_like());
+        let target_mean = y.mean_dim(0, true, Kind::Double);
+        let xs = (x - &mean) / &scale;
+        let yc = y - &target_mean;
+        let shift = lambda * n as f64;
         let weights = if features <= n {
             // Primal: (XᵀX + λ n I) W = Xᵀ Y, a features x features system.
-            let mut gram = Mat::<f64>::zeros(features, features);
-            matmul(gram.as_mut(), Accum::Replace, xs.transpose(), xs.as_ref(), 1.0, Par::Seq);
-            let mut weights = Mat::<f64>::zeros(features, targets);
-            matmul(weights.as_mut(), Accum::Replace, xs.transpose(), yc.as_ref(), 1.0, Par::Seq);
-            solve_regularised(gram, lambda * n as f64, weights)?
+            solve_regularised(xs.transpose(0, 1).matmul(&xs), shift, &xs.transpose(0, 1).matmul(&yc))?
         } else {
             // Dual, for more features than rows (every patch token): W = Xᵀ (XXᵀ + λ n I)⁻¹ Y,
             // the same solution through an n x n system.
-            let mut kernel = Mat::<f64>::zeros(n, n);
-            matmul(kernel.as_mut(), Accum::Replace, xs.as_ref(), xs.transpose(), 1.0, Par::Seq);
-            let alpha = solve_regularised(kernel, lambda * n as f64, yc)?;
-            let mut weights = Mat::<f64>::zeros(features, targets);
-            matmul(weights.as_mut(), Accum::Replace, xs.transpose(), alpha.as_ref(), 1.0, Par::Seq);
-            weights
+            xs.transpose(0, 1).matmul(&solve_regularised(xs.matmul(&xs.transpose(0, 1)), shift, &yc)?)
         };
         Ok(Ridge { mean, scale, target_mean, weights })
     }
 
     /// Predictions for the rows of `x`.
     pub fn predict(&self, x: &[f64]) -> Vec<f64> {
-        let (features, targets) = (self.weights.nrows(), self.weights.ncols());
-        let n = x.len() / features;
-        let xs = Mat::from_fn(n, features, |i, j| (x[i * features + j] - self.mean[j]) / self.scale[j]);
-        let mut out = Mat::<f64>::zeros(n, targets);
-        matmul(out.as_mut(), Accum::Replace, xs.as_ref(), self.weights.as_ref(), 1.0, Par::Seq);
-        (0..n).flat_map(|i| (0..targets).map(move |j| (i, j))).map(|(i, j)| out[(i, j)] + self.target_mean[j]).collect()
+        let xs = (matrix(x, self.weights.size()[0] as usize) - &self.mean) / &self.scale;
+        let out = xs.matmul(&self.weights) + &self.target_mean;
+        Vec::<f64>::try_from(out.flatten(0, -1)).expect("double predictions")
     }
 }
 
 /// Solves (A + shift I) X = B for a symmetric positive semi-definite A by Cholesky.
-fn solve_regularised(mut a: Mat<f64>, shift: f64, mut b: Mat<f64>) -> anyhow::Result<Mat<f64>> {
-    for j in 0..a.nrows() {
-        a[(j, j)] += shift;
-    }
-    let llt = a.llt(Side::Lower).ok().context("the regularised Gram matrix is not positive definite; raise `lambdas`")?;
-    llt.solve_in_place(b.as_mut());
-    Ok(b)
+fn solve_regularised(a: Tensor, shift: f64, b: &Tensor) -> anyhow::Result<Tensor> {
+    let a = a + Tensor::eye(b.size()[0], (Kind::Double, Device::Cpu)) * shift;
+    let lower = a.f_linalg_cholesky(false).ok().context("the regularised Gram matrix is not positive definite; raise `lambdas`")?;
+    Ok(b.cholesky_solve(&lower, false))
 }
 
 #[cfg(test)]
@@ -80,7 +68,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn faer_solves_a_small_system_as_by_hand() {
+    fn it_solves_a_small_system_as_by_hand() {
         // x = [-1, 0, 1] (mean 0, sd sqrt(2/3)), y = 2x + 5. Standardised z = x / sd, so
         // sum z^2 = 3 and sum z (y - 5) = 2 * sum x^2 / sd = 4 / sd. With lambda = 1/3 per row
         // (lambda n = 1): w = (4 / sd) / (3 + 1), and the prediction at x is 5 + w x / sd
@@ -109,5 +97,11 @@ mod tests {
         for (a, b) in p.iter().zip(&d) {
             assert!((a - b).abs() < 1e-9, "{p:?} {d:?}");
         }
+    }
+
+    #[test]
+    fn an_indefinite_system_says_which_setting_helps() {
+        let err = solve_regularised(Tensor::from_slice(&[-1.0f64]).view([1, 1]), 0.0, &Tensor::from_slice(&[1.0f64]).view([1, 1])).err().unwrap();
+        assert!(err.to_string().contains("raise `lambdas`"), "{err}");
     }
 }

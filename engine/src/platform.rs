@@ -1,0 +1,45 @@
+//! The numeric platform of the machine a run plans on: the class that a platform-dependent
+//! action's key carries (`rlmflow_stages::numerics`), and the check an action makes before it
+//! computes that its machine is of that class.
+
+use std::collections::BTreeMap;
+use std::sync::Mutex;
+
+use rlmflow_stages::numerics::{Cpu, Gpu, Target, class};
+use rlmflow_stages::{Device, Kernels};
+
+/// This machine, as far as kernel choice goes, for one run's `--device`.
+#[derive(Debug)]
+pub struct Platform {
+    run_device: Device,
+    cpu: Cpu,
+    cuda: bool,
+    /// Each CUDA device asked about, read once.
+    gpus: Mutex<BTreeMap<usize, Option<Gpu>>>,
+}
+
+impl Platform {
+    pub fn detect(run_device: Device) -> Platform {
+        Platform { run_device, cpu: Cpu::detect(), cuda: crate::dispatch::cuda_present(), gpus: Mutex::new(BTreeMap::new()) }
+    }
+
+    /// Where an action with `kernels` computes here.
+    pub fn target(&self, kernels: Kernels) -> Target {
+        Target::of(kernels.device, self.run_device, self.cuda)
+    }
+
+    /// The class of machines that compute the same bytes as this one for an action with
+    /// `kernels`.
+    pub fn class(&self, kernels: Kernels) -> String {
+        let target = self.target(kernels);
+        let gpu = match target {
+            Target::Cuda(n) => self.gpus.lock().expect("gpu table").entry(n).or_insert_with(|| Gpu::detect(n)).clone(),
+            Target::Cpu => None,
+        };
+        class(kernels.numerics, &self.cpu, target, gpu.as_ref())
+    }
+
+    pub fn cpu(&self) -> &Cpu {
+        &self.cpu
+    }
+}

@@ -1,0 +1,312 @@
+//! The numeric platform: which kernels compute an action whose bytes depend on them.
+//!
+//! libtorch picks its CPU kernels at run time (ATen's capability, oneDNN's instruction set, MKL's
+//! code path), so the same model action gives other bytes on another CPU unless they are pinned.
+//! An operator that computes with such kernels says so ([`crate::Resources::numerics`]); then:
+//!
+//! - its process runs with the kernel choices of [`pins`], set by [`apply`] before the operator
+//!   starts, whatever the caller's environment says;
+//! - its key carries the [`class`] of machines that compute the same bytes under those choices,
+//!   so two machines share a cache entry exactly when they compute the same bytes.
+//!
+//! `portable` (the default) pins one path for every x86-64 machine with AVX2 and FMA
+//! (`cpu/x86-64-v3/portable`): ATen's AVX2 kernels, oneDNN capped at AVX2 and MKL's conditional
+//! numerical reproducibility on its compatible branch (MKL's own AVX2 branch is honoured on Intel
+//! CPUs only, so it would part AMD from Intel). Older x86-64 machines and other architectures get
+//! their own pins and classes. `native` sets nothing, so each library takes the fastest kernels the
+//! machine has; its class names the CPU model and vector extensions. On a CUDA device the class
+//! names the GPU, its compute capability and driver.
+
+use std::collections::BTreeMap;
+use std::fmt;
+
+use serde::{Deserialize, Serialize};
+
+use crate::Device;
+
+/// How a model action picks its kernels (the `numerics` setting).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Numerics {
+    /// One kernel path on every machine of a class: results shared across CPU models.
+    #[default]
+    Portable,
+    /// The fastest kernels this machine has: results shared only with the same CPU model.
+    Native,
+}
+
+impl fmt::Display for Numerics {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Numerics::Portable => "portable",
+            Numerics::Native => "native",
+        })
+    }
+}
+
+/// What a platform-dependent operator's settings say of its kernels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Kernels {
+    pub numerics: Numerics,
+    /// Its `device` setting.
+    pub device: Device,
+}
+
+/// Where an action computes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Target {
+    Cpu,
+    Cuda(usize),
+}
+
+impl Target {
+    /// Where a stage whose setting is `setting` computes in a run given `run` (`--device`), on a
+    /// machine where CUDA is `available`: a setting naming a device wins, then a run naming a
+    /// CUDA device, then (`auto`) CUDA device 0 where there is one. The engine keys an action by
+    /// it and the worker computes on it, so both read this one rule.
+    pub fn of(setting: Device, run: Device, available: bool) -> Target {
+        match (setting, run) {
+            (Device::Cpu, _) => Target::Cpu,
+            (Device::Cuda(n), _) | (Device::Auto, Device::Cuda(n)) => Target::Cuda(n),
+            (Device::Auto, _) if available => Target::Cuda(0),
+            (Device::Auto, _) => Target::Cpu,
+        }
+    }
+
+    /// As a device setting.
+    pub fn device(self) -> Device {
+        match self {
+            Target::Cpu => Device::Cpu,
+            Target::Cuda(n) => Device::Cuda(n),
+        }
+    }
+}
+
+/// Every environment variable through which a caller could choose a library's kernels. [`apply`]
+/// sets each to its pin or removes it, so none of the caller's choices reaches a pinned action.
+pub const KERNEL_VARIABLES: &[&str] =
+    &["ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA", "MKL_CBWR", "MKL_ENABLE_INSTRUCTIONS", "MKL_DEBUG_CPU_TYPE", "MKL_DYNAMIC", "CUBLAS_WORKSPACE_CONFIG"];
+
+/// This machine's CPU, as far as kernel choice goes.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Cpu {
+    /// `x86_64`, `aarch64`.
+    pub arch: String,
+    /// The model name the kernel reports (`AMD EPYC 7B13`), or `unknown`.
+    pub model: String,
+    /// The vector extensions that change a library's kernel choice, in a fixed order.
+    pub extensions: Vec<String>,
+}
+
+impl Cpu {
+    /// This machine's.
+    pub fn detect() -> Cpu {
+        Cpu { arch: std::env::consts::ARCH.to_owned(), model: cpu_model(), extensions: extensions() }
+    }
+
+    fn has(&self, extension: &str) -> bool {
+        self.extensions.iter().any(|e| e == extension)
+    }
+
+    /// x86-64 with AVX2 and FMA (the x86-64-v3 level as far as kernels go).
+    fn is_x86_64_v3(&self) -> bool {
+        self.arch == "x86_64" && self.has("avx2") && self.has("fma")
+    }
+}
+
+fn cpu_model() -> String {
+    let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let line = info.lines().find(|l| l.starts_with("model name") || l.starts_with("Model") || l.starts_with("CPU part"));
+    line.and_then(|l| l.split_once(':')).map_or("unknown".to_owned(), |(_, v)| v.split_whitespace().collect::<Vec<_>>().join(" "))
+}
+
+#[cfg(target_arch = "x86_64")]
+fn extensions() -> Vec<String> {
+    macro_rules! present {
+        ($($f:tt),*) => { [$((($f), std::arch::is_x86_feature_detected!($f))),*] };
+    }
+    let all = present!("sse4.2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512vl", "avx512dq", "avx512vnni", "avx512bf16", "avx512fp16");
+    all.iter().filter(|(_, on)| *on).map(|(name, _)| (*name).to_owned()).collect()
+}
+
+#[cfg(target_arch = "aarch64")]
+fn extensions() -> Vec<String> {
+    macro_rules! present {
+        ($($f:tt),*) => { [$((($f), std::arch::is_aarch64_feature_detected!($f))),*] };
+    }
+    let all = present!("neon", "fp16", "dotprod", "bf16", "i8mm", "sve", "sve2");
+    all.iter().filter(|(_, on)| *on).map(|(name, _)| (*name).to_owned()).collect()
+}
+
+#[cfg(not(any(target_arch = "x86_64", target_arch = "aarch64")))]
+fn extensions() -> Vec<String> {
+    Vec::new()
+}
+
+/// The environment a platform-dependent action runs with on `cpu`: each of
+/// [`KERNEL_VARIABLES`] with its value, or `None` where it is removed.
+pub fn pins(numerics: Numerics, cpu: &Cpu, target: Target) -> BTreeMap<&'static str, Option<&'static str>> {
+    let mut env: BTreeMap<&'static str, Option<&'static str>> = KERNEL_VARIABLES.iter().map(|v| (*v, None)).collect();
+    if numerics == Numerics::Portable {
+        let chosen: &[(&str, &str)] = if cpu.is_x86_64_v3() {
+            &[("ATEN_CPU_CAPABILITY", "avx2"), ("ONEDNN_MAX_CPU_ISA", "AVX2"), ("MKL_CBWR", "COMPATIBLE"), ("MKL_DYNAMIC", "FALSE")]
+        } else if cpu.arch == "x86_64" {
+            &[("ATEN_CPU_CAPABILITY", "default"), ("ONEDNN_MAX_CPU_ISA", "SSE41"), ("MKL_CBWR", "COMPATIBLE"), ("MKL_DYNAMIC", "FALSE")]
+        } else {
+            &[("ATEN_CPU_CAPABILITY", "default")]
+        };
+        for (var, value) in chosen {
+            env.insert(var, Some(value));
+        }
+    }
+    if let Target::Cuda(_) = target {
+        // cuBLAS's deterministic workspace, as PyTorch's reproducibility notes ask.
+        env.insert("CUBLAS_WORKSPACE_CONFIG", Some(":4096:8"));
+    }
+    env
+}
+
+/// Sets this process's kernel choices to [`pins`]. Call before any library computes, while the
+/// process has one thread (the engine does, before a platform-dependent operator runs).
+pub fn apply(numerics: Numerics, cpu: &Cpu, target: Target) {
+    for (var, value) in pins(numerics, cpu, target) {
+        // SAFETY: called before the operator starts, while the process has one thread.
+        unsafe {
+            match value {
+                Some(value) => std::env::set_var(var, value),
+                None => std::env::remove_var(var),
+            }
+        }
+    }
+}
+
+/// The GPU an action runs on, as its driver reports it.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Gpu {
+    pub name: String,
+    /// `9.0`.
+    pub compute_capability: String,
+    pub driver: String,
+}
+
+impl Gpu {
+    /// CUDA device `index` through `nvidia-smi`; `None` where it cannot tell.
+    pub fn detect(index: usize) -> Option<Gpu> {
+        let out = std::process::Command::new("nvidia-smi")
+            .args(["--query-gpu=name,compute_cap,driver_version", "--format=csv,noheader", &format!("--id={index}")])
+            .stderr(std::process::Stdio::null())
+            .output()
+            .ok()
+            .filter(|o| o.status.success())?;
+        let text = String::from_utf8_lossy(&out.stdout);
+        let mut fields = text.lines().next()?.split(',').map(|f| f.trim().to_owned());
+        Some(Gpu { name: fields.next()?, compute_capability: fields.next()?, driver: fields.next()? })
+    }
+}
+
+/// The class of machines that compute the same bytes for a platform-dependent action: a line of
+/// its key. `gpu` is the target's when it is CUDA.
+pub fn class(numerics: Numerics, cpu: &Cpu, target: Target, gpu: Option<&Gpu>) -> String {
+    if let Target::Cuda(_) = target {
+        let gpu = gpu.map_or("unknown GPU".to_owned(), |g| format!("{}/sm_{}/driver {}", g.name, g.compute_capability.replace('.', ""), g.driver));
+        return format!("cuda/{gpu}/{numerics}");
+    }
+    match numerics {
+        Numerics::Portable if cpu.is_x86_64_v3() => "cpu/x86-64-v3/portable".to_owned(),
+        Numerics::Portable => format!("cpu/{}/portable", cpu.arch.replace('_', "-")),
+        Numerics::Native => format!("cpu/{}/native/{}/{}", cpu.arch.replace('_', "-"), cpu.model, cpu.extensions.join("+")),
+    }
+}
+
+/// An environment that asks every library for other kernels than the portable pins choose on
+/// `cpu`: AVX-512 where the machine has it, else older instruction sets. `run
+/// --check-determinism` runs a second attempt under it, so a pin that does not hold shows.
+pub fn other_kernels(cpu: &Cpu) -> Vec<(&'static str, &'static str)> {
+    if cpu.has("avx512f") {
+        vec![("ATEN_CPU_CAPABILITY", "avx512"), ("ONEDNN_MAX_CPU_ISA", "AVX512_CORE"), ("MKL_ENABLE_INSTRUCTIONS", "AVX512"), ("NPY_DISABLE_CPU_FEATURES", "")]
+    } else {
+        vec![("ATEN_CPU_CAPABILITY", "default"), ("ONEDNN_MAX_CPU_ISA", "SSE41"), ("MKL_ENABLE_INSTRUCTIONS", "SSE4_2"), ("MKL_CBWR", "AUTO")]
+    }
+}
+
+/// What an action's provenance records of the platform it ran on.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PlatformRecord {
+    /// The class in its key.
+    pub class: String,
+    pub numerics: Numerics,
+    pub cpu: Cpu,
+    /// The kernel choices it ran with (`unset` where removed).
+    pub pins: BTreeMap<String, String>,
+    pub threads: usize,
+    /// The numeric libraries of the binary that ran it (`libtorch 2.11.0`).
+    pub libraries: Vec<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gpu: Option<Gpu>,
+}
+
+impl PlatformRecord {
+    pub fn new(numerics: Numerics, target: Target, threads: usize, libraries: &[&str]) -> PlatformRecord {
+        let cpu = Cpu::detect();
+        let gpu = match target {
+            Target::Cuda(n) => Gpu::detect(n),
+            Target::Cpu => None,
+        };
+        let pins = pins(numerics, &cpu, target).into_iter().map(|(k, v)| (k.to_owned(), v.unwrap_or("unset").to_owned())).collect();
+        PlatformRecord { class: class(numerics, &cpu, target, gpu.as_ref()), numerics, cpu, pins, threads, libraries: libraries.iter().map(|l| (*l).to_owned()).collect(), gpu }
+    }
+}
+
+impl fmt::Display for PlatformRecord {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(f, "platform {}", self.class)?;
+        writeln!(f, "  cpu {} ({}; {})", self.cpu.model, self.cpu.arch, self.cpu.extensions.join(" "))?;
+        if let Some(gpu) = &self.gpu {
+            writeln!(f, "  gpu {} (compute capability {}, driver {})", gpu.name, gpu.compute_capability, gpu.driver)?;
+        }
+        let pins: Vec<String> = self.pins.iter().map(|(k, v)| format!("{k}={v}")).collect();
+        writeln!(f, "  kernels {} ({})", self.numerics, pins.join(" "))?;
+        write!(f, "  threads {}; {}", self.threads, if self.libraries.is_empty() { "no numeric library named".to_owned() } else { self.libraries.join(", ") })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cpu(arch: &str, extensions: &[&str]) -> Cpu {
+        Cpu { arch: arch.into(), model: "Test CPU".into(), extensions: extensions.iter().map(|e| (*e).to_owned()).collect() }
+    }
+
+    #[test]
+    fn every_avx2_machine_is_one_portable_class_whatever_its_model() {
+        let zen3 = cpu("x86_64", &["sse4.2", "avx", "avx2", "fma"]);
+        let zen4 = Cpu { model: "Other CPU".into(), ..cpu("x86_64", &["sse4.2", "avx", "avx2", "fma", "avx512f", "avx512bw"]) };
+        assert_eq!(class(Numerics::Portable, &zen3, Target::Cpu, None), "cpu/x86-64-v3/portable");
+        assert_eq!(class(Numerics::Portable, &zen4, Target::Cpu, None), class(Numerics::Portable, &zen3, Target::Cpu, None));
+        assert_eq!(pins(Numerics::Portable, &zen3, Target::Cpu), pins(Numerics::Portable, &zen4, Target::Cpu));
+        assert_ne!(class(Numerics::Native, &zen3, Target::Cpu, None), class(Numerics::Native, &zen4, Target::Cpu, None));
+        assert!(class(Numerics::Native, &zen4, Target::Cpu, None).contains("Other CPU"));
+        assert_eq!(class(Numerics::Portable, &cpu("aarch64", &["neon"]), Target::Cpu, None), "cpu/aarch64/portable");
+        assert_eq!(class(Numerics::Portable, &cpu("x86_64", &["sse4.2"]), Target::Cpu, None), "cpu/x86-64/portable");
+    }
+
+    #[test]
+    fn pins_name_every_kernel_variable_and_native_removes_them_all() {
+        let zen3 = cpu("x86_64", &["avx2", "fma"]);
+        let portable = pins(Numerics::Portable, &zen3, Target::Cpu);
+        assert_eq!(portable.len(), KERNEL_VARIABLES.len());
+        assert_eq!(portable["ATEN_CPU_CAPABILITY"], Some("avx2"));
+        assert_eq!(portable["MKL_CBWR"], Some("COMPATIBLE"));
+        assert_eq!(portable["MKL_ENABLE_INSTRUCTIONS"], None);
+        assert!(pins(Numerics::Native, &zen3, Target::Cpu).values().all(Option::is_none));
+        assert_eq!(pins(Numerics::Native, &zen3, Target::Cuda(0))["CUBLAS_WORKSPACE_CONFIG"], Some(":4096:8"));
+    }
+
+    #[test]
+    fn a_cuda_class_names_the_gpu() {
+        let gpu = Gpu { name: "NVIDIA H100".into(), compute_capability: "9.0".into(), driver: "550.54".into() };
+        let zen3 = cpu("x86_64", &["avx2", "fma"]);
+        assert_eq!(class(Numerics::Portable, &zen3, Target::Cuda(0), Some(&gpu)), "cuda/NVIDIA H100/sm_90/driver 550.54/portable");
+    }
+}
