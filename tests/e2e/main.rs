@@ -5,6 +5,7 @@ mod config_errors;
 mod engine;
 mod harness;
 mod hyperqueue;
+mod numerics;
 mod remote;
 mod shards;
 mod store_repair;
