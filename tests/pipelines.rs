@@ -105,7 +105,11 @@ fn a_stage_that_would_not_fit_its_device_is_refused_with_the_setting_to_change()
 /// CPU, by the real binary.
 #[test]
 fn the_paper_shapes_run_end_to_end_on_cpu() {
-    let dir = scratch("paper-smoke", &std::fs::read_to_string(root().join("examples/paper-smoke.toml")).unwrap());
+    // The fastest kernels: this test checks the paper's shapes, not the portable kernels (the CI
+    // pipeline and the numerics tests run those), and MKL's portable branch halves their speed.
+    let text = std::fs::read_to_string(root().join("examples/paper-smoke.toml")).unwrap();
+    let native = text.replace("device = \"cpu\"", "device = \"cpu\"\nnumerics = \"native\"").replace("operator = \"linear\"", "operator = \"linear\"\nnumerics = \"native\"");
+    let dir = scratch("paper-smoke", &native);
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--json"]);
     assert!(ok, "{out}");
     let ran = out.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains("\"status\":\"ran\"")).count();
@@ -675,9 +679,14 @@ fn llm_answers_live_in_the_store_where_verify_and_gc_see_them() {
 }
 
 /// Every scenario, each attempt a fresh process (fresh hash seeds, allocator addresses and
-/// Python interpreter) with a different thread count: the same bytes.
+/// Python interpreter) with a different thread count, the second asking numpy for every loop it
+/// has (AVX-512 where the machine has it; the embedded interpreter keeps them off): the same
+/// bytes.
 #[test]
 fn highway_env_scenes_are_the_same_bytes_in_fresh_processes_for_every_scenario() {
+    if !std::arch::is_x86_feature_detected!("avx512f") {
+        println!("this machine has no AVX-512: numpy's AVX-512 loops cannot run here, only its AVX2 ones (rlmflow-python's unit test checks both are off)");
+    }
     let dir = scratch("highway-determinism", &highway_stages("determinism", &SCENARIOS, "frames = 12\nepisode_frames = 4"));
     let mut args = vec!["run", "p.toml", "--jobs", "2"];
     for s in SCENARIOS {

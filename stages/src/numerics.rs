@@ -222,11 +222,13 @@ pub fn class(numerics: Numerics, cpu: &Cpu, target: Target, gpu: Option<&Gpu>) -
 /// `cpu`: AVX-512 where the machine has it, else older instruction sets. `run
 /// --check-determinism` runs a second attempt under it, so a pin that does not hold shows.
 pub fn other_kernels(cpu: &Cpu) -> Vec<(&'static str, &'static str)> {
-    if cpu.has("avx512f") {
-        vec![("ATEN_CPU_CAPABILITY", "avx512"), ("ONEDNN_MAX_CPU_ISA", "AVX512_CORE"), ("MKL_ENABLE_INSTRUCTIONS", "AVX512"), ("NPY_DISABLE_CPU_FEATURES", "")]
+    let isa: [(&str, &str); 3] = if cpu.has("avx512f") {
+        [("ATEN_CPU_CAPABILITY", "avx512"), ("ONEDNN_MAX_CPU_ISA", "AVX512_CORE"), ("MKL_ENABLE_INSTRUCTIONS", "AVX512")]
     } else {
-        vec![("ATEN_CPU_CAPABILITY", "default"), ("ONEDNN_MAX_CPU_ISA", "SSE41"), ("MKL_ENABLE_INSTRUCTIONS", "SSE4_2"), ("MKL_CBWR", "AUTO")]
-    }
+        [("ATEN_CPU_CAPABILITY", "default"), ("ONEDNN_MAX_CPU_ISA", "SSE41"), ("MKL_ENABLE_INSTRUCTIONS", "SSE4_2")]
+    };
+    // MKL's automatic dispatch, and every one of numpy's loops.
+    isa.into_iter().chain([("MKL_CBWR", "AUTO"), ("NPY_DISABLE_CPU_FEATURES", "")]).collect()
 }
 
 /// What an action's provenance records of the platform it ran on.

@@ -13,14 +13,13 @@
 //! cargo xtask bench -p rlmflow-torch --bench numerics
 //! ```
 
+#[path = "support/step.rs"]
+mod step;
+
 use std::process::Command;
-use std::time::Instant;
 
 use rlmflow_cache::Digest;
-use rlmflow_nn::clip::{Clip, images_from_u8, logits};
-use rlmflow_nn::loss::{Distance, soft_clip_loss, soft_targets};
-use rlmflow_nn::optim::AdamW;
-use rlmflow_nn::tch::{self, Kind, Tensor, nn};
+use rlmflow_nn::tch::{self, Tensor};
 use rlmflow_pretrain::{ClipSettings, model_config};
 use rlmflow_stages::numerics::{Cpu, KERNEL_VARIABLES, Numerics, Target, apply, other_kernels};
 
@@ -48,7 +47,7 @@ fn parent() {
         native.push(ms);
         digests.push(("native", digest));
     }
-    let (p, n) = (median(portable), median(native));
+    let (p, n) = (step::median(portable), step::median(native));
     println!("laptop step, batch 128, 2 threads: portable {p:.1} ms, native {n:.1} ms; portable / native {:.3} (medians of {ROUNDS} alternating rounds)", p / n);
     for mode in ["portable", "native"] {
         let mine: Vec<&Digest> = digests.iter().filter(|(m, _)| *m == mode).map(|(_, d)| d).collect();
@@ -88,31 +87,9 @@ fn child(mode: &str) {
         _ => {}
     }
     tch::set_num_threads(2);
-    tch::manual_seed(0);
     let settings = ClipSettings { encoder: "conv-tiny".into(), text: "tiny".into(), ..ClipSettings::default() };
     let config = model_config(&settings, 64, 256, 2048, 1).expect("a valid config");
-    let batch = 128;
-    let vs = nn::VarStore::new(tch::Device::Cpu);
-    let model = Clip::new(&vs.root(), &config, 0.07, false);
-    let mut opt = AdamW::new(&vs, (0.9, 0.98), 1e-8, 0.05);
-    let side = config.vision.image;
-    let text = config.text.as_ref().expect("a text tower");
-    let pixels: Vec<u8> = (0..batch * side * side).map(|i| (i * 2_654_435_761 % 251) as u8).collect();
-    let images = images_from_u8(&pixels, batch, side, tch::Device::Cpu);
-    let tokens = Tensor::randint_low(3, text.vocab, [batch, text.context], (Kind::Int64, tch::Device::Cpu));
-    let _ = tokens.narrow(1, text.context / 2, 1).fill_(text.end_token);
-    let counts = Tensor::randint(3, [batch, 48], (Kind::Float, tch::Device::Cpu));
-    let mut times = Vec::new();
-    for _ in 0..STEPS + 2 {
-        let t0 = Instant::now();
-        let image = model.encode_image(&images, true).embedding;
-        let l = logits(&image, &model.encode_text(&tokens), &model.scale());
-        let loss = soft_clip_loss(&l, &soft_targets(&counts, 4.0, Distance::Raw));
-        let grads = opt.gradients(&loss);
-        AdamW::clip_grad_norm(&grads, 1.0);
-        opt.step(&grads, 1e-4);
-        times.push(t0.elapsed().as_secs_f64() * 1000.0);
-    }
+    let (ms, vs) = step::train(&config, 128, STEPS);
     let mut variables: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
     variables.sort_by(|a, b| a.0.cmp(&b.0));
     let mut bytes = Vec::new();
@@ -120,10 +97,5 @@ fn child(mode: &str) {
         let values = Vec::<f32>::try_from(tensor.flatten(0, -1)).expect("float weights");
         bytes.extend(values.iter().flat_map(|v| v.to_le_bytes()));
     }
-    println!("{:.3} {}", median(times.split_off(2)), Digest::of(&bytes));
-}
-
-fn median(mut values: Vec<f64>) -> f64 {
-    values.sort_by(f64::total_cmp);
-    values[values.len() / 2]
+    println!("{ms:.3} {}", Digest::of(&bytes));
 }

@@ -10,12 +10,10 @@
 //! RLMFLOW_TORCH_PYTHON=/path/to/venv/bin/python cargo xtask bench -p rlmflow-torch --bench step
 //! ```
 
-use std::time::Instant;
+#[path = "support/step.rs"]
+mod step;
 
-use rlmflow_nn::clip::{Clip, images_from_u8, logits};
-use rlmflow_nn::loss::{Distance, soft_clip_loss, soft_targets};
-use rlmflow_nn::optim::AdamW;
-use rlmflow_nn::tch::{self, Kind, Tensor, nn};
+use rlmflow_nn::tch;
 use rlmflow_pretrain::{ClipSettings, model_config};
 
 const THREADS: i32 = 2;
@@ -34,7 +32,7 @@ fn main() {
         // Rounds alternate between the two, so a drift in the machine's speed hits both alike.
         let (mut ours, mut theirs) = (Vec::new(), Vec::new());
         for _ in 0..ROUNDS {
-            ours.push(step_ms(&config, batch, steps));
+            ours.push(step::train(&config, batch, steps).0);
             if let Some(python) = &python {
                 let script = concat!(env!("CARGO_MANIFEST_DIR"), "/benches/step_reference.py");
                 let out = std::process::Command::new(python)
@@ -45,46 +43,14 @@ fn main() {
                 theirs.push(String::from_utf8_lossy(&out.stdout).trim().parse::<f64>().expect("milliseconds"));
             }
         }
-        let ours = median(ours);
+        let ours = step::median(ours);
         print!("{name}, batch {batch}: rlmflow {ours:.1} ms/step ({:.0} samples/s)", batch as f64 / ours * 1000.0);
         match theirs.is_empty() {
             false => {
-                let theirs = median(theirs);
+                let theirs = step::median(theirs);
                 println!("; PyTorch {theirs:.1} ms/step; ratio {:.3} (target <= 1.05; medians of {ROUNDS} alternating rounds)", ours / theirs);
             }
             true => println!("; set RLMFLOW_TORCH_PYTHON to an interpreter with torch 2.11 for the PyTorch reference"),
         }
     }
-}
-
-fn median(mut values: Vec<f64>) -> f64 {
-    values.sort_by(f64::total_cmp);
-    values[values.len() / 2]
-}
-
-/// The median time of `steps` training steps (after two warm-up steps) on synthetic data.
-fn step_ms(config: &rlmflow_stages::encoder::ModelConfig, batch: i64, steps: usize) -> f64 {
-    tch::manual_seed(0);
-    let vs = nn::VarStore::new(tch::Device::Cpu);
-    let model = Clip::new(&vs.root(), config, 0.07, false);
-    let mut opt = AdamW::new(&vs, (0.9, 0.98), 1e-8, 0.05);
-    let side = config.vision.image;
-    let text = config.text.as_ref().expect("a text tower");
-    let pixels: Vec<u8> = (0..batch * side * side).map(|i| (i * 2_654_435_761 % 251) as u8).collect();
-    let images = images_from_u8(&pixels, batch, side, tch::Device::Cpu);
-    let tokens = Tensor::randint_low(3, text.vocab, [batch, text.context], (Kind::Int64, tch::Device::Cpu));
-    let _ = tokens.narrow(1, text.context / 2, 1).fill_(text.end_token);
-    let counts = Tensor::randint(3, [batch, 48], (Kind::Float, tch::Device::Cpu));
-    let mut times = Vec::new();
-    for _ in 0..steps + 2 {
-        let t0 = Instant::now();
-        let image = model.encode_image(&images, true).embedding;
-        let l = logits(&image, &model.encode_text(&tokens), &model.scale());
-        let loss = soft_clip_loss(&l, &soft_targets(&counts, 4.0, Distance::Raw));
-        let grads = opt.gradients(&loss);
-        AdamW::clip_grad_norm(&grads, 1.0);
-        opt.step(&grads, 1e-4);
-        times.push(t0.elapsed().as_secs_f64() * 1000.0);
-    }
-    median(times.split_off(2))
 }

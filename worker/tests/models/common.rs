@@ -83,8 +83,13 @@ context = 128
 /// the shared store trains it once.
 pub fn encoders(random: bool) -> String {
     let variants = if random { "[stages.pretrain.variants]\nclip = {}\nrandom = { epochs = 0, warmup_epochs = 0.0 }\n" } else { "" };
-    format!("\n[stages.pretrain]\noperator = \"clip\"\ndevice = \"cpu\"\nbatch = 64\nepochs = 4\n{variants}")
+    format!("\n[stages.pretrain]\noperator = \"clip\"\ndevice = \"cpu\"\n{NATIVE}\nbatch = 64\nepochs = 4\n{variants}")
 }
+
+/// The fastest kernels (`numerics = "native"`) for the stages of tests that check what a model
+/// learns or keeps, not its kernels: MKL's portable branch halves their speed, and `numerics.rs`
+/// checks the portable path of every operator.
+pub const NATIVE: &str = "numerics = \"native\"";
 
 /// Held by each test while it runs: every model test keeps both cores busy (its stages take two
 /// threads), so they take turns rather than oversubscribe the machine and wait on each other's

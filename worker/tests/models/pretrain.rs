@@ -13,7 +13,7 @@ use crate::common::{rlmflow, rlmflow_exe, scratch};
 
 /// Pipeline `name`: the data stages, then `pretrain` as given.
 fn pipeline(name: &str, pretrain: &str) -> String {
-    format!("{}\n[stages.pretrain]\noperator = \"clip\"\ndevice = \"cpu\"\nbatch = 64\n{pretrain}\n", crate::common::data_stages(name))
+    format!("{}\n[stages.pretrain]\noperator = \"clip\"\ndevice = \"cpu\"\n{}\nbatch = 64\n{pretrain}\n", crate::common::data_stages(name), crate::common::NATIVE)
 }
 
 /// The Encoder artifact of `label` in the last run of pipeline `name`.

@@ -16,10 +16,12 @@ const LINEAR: &str = r#"
 [stages.linear]
 kind = "probe"
 operator = "linear"
+numerics = "native"
 
 [stages.pixels]
 kind = "probe"
 operator = "linear"
+numerics = "native"
 source = "pixels"
 inputs = { encoder = [] }
 "#;
@@ -62,6 +64,7 @@ const CAPTIONER: &str = r#"
 kind = "probe"
 operator = "clipcap"
 device = "cpu"
+numerics = "native"
 epochs = 12
 batch = 32
 lr = 3e-3
