@@ -23,15 +23,10 @@ impl Platform {
         Platform { run_device, cpu: Cpu::detect(), cuda: crate::dispatch::cuda_present(), gpus: Mutex::new(BTreeMap::new()) }
     }
 
-    /// Where an action with `kernels` computes here.
-    pub fn target(&self, kernels: Kernels) -> Target {
-        Target::of(kernels.device, self.run_device, self.cuda)
-    }
-
     /// The class of machines that compute the same bytes as this one for an action with
     /// `kernels`.
     pub fn class(&self, kernels: Kernels) -> String {
-        let target = self.target(kernels);
+        let target = Target::of(kernels.device, self.run_device, self.cuda);
         let gpu = match target {
             Target::Cuda(n) => self.gpus.lock().expect("gpu table").entry(n).or_insert_with(|| Gpu::detect(n)).clone(),
             Target::Cpu => None,
