@@ -202,10 +202,17 @@ fn free_port() -> u16 {
     TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
 }
 
-/// A free port whose gRPC twin (10,000 above, as SeaweedFS takes it) is free too.
+/// A free port whose gRPC twin (10,000 above, as SeaweedFS takes it) is free too, both below the
+/// kernel's range of ports for outgoing connections: a port chosen inside it can be taken by any
+/// connection between this check and the server's bind (seen once in a fresh-clone run: "bind:
+/// address already in use" from the S3 gateway, whose own connections to the filer and master
+/// start as it does).
 fn free_weed_port() -> u16 {
+    let outgoing_from: u16 =
+        fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range").ok().and_then(|r| r.split_whitespace().next()?.parse().ok()).unwrap_or(32_768);
+    let below = outgoing_from.saturating_sub(10_000).max(10_100);
     loop {
-        let port: u16 = rand::random_range(20_000..50_000);
+        let port: u16 = rand::random_range(10_000..below);
         let free = |p: u16| TcpListener::bind(("127.0.0.1", p)).is_ok();
         if free(port) && free(port + 10_000) {
             return port;
