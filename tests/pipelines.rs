@@ -57,20 +57,36 @@ fn write_safetensors(path: &Path, names: &[&str]) {
 /// `init` lines point, it validates and shows each training stage's size and memory.
 #[test]
 fn the_paper_pipeline_names_its_checkpoints_and_shows_what_each_stage_costs() {
-    let dir = scratch("paper-validates", &std::fs::read_to_string(root().join("examples/paper.toml")).unwrap());
+    // The checkpoints beside the pipeline file here, not in the repository's `weights/`.
+    let text = std::fs::read_to_string(root().join("examples/paper.toml")).unwrap().replace("\"../weights/", "\"weights/");
+    let dir = scratch("paper-validates", &text);
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--dry-run"]);
     assert!(!ok, "{out}");
-    assert!(out.contains("stages.pretrain.init: cannot open `weights/clip-vit-b16-openai.safetensors`") && out.contains("\"Pretrained weights\""), "{out}");
-    assert!(out.contains("stages.clipcap.init: cannot open `weights/gpt2.safetensors`"), "{out}");
+    assert!(
+        out.contains("stages.pretrain.init: `")
+            && out.contains("weights/clip-vit-b16-openai.safetensors` is not a file")
+            && out.contains("\"Pretrained weights\""),
+        "{out}"
+    );
+    assert!(out.contains("stages.clipcap.init: `") && out.contains("weights/gpt2.safetensors` is not a file"), "{out}");
 
     write_safetensors(&dir.join("weights/clip-vit-b16-openai.safetensors"), &["visual.conv1.weight"]);
     write_safetensors(&dir.join("weights/gpt2.safetensors"), &["h.0.attn.c_attn.weight"]);
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--dry-run"]);
     assert!(ok, "{out}");
     // CLIP ViT-B/16 (one input channel) and the paper's text tower with MLP heads: 125.99 M.
-    assert_eq!(out.matches("126.0 M parameters, peak ~ 17.4 GiB (CUDA device:").count(), 4, "the four trained encoders, 640 in chunks of 40: {out}");
-    assert!(out.contains("126.0 M parameters, peak ~ 0.5 GiB (CUDA device:"), "the untrained encoder: {out}");
+    assert_eq!(
+        out.matches("126.0 M parameters, peak ~ 17.4 GiB (CUDA device 0:").count(),
+        4,
+        "the four trained encoders, 640 in chunks of 40: {out}"
+    );
+    assert!(out.contains("126.0 M parameters, peak ~ 0.5 GiB (CUDA device 0:"), "the untrained encoder: {out}");
     assert!(!out.contains("DOES NOT FIT"), "{out}");
+    // A stage that names another device is set against that device's memory.
+    let text = std::fs::read_to_string(dir.join("p.toml")).unwrap().replacen("device = \"cuda\"", "device = \"cuda:1\"", 1);
+    std::fs::write(dir.join("p.toml"), text).unwrap();
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--dry-run"]);
+    assert!(ok && out.matches("peak ~ 17.4 GiB (CUDA device 1:").count() == 4, "{out}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -108,7 +124,9 @@ fn the_paper_shapes_run_end_to_end_on_cpu() {
     // The fastest kernels: this test checks the paper's shapes, not the portable kernels (the CI
     // pipeline and the numerics tests run those), and MKL's portable branch halves their speed.
     let text = std::fs::read_to_string(root().join("examples/paper-smoke.toml")).unwrap();
-    let native = text.replace("device = \"cpu\"", "device = \"cpu\"\nnumerics = \"native\"").replace("operator = \"linear\"", "operator = \"linear\"\nnumerics = \"native\"");
+    let native = text
+        .replace("device = \"cpu\"", "device = \"cpu\"\nnumerics = \"native\"")
+        .replace("operator = \"linear\"", "operator = \"linear\"\nnumerics = \"native\"");
     let dir = scratch("paper-smoke", &native);
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--json"]);
     assert!(ok, "{out}");
@@ -124,7 +142,10 @@ fn the_paper_shapes_run_end_to_end_on_cpu() {
     let (vision, text) = (&encoder["vision"], &encoder["text"]);
     assert_eq!((vision["image"].as_i64(), vision["width"].as_i64(), vision["layers"].as_i64()), (Some(224), Some(768), Some(12)));
     assert_eq!((vision["head"].as_str(), vision["quick_gelu"].as_bool()), (Some("mlp"), Some(true)));
-    assert_eq!((text["context"].as_i64(), text["width"].as_i64(), text["layers"].as_i64(), text["head"].as_str()), (Some(400), Some(512), Some(12), Some("mlp")));
+    assert_eq!(
+        (text["context"].as_i64(), text["width"].as_i64(), text["layers"].as_i64(), text["head"].as_str()),
+        (Some(400), Some(512), Some(12), Some("mlp"))
+    );
     assert!(encoder["open_clip"].as_str().unwrap().starts_with("open_clip cannot build this model"), "MLP heads: {encoder}");
     // pup's and the U-Net's heads share a file name; pup's has the stages.
     let heads: Vec<_> = artifacts(&objects, "head.safetensors").iter().map(|a| safetensors_shapes(&a.join("head.safetensors"))).collect();
@@ -193,7 +214,10 @@ fn settings_that_do_not_fit_their_inputs_are_config_errors() {
     let dir = std::env::temp_dir().join(format!("rlmflow-fit-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let cases = [
-        ("[stages.pretrain]\noperator = \"clip\"\nbatch = 128\n", "p.toml:16: stages.pretrain.batch: 128 is more than the 100 frames its scenes hold"),
+        (
+            "[stages.pretrain]\noperator = \"clip\"\nbatch = 128\n",
+            "p.toml:16: stages.pretrain.batch: 128 is more than the 100 frames its scenes hold",
+        ),
         (
             "[stages.pretrain]\noperator = \"clip\"\nencoder = \"vit-b16\"\nbatch = 16\n",
             "stages.pretrain.encoder: `vit-b16` needs an image side divisible by 16; the scenes have 40",
@@ -208,7 +232,8 @@ fn settings_that_do_not_fit_their_inputs_are_config_errors() {
         ),
     ];
     for (stage, expected) in cases {
-        let mut text = BASE.replace("[stages.labels]\noperator = \"ego-grid\"\n", "[stages.labels]\noperator = \"ego-grid\"\ninputs = { scenes = \"scenes\" }\n");
+        let mut text = BASE
+            .replace("[stages.labels]\noperator = \"ego-grid\"\n", "[stages.labels]\noperator = \"ego-grid\"\ninputs = { scenes = \"scenes\" }\n");
         if stage.contains("vit-b16") {
             text = text.replace("image = 32", "image = 40");
         }
@@ -685,7 +710,9 @@ fn llm_answers_live_in_the_store_where_verify_and_gc_see_them() {
 #[test]
 fn highway_env_scenes_are_the_same_bytes_in_fresh_processes_for_every_scenario() {
     if !std::arch::is_x86_feature_detected!("avx512f") {
-        println!("this machine has no AVX-512: numpy's AVX-512 loops cannot run here, only its AVX2 ones (rlmflow-python's unit test checks both are off)");
+        println!(
+            "this machine has no AVX-512: numpy's AVX-512 loops cannot run here, only its AVX2 ones (rlmflow-python's unit test checks both are off)"
+        );
     }
     let dir = scratch("highway-determinism", &highway_stages("determinism", &SCENARIOS, "frames = 12\nepisode_frames = 4"));
     let mut args = vec!["run", "p.toml", "--jobs", "2"];

@@ -34,6 +34,10 @@ use crate::{Digest, Store, TreeInfo, differing_files, hash_file};
 /// A file modified this close to its hashing is hashed again next time.
 pub const RACY: Duration = Duration::from_secs(2);
 
+/// The most files a tracked directory may hold: a recording is large, but a setting that names
+/// `/` or `/tmp` by mistake fails after this many rather than walking the disk.
+pub const MAX_FILES: usize = 1_000_000;
+
 /// What was recorded of one source's files the last time they were hashed.
 #[derive(Default, Serialize, Deserialize)]
 struct Recorded {
@@ -57,14 +61,15 @@ struct Seen {
 pub fn fingerprint(store: Option<&Store>, source: &Path) -> anyhow::Result<TreeInfo> {
     let meta = fs::metadata(source).with_context(|| format!("reading {}", source.display()))?;
     let (root, files) = if meta.is_dir() {
-        (source.to_path_buf(), list_files(source)?)
+        (source.to_path_buf(), list_files(source, MAX_FILES)?)
     } else if meta.is_file() {
         let name = source.file_name().and_then(|n| n.to_str()).with_context(|| format!("{}: the file name must be UTF-8", source.display()))?;
         (source.parent().unwrap_or(Path::new(".")).to_path_buf(), vec![name.to_owned()])
     } else {
         bail!("{} is neither a file nor a directory", source.display());
     };
-    let record_path = store.map(|s| s.root().join("external/sources").join(format!("{}.json", Digest::of(source.to_string_lossy().as_bytes()).hex())));
+    let record_path =
+        store.map(|s| s.root().join("external/sources").join(format!("{}.json", Digest::of(source.to_string_lossy().as_bytes()).hex())));
     let before: Recorded = record_path.as_ref().and_then(|p| fs::read(p).ok()).and_then(|b| serde_json::from_slice(&b).ok()).unwrap_or_default();
     let mut now = Recorded { source: source.to_path_buf(), files: BTreeMap::new() };
     let mut entries = Vec::with_capacity(files.len());
@@ -73,7 +78,10 @@ pub fn fingerprint(store: Option<&Store>, source: &Path) -> anyhow::Result<TreeI
         let meta = fs::metadata(&path).with_context(|| format!("reading {}", path.display()))?;
         let mtime_ns = nanos(meta.modified()?);
         let exec = is_exec(&meta);
-        let kept = before.files.get(&rel).filter(|s| s.size == meta.len() && s.mtime_ns == mtime_ns && s.exec == exec && s.hashed_ns > mtime_ns + RACY.as_nanos());
+        let kept = before
+            .files
+            .get(&rel)
+            .filter(|s| s.size == meta.len() && s.mtime_ns == mtime_ns && s.exec == exec && s.hashed_ns > mtime_ns + RACY.as_nanos());
         let seen = match kept {
             Some(seen) => seen.clone(),
             None => {
@@ -137,7 +145,7 @@ fn manifest_path(store: &Store, digest: &Digest) -> PathBuf {
 }
 
 fn copy_tree(from: &Path, to: &Path) -> anyhow::Result<()> {
-    for rel in list_files(from)? {
+    for rel in list_files(from, MAX_FILES)? {
         let target = to.join(&rel);
         fs::create_dir_all(target.parent().expect("a file below the root"))?;
         fs::copy(from.join(&rel), &target).with_context(|| format!("copying {}", from.join(&rel).display()))?;

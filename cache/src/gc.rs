@@ -96,6 +96,12 @@ impl Store {
         for entry in read_dir_sorted(&self.root().join("quarantine"))? {
             remove("quarantined", entry)?;
         }
+        for note in read_dir_sorted(&self.root().join("failures"))? {
+            let key = note.file_stem().and_then(|n| n.to_str()).and_then(|n| n.parse::<Digest>().ok());
+            if !key.is_some_and(|k| live_keys.contains(&k)) {
+                remove("failure note", note)?;
+            }
+        }
         for entry in read_dir_sorted(&self.root().join("tmp"))? {
             remove("orphaned work dir", entry)?;
         }

@@ -385,7 +385,24 @@ impl Store {
     /// Publishes a finished action. Call only after its output is committed.
     pub fn write_record(&self, record: &ActionRecord) -> anyhow::Result<()> {
         assert!(self.has_object(&record.output), "record written before its output");
-        atomic_write(self, &self.record_path(&record.key), &serde_json::to_vec_pretty(record)?)
+        atomic_write(self, &self.record_path(&record.key), &serde_json::to_vec_pretty(record)?)?;
+        let _ = fs::remove_file(self.failure_path(&record.key));
+        Ok(())
+    }
+
+    /// Keeps why the last attempt at action `key` failed (its operator's error) until an attempt
+    /// succeeds, so `status` can tell a failed action from an interrupted one.
+    pub fn write_failure(&self, key: &Digest, message: &str) -> anyhow::Result<()> {
+        atomic_write(self, &self.failure_path(key), message.as_bytes())
+    }
+
+    /// Why the last attempt at action `key` failed, if it failed.
+    pub fn failure(&self, key: &Digest) -> Option<String> {
+        fs::read_to_string(self.failure_path(key)).ok()
+    }
+
+    fn failure_path(&self, key: &Digest) -> PathBuf {
+        self.root.join("failures").join(format!("{}.txt", key.hex()))
     }
 
     pub fn write_request(&self, request: &ActionRequest) -> anyhow::Result<()> {
@@ -580,7 +597,6 @@ fn map_read<T, U>(read: Read<T>, f: impl FnOnce(T) -> U) -> Read<U> {
     }
 }
 
-
 /// Whether an atomic write's scratch file (`write-<pid>-<n>`) was abandoned: its process is gone,
 /// or it is older than any write takes (a store shared between machines cannot see the
 /// writer's process, and a pid can be reused).
@@ -636,8 +652,14 @@ pub(crate) mod tests {
     use crate::tree::tests::tempdir;
 
     pub(crate) fn record_for(store: &Store, seed: u64, content: &[u8]) -> ActionRecord {
-        let preimage =
-            Preimage { operator: "op".into(), operator_version: 1, config: serde_json::json!({}), seed, inputs: Vec::<InputDigest>::new(), platform: None };
+        let preimage = Preimage {
+            operator: "op".into(),
+            operator_version: 1,
+            config: serde_json::json!({}),
+            seed,
+            inputs: Vec::<InputDigest>::new(),
+            platform: None,
+        };
         let key = preimage.key();
         let work = store.work_dir(&key).unwrap();
         fs::create_dir_all(work.join("out")).unwrap();

@@ -32,7 +32,7 @@ pub fn hash_file(path: &Path) -> io::Result<Digest> {
 /// Hashes every regular file below `root`. Symbolic links and non-UTF-8 names are errors: an
 /// artifact must mean the same bytes on every machine.
 pub fn hash_tree(root: &Path) -> anyhow::Result<TreeInfo> {
-    let files = list_files(root)?;
+    let files = list_files(root, usize::MAX)?;
     let mut entries = Vec::with_capacity(files.len());
     for rel in files {
         let path = root.join(&rel);
@@ -64,35 +64,53 @@ pub(crate) fn tree_info(entries: &[Entry]) -> TreeInfo {
     TreeInfo { digest: Digest::of(manifest.as_bytes()), files: entries.len() as u64, bytes: entries.iter().map(|e| e.size).sum(), manifest }
 }
 
-/// Every regular file below `root`, relative, sorted.
-pub(crate) fn list_files(root: &Path) -> anyhow::Result<Vec<String>> {
+/// Every regular file below `root`, relative, sorted; an error naming the first entry that is
+/// anything else (a symbolic link could point outside the tree, a FIFO never end), or the first
+/// file past `max`.
+pub(crate) fn list_files(root: &Path, max: usize) -> anyhow::Result<Vec<String>> {
+    use std::os::unix::fs::FileTypeExt;
     let mut files = Vec::new();
-    collect(root, "", &mut files)?;
-    files.sort();
-    Ok(files)
-}
-
-fn collect(dir: &Path, prefix: &str, out: &mut Vec<String>) -> anyhow::Result<()> {
-    for entry in fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
-        let entry = entry?;
-        let name = entry.file_name();
-        let Some(name) = name.to_str() else {
-            bail!("{}: file names in artifacts must be UTF-8", entry.path().display());
-        };
-        if name.contains('\n') {
-            bail!("{}: file names in artifacts cannot contain newlines", entry.path().display());
-        }
-        let rel = if prefix.is_empty() { name.to_owned() } else { format!("{prefix}/{name}") };
-        let kind = entry.file_type()?;
-        if kind.is_dir() {
-            collect(&entry.path(), &rel, out)?;
-        } else if kind.is_file() {
-            out.push(rel);
-        } else {
-            bail!("{}: artifacts may hold only regular files and directories", entry.path().display());
+    // Directories still to read, relative to `root` (a loop, not recursion: depth is the disk's).
+    let mut pending = vec![String::new()];
+    while let Some(prefix) = pending.pop() {
+        let dir = root.join(&prefix);
+        for entry in fs::read_dir(&dir).with_context(|| format!("reading {}", dir.display()))? {
+            let entry = entry.with_context(|| format!("reading {}", dir.display()))?;
+            let name = entry.file_name();
+            let Some(name) = name.to_str() else {
+                bail!("{}: file names in artifacts must be UTF-8", entry.path().display());
+            };
+            if name.contains('\n') {
+                bail!("{}: file names in artifacts cannot contain newlines", entry.path().display());
+            }
+            let rel = if prefix.is_empty() { name.to_owned() } else { format!("{prefix}/{name}") };
+            let kind = entry.file_type().with_context(|| format!("reading {}", entry.path().display()))?;
+            let special = match kind {
+                k if k.is_dir() => {
+                    pending.push(rel);
+                    continue;
+                }
+                k if k.is_file() => {
+                    if files.len() == max {
+                        bail!(
+                            "{}: more than {max} files below {} (this one is past the limit); a tree holds at most {max}",
+                            entry.path().display(),
+                            root.display()
+                        );
+                    }
+                    files.push(rel);
+                    continue;
+                }
+                k if k.is_symlink() => "a symbolic link",
+                k if k.is_fifo() => "a FIFO",
+                k if k.is_socket() => "a socket",
+                _ => "a device",
+            };
+            bail!("{}: {special}; a tree may hold only regular files and directories", entry.path().display());
         }
     }
-    Ok(())
+    files.sort();
+    Ok(files)
 }
 
 /// Files of `actual` whose content differs from `expected` (both manifests), or that are

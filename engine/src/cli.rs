@@ -231,7 +231,13 @@ pub fn main(registry: Registry) -> ExitCode {
 
 /// Downloads the selected instances' results the local store lacks, providers first: a
 /// consumer's key is known once its inputs' outputs are. Returns the results and bytes pulled.
-fn pull(plan: &crate::plan::Plan, registry: &Registry, store: &Store, remote: &rlmflow_remote::Remote, selected: &[bool]) -> anyhow::Result<(usize, u64)> {
+fn pull(
+    plan: &crate::plan::Plan,
+    registry: &Registry,
+    store: &Store,
+    remote: &rlmflow_remote::Remote,
+    selected: &[bool],
+) -> anyhow::Result<(usize, u64)> {
     let mut outputs: Vec<Option<Digest>> = vec![None; plan.instances.len()];
     let (mut pulled, mut bytes) = (0, 0);
     for (i, inst) in plan.instances.iter().enumerate() {

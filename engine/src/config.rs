@@ -69,6 +69,28 @@ pub struct Pipeline {
     /// `[pipeline] remote`, `remote_push`, `remote_timeout_s`: the remote cache, if any.
     pub remote: RemoteSettings,
     pub stages: Vec<Stage>,
+    /// The line of every key the file spells out, for errors found after validation.
+    pub lines: KeyLines,
+}
+
+/// The line of each key of a pipeline file, by dotted path.
+#[derive(Debug, Default)]
+pub struct KeyLines(HashMap<String, usize>);
+
+impl KeyLines {
+    /// The line of `path`, or of its nearest ancestor the file spells out.
+    pub fn line(&self, path: &str) -> usize {
+        let mut p = path;
+        loop {
+            if let Some(&l) = self.0.get(p) {
+                return l;
+            }
+            match p.rfind('.') {
+                Some(i) => p = &p[..i],
+                None => return 1,
+            }
+        }
+    }
 }
 
 /// Where results are shared between machines (`rlmflow_remote`); `--remote` and `--push`
@@ -201,9 +223,23 @@ impl Pipeline {
     pub fn stage_names(&self) -> Vec<&str> {
         self.stages.iter().map(|s| s.name.as_str()).collect()
     }
+
+    /// Setting `key` (dotted, relative to the stage table) of a stage's variant, located as
+    /// validation errors are: `p.toml:12: stages.pretrain.variants.alpha4.batch`, the variant's
+    /// line where the variant sets the key, else the stage's.
+    pub fn locate(&self, stage: &str, variant: Option<&str>, key: &str) -> String {
+        let top = key.split('.').next().unwrap_or_default();
+        let path = match variant {
+            Some(v) if self.lines.0.contains_key(&format!("stages.{stage}.variants.{v}.{top}")) => format!("stages.{stage}.variants.{v}.{key}"),
+            _ if key.is_empty() => format!("stages.{stage}"),
+            _ => format!("stages.{stage}.{key}"),
+        };
+        format!("{}:{}: {path}", self.file.display(), self.lines.line(&path))
+    }
 }
 
-const PIPELINE_KEYS: &[&str] = &["name", "seed", "seeds", "cache", "executor", "hyperqueue", "remote", "remote_push", "remote_timeout_s"];
+const PIPELINE_KEYS: &[&str] =
+    &["name", "seed", "seeds", "cache", "executor", "hyperqueue", "remote", "remote_push", "remote_timeout_s", "max_instances"];
 const STAGE_KEYS: &[&str] = &["kind", "operator", "inputs", "variants", "per_seed", "shards", "shard_size"];
 /// The most parts one stage instance may be split into.
 const MAX_SHARDS: u64 = 4_096;
@@ -211,6 +247,9 @@ const MAX_SHARDS: u64 = 4_096;
 pub const SEED_DIMENSION: &str = "seed";
 /// The most seeds a pipeline may list.
 const MAX_SEEDS: usize = 64;
+/// The default of `[pipeline] max_instances`: the most instances (variants, seeds and shards
+/// fanned out) a plan may have, checked before it is expanded. The paper's pipelines have tens.
+pub const MAX_INSTANCES: u64 = 10_000;
 
 /// The longest pipeline, stage, variant or pin name: names become file names in the store.
 pub const MAX_NAME: usize = 128;
@@ -248,28 +287,65 @@ pub fn check_name(name: &str) -> Result<(), String> {
     Ok(())
 }
 
-/// The first line nested deeper than [`MAX_DEPTH`] (dotted keys, headers, arrays and inline
-/// tables), with its depth. Comments and strings are skipped roughly; this only needs to find
-/// input far beyond any real pipeline before the parser's recursion limit does.
+/// The first line nested deeper than [`MAX_DEPTH`], with its depth: each open array or inline
+/// table counts one, and each dot of a key (a header's, or a key's before its `=`) one more.
+/// Dots in values (numbers, strings) and list items do not nest. This only needs to find input
+/// far beyond any real pipeline before the parser's recursion limit does.
 fn too_deep(text: &str) -> Option<(usize, usize)> {
-    let mut open = 0usize;
-    for (n, line) in text.lines().enumerate() {
-        let mut depth = 0usize;
-        let mut quote: Option<char> = None;
-        for c in line.chars() {
-            match (quote, c) {
-                (Some(q), c) if c == q => quote = None,
-                (Some(_), _) => {}
-                (None, '"' | '\'') => quote = Some(c),
-                (None, '#') => break,
-                (None, '.') => depth += 1,
-                (None, '[' | '{') => open += 1,
-                (None, ']' | '}') => open = open.saturating_sub(1),
-                _ => {}
+    #[derive(Clone, Copy, PartialEq)]
+    enum Quoted {
+        Basic,
+        Literal,
+        MultiBasic,
+        MultiLiteral,
+    }
+    let bytes = text.as_bytes();
+    let at = |i: usize, s: &[u8]| bytes[i..].starts_with(s);
+    // Each open array or inline table with the dots of the key that holds it.
+    let mut open: Vec<(u8, usize)> = Vec::new();
+    let (mut dots, mut in_key, mut quoted, mut line, mut i) = (0usize, true, None::<Quoted>, 1usize, 0usize);
+    while i < bytes.len() {
+        let b = bytes[i];
+        i += 1;
+        if b == b'\n' {
+            line += 1;
+            if matches!(quoted, Some(Quoted::Basic | Quoted::Literal)) {
+                quoted = None; // unterminated: the parser will say so
             }
-            if depth + open > MAX_DEPTH {
-                return Some((n + 1, depth + open));
+            if open.is_empty() {
+                (dots, in_key) = (0, true);
             }
+            continue;
+        }
+        match (quoted, b) {
+            (Some(Quoted::Basic | Quoted::MultiBasic), b'\\') => i += 1,
+            (Some(Quoted::Basic), b'"') | (Some(Quoted::Literal), b'\'') => quoted = None,
+            (Some(Quoted::MultiBasic), b'"') if at(i, b"\"\"") => (quoted, i) = (None, i + 2),
+            (Some(Quoted::MultiLiteral), b'\'') if at(i, b"''") => (quoted, i) = (None, i + 2),
+            (Some(_), _) => {}
+            (None, b'#') => i = bytes[i..].iter().position(|&c| c == b'\n').map_or(bytes.len(), |p| i + p),
+            (None, b'"') if at(i, b"\"\"") => (quoted, i) = (Some(Quoted::MultiBasic), i + 2),
+            (None, b'"') => quoted = Some(Quoted::Basic),
+            (None, b'\'') if at(i, b"''") => (quoted, i) = (Some(Quoted::MultiLiteral), i + 2),
+            (None, b'\'') => quoted = Some(Quoted::Literal),
+            (None, b'=') => in_key = false,
+            (None, b'.') if in_key => dots += 1,
+            // A header's brackets (`[a.b]`, `[[a]]`) open nothing: its dots count as a key's.
+            (None, b'[' | b']') if open.is_empty() && in_key => {}
+            (None, b'[' | b'{') => {
+                open.push((b, dots));
+                (dots, in_key) = (0, b == b'{');
+            }
+            (None, b']' | b'}') => {
+                dots = open.pop().map_or(0, |o| o.1);
+                in_key = false;
+            }
+            (None, b',') if open.last().is_some_and(|o| o.0 == b'{') => (dots, in_key) = (0, true),
+            _ => {}
+        }
+        let depth = open.len() + open.iter().map(|o| o.1).sum::<usize>() + dots;
+        if depth > MAX_DEPTH {
+            return Some((line, depth));
         }
     }
     None
@@ -277,7 +353,7 @@ fn too_deep(text: &str) -> Option<(usize, usize)> {
 
 /// Validates pipeline text; `file` is used for messages and to resolve the cache path.
 pub fn parse(file: &Path, text: &str, registry: &Registry) -> Result<Pipeline, ConfigError> {
-    let mut cx = Checker { lines: HashMap::new(), line_starts: line_starts(text), errors: Vec::new() };
+    let mut cx = Checker { lines: KeyLines::default(), line_starts: line_starts(text), errors: Vec::new() };
     if let Some((line, depth)) = too_deep(text) {
         cx.error(line, "", format!("nested more than {MAX_DEPTH} levels deep (at least {depth}); at most {MAX_DEPTH}"), None);
         return Err(cx.into_error(file));
@@ -300,8 +376,7 @@ pub fn parse(file: &Path, text: &str, registry: &Registry) -> Result<Pipeline, C
 }
 
 struct Checker {
-    /// Line of every key, by dotted path.
-    lines: HashMap<String, usize>,
+    lines: KeyLines,
     line_starts: Vec<usize>,
     errors: Vec<Diagnostic>,
 }
@@ -320,25 +395,16 @@ impl Checker {
         self.line_starts.partition_point(|&s| s <= offset)
     }
 
-    /// The line of `path`, or of its nearest ancestor the file spells out.
+    /// [`KeyLines::line`].
     fn line(&self, path: &str) -> usize {
-        let mut p = path;
-        loop {
-            if let Some(&l) = self.lines.get(p) {
-                return l;
-            }
-            match p.rfind('.') {
-                Some(i) => p = &p[..i],
-                None => return 1,
-            }
-        }
+        self.lines.line(path)
     }
 
     fn index(&mut self, path: &mut Vec<String>, table: &DeTable<'_>) {
         for (key, value) in table {
             path.push(key.get_ref().to_string());
             let line = self.line_of(key.span().start);
-            self.lines.entry(path.join(".")).or_insert(line);
+            self.lines.0.entry(path.join(".")).or_insert(line);
             match value.get_ref() {
                 DeValue::Table(t) => self.index(path, t),
                 DeValue::Datetime(_) => self.datetime(line, &path.join(".")),
@@ -350,7 +416,7 @@ impl Checker {
                         if let DeValue::Table(t) = item.get_ref() {
                             path.push(i.to_string());
                             let line = self.line_of(item.span().start);
-                            self.lines.entry(path.join(".")).or_insert(line);
+                            self.lines.0.entry(path.join(".")).or_insert(line);
                             self.index(path, t);
                             path.pop();
                         }
@@ -408,6 +474,14 @@ impl Checker {
             }),
         };
         let seeds = self.seeds(header);
+        let max_instances = match header.get("max_instances") {
+            None => MAX_INSTANCES,
+            Some(v) => v.as_u64().filter(|n| *n >= 1).unwrap_or_else(|| {
+                let msg = format!("must be a positive integer, not {v}");
+                self.error(self.line("pipeline.max_instances"), "pipeline.max_instances", msg, None);
+                MAX_INSTANCES
+            }),
+        };
         let cache = self.string(header, "pipeline", "cache").unwrap_or_else(|| ".rlmflow".into());
         let cache = file.parent().unwrap_or(Path::new(".")).join(cache);
         let cache = std::path::absolute(&cache).unwrap_or(cache);
@@ -434,6 +508,12 @@ impl Checker {
                 return None;
             }
         };
+        if stages_table.len() as u64 > max_instances {
+            let msg =
+                format!("{} stages, and each makes at least one instance; at most {max_instances} (`[pipeline] max_instances`)", stages_table.len());
+            self.error(self.line("stages"), "stages", msg, Some("raise `[pipeline] max_instances` if a plan this large is meant".into()));
+            return None;
+        }
         let mut stages = Vec::new();
         let mut explicit_inputs = Vec::new();
         for (name, table) in &stages_table {
@@ -462,11 +542,60 @@ impl Checker {
             return None;
         }
         let stages = self.topological(stages)?;
+        self.bounded(&stages, seeds.len(), max_instances);
+        if !self.errors.is_empty() {
+            return None;
+        }
         self.outlines(&stages, registry);
         if !self.errors.is_empty() {
             return None;
         }
-        Some(Pipeline { file: file.to_path_buf(), name, seed, seeds, cache, executor, hyperqueue, remote, stages })
+        Some(Pipeline {
+            file: file.to_path_buf(),
+            name,
+            seed,
+            seeds,
+            cache,
+            executor,
+            hyperqueue,
+            remote,
+            stages,
+            lines: std::mem::take(&mut self.lines),
+        })
+    }
+
+    /// Refuses, before any instance exists, a plan whose variants, seeds and shards would make
+    /// more than `max` instances, naming the stage where the count passes it and its factors.
+    fn bounded(&mut self, stages: &[Stage], seeds: usize, max: u64) {
+        let variants: HashMap<&str, u64> = stages.iter().map(|s| (s.name.as_str(), s.variants.len() as u64)).collect();
+        let size = |dim: &str| if dim == SEED_DIMENSION { seeds as u64 } else { variants[dim] };
+        let mut total = 0u64;
+        for (stage, dims) in stages.iter().zip(dimensions(stages, seeds > 0)) {
+            let parts = 1 + stage.variants.iter().map(|v| v.shards.len() as u64).max().unwrap_or(0);
+            let count = dims.iter().fold(parts, |n, d| n.saturating_mul(size(d)));
+            total = total.saturating_add(count);
+            if total > max {
+                let mut factors: Vec<String> = dims
+                    .iter()
+                    .map(|d| if d == SEED_DIMENSION { format!("{seeds} seeds") } else { format!("{} variants of `{d}`", size(d)) })
+                    .collect();
+                if parts > 1 {
+                    factors.push(format!("{} shards and their merge", parts - 1));
+                }
+                let path = format!("stages.{}", stage.name);
+                let msg = format!(
+                    "the plan would have more than {max} instances (`[pipeline] max_instances`): this stage makes {count} ({}), {total} with the stages before it",
+                    factors.join(" x ")
+                );
+                self.error(
+                    stage.line,
+                    &path,
+                    msg,
+                    Some("use fewer variants or seeds, or raise `[pipeline] max_instances` if a plan this large is meant".into()),
+                );
+                return;
+            }
+        }
     }
 
     /// Checks each stage's settings against what its inputs will be (image side, frames), as far
@@ -654,17 +783,28 @@ impl Checker {
                     let mut tracked = Vec::new();
                     for &key in op.tracked_keys() {
                         let given = settings.get(key).and_then(Value::as_str).unwrap_or_default();
-                        let source = std::path::absolute(dir.join(given)).unwrap_or_else(|_| dir.join(given));
-                        if !given.is_empty() && source.exists() {
-                            tracked.push((key.to_owned(), source));
+                        if given.is_empty() {
                             continue;
                         }
+                        let source = std::path::absolute(dir.join(given)).unwrap_or_else(|_| dir.join(given));
+                        let checked = match tracked_source(given, &source) {
+                            Ok(()) => op.check_tracked(&settings, key, &source).map_err(|e| e.message),
+                            // Missing: the operator's word on what belongs there, where it has one.
+                            Err(missing) if !source.exists() => Err(op.check_tracked(&settings, key, &source).err().map_or(missing, |e| e.message)),
+                            Err(special) => Err(special),
+                        };
+                        let message = match checked {
+                            Ok(()) => {
+                                tracked.push((key.to_owned(), source));
+                                continue;
+                            }
+                            Err(message) => message,
+                        };
                         let at = match &variant {
                             Some((v, overrides)) if overrides.contains_key(key) => format!("{path}.variants.{v}.{key}"),
                             _ => format!("{path}.{key}"),
                         };
                         let help = Some(format!("a file or directory, relative to the pipeline file's directory ({})", dir.display()));
-                        let message = if given.is_empty() { "must be set".to_owned() } else { format!("`{given}` does not exist ({})", source.display()) };
                         if reported.insert((at.clone(), message.clone())) {
                             self.error(self.line(&at), &at, message, help);
                         }
@@ -828,6 +968,11 @@ impl Checker {
     fn bind(&mut self, stages: &mut [Stage], explicit: &[BTreeMap<String, Vec<String>>], registry: &Registry) {
         let names: Vec<String> = stages.iter().map(|s| s.name.clone()).collect();
         let name_refs: Vec<&str> = names.iter().map(String::as_str).collect();
+        let index: HashMap<&str, usize> = name_refs.iter().enumerate().map(|(i, n)| (*n, i)).collect();
+        let mut producers: HashMap<&str, Vec<usize>> = HashMap::new();
+        for (p, s) in stages.iter().enumerate() {
+            producers.entry(s.kind.produces).or_default().push(p);
+        }
         for i in 0..stages.len() {
             let kind = stages[i].kind;
             let stage = stages[i].name.clone();
@@ -839,7 +984,7 @@ impl Checker {
                     Some(wanted) => {
                         let mut found = Vec::new();
                         for want in wanted {
-                            match names.iter().position(|n| n == want) {
+                            match index.get(want.as_str()).copied() {
                                 None => {
                                     let help = format!("stages: {}{}", names.join(", "), suggest(want, &name_refs));
                                     self.error(self.line(&key), &key, format!("no stage named `{want}`"), Some(help));
@@ -861,7 +1006,7 @@ impl Checker {
                         found
                     }
                     None => {
-                        let candidates: Vec<usize> = (0..stages.len()).filter(|&p| p != i && stages[p].kind.produces == slot.artifact).collect();
+                        let candidates: Vec<usize> = producers.get(slot.artifact).into_iter().flatten().copied().filter(|&p| p != i).collect();
                         if slot.arity == Arity::One && candidates.len() > 1 {
                             let list: Vec<&str> = candidates.iter().map(|&p| names[p].as_str()).collect();
                             let msg = format!("ambiguous input `{slot_name}`: stages {} all produce {}", list.join(", "), slot.artifact);
@@ -873,11 +1018,21 @@ impl Checker {
                     }
                 };
                 if providers.is_empty() {
-                    if slot.need == Need::Required && !explicit[i].contains_key(slot_name) {
-                        let kinds: Vec<&str> = registry.catalog.kinds.iter().filter(|k| k.produces == slot.artifact).map(|k| k.name).collect();
-                        let msg = format!("missing input `{slot_name}`: no stage produces {}", slot.artifact);
-                        let help = format!("add a stage of kind {}", kinds.join(" or "));
-                        self.error(stages[i].line, &path, msg, Some(help));
+                    if slot.need == Need::Required {
+                        match explicit[i].get(slot_name) {
+                            None => {
+                                let kinds: Vec<&str> =
+                                    registry.catalog.kinds.iter().filter(|k| k.produces == slot.artifact).map(|k| k.name).collect();
+                                let msg = format!("missing input `{slot_name}`: no stage produces {}", slot.artifact);
+                                let help = format!("add a stage of kind {}", kinds.join(" or "));
+                                self.error(stages[i].line, &path, msg, Some(help));
+                            }
+                            Some(wanted) if wanted.is_empty() => {
+                                let msg = format!("names no stage, but `{}` needs its `{slot_name}` input", stages[i].operator);
+                                self.error(self.line(&key), &key, msg, Some(format!("name a stage that produces {}", slot.artifact)));
+                            }
+                            Some(_) => {} // each wrong name is reported above
+                        }
                     }
                     continue;
                 }
@@ -886,43 +1041,45 @@ impl Checker {
         }
     }
 
-    /// Orders stages so every provider comes before its consumers; reports a cycle.
+    /// Orders stages so every provider comes before its consumers; reports a cycle. A
+    /// depth-first walk with its own stack: a chain as long as the file is long cannot overflow
+    /// the thread's.
     fn topological(&mut self, stages: Vec<Stage>) -> Option<Vec<Stage>> {
         let n = stages.len();
         let mut order = Vec::with_capacity(n);
         let mut mark = vec![0u8; n]; // 0 new, 1 on the current path, 2 done
-        fn visit(i: usize, stages: &[Stage], mark: &mut [u8], order: &mut Vec<usize>, path: &mut Vec<usize>) -> Option<Vec<usize>> {
-            match mark[i] {
-                2 => return None,
-                1 => {
-                    let start = path.iter().position(|&p| p == i).unwrap();
-                    let mut cycle = path[start..].to_vec();
-                    cycle.push(i);
-                    return Some(cycle);
-                }
-                _ => {}
+        let providers = |i: usize| stages[i].bindings.iter().flat_map(|b| b.providers.iter().copied()).collect::<Vec<usize>>();
+        for root in 0..n {
+            if mark[root] != 0 {
+                continue;
             }
-            mark[i] = 1;
-            path.push(i);
-            for b in &stages[i].bindings {
-                for &p in &b.providers {
-                    if let Some(cycle) = visit(p, stages, mark, order, path) {
-                        return Some(cycle);
+            // The current path: each stage with the providers it has yet to visit.
+            let mut path: Vec<(usize, std::vec::IntoIter<usize>)> = vec![(root, providers(root).into_iter())];
+            mark[root] = 1;
+            while let Some((at, pending)) = path.last_mut() {
+                let at = *at;
+                match pending.next() {
+                    Some(p) if mark[p] == 0 => {
+                        mark[p] = 1;
+                        path.push((p, providers(p).into_iter()));
+                    }
+                    Some(p) if mark[p] == 1 => {
+                        let start = path.iter().position(|(s, _)| *s == p).expect("a stage marked on the path is on it");
+                        let mut cycle: Vec<usize> = path[start..].iter().map(|(s, _)| *s).collect();
+                        cycle.push(p);
+                        let names: Vec<&str> = cycle.iter().rev().map(|&c| stages[c].name.as_str()).collect();
+                        let first = &stages[cycle[0]];
+                        let msg = format!("the stages form a cycle: {}", names.join(" -> "));
+                        self.error(first.line, &format!("stages.{}", first.name), msg, Some("break it by changing one stage's `inputs`".into()));
+                        return None;
+                    }
+                    Some(_) => {}
+                    None => {
+                        mark[at] = 2;
+                        order.push(at);
+                        path.pop();
                     }
                 }
-            }
-            path.pop();
-            mark[i] = 2;
-            order.push(i);
-            None
-        }
-        for i in 0..n {
-            if let Some(cycle) = visit(i, &stages, &mut mark, &mut order, &mut Vec::new()) {
-                let names: Vec<&str> = cycle.iter().rev().map(|&c| stages[c].name.as_str()).collect();
-                let first = &stages[cycle[0]];
-                let msg = format!("the stages form a cycle: {}", names.join(" -> "));
-                self.error(first.line, &format!("stages.{}", first.name), msg, Some("break it by changing one stage's `inputs`".into()));
-                return None;
             }
         }
         let mut new_index = vec![0; n];
@@ -940,6 +1097,47 @@ impl Checker {
         }
         Some(sorted)
     }
+}
+
+/// `Ok` when a tracked setting's `source` is a regular file or a directory (a symbolic link to
+/// one counts as it), found without opening it: a FIFO, socket or device is refused, since
+/// reading one could block forever or never end.
+fn tracked_source(given: &str, source: &Path) -> Result<(), String> {
+    use std::os::unix::fs::FileTypeExt;
+    let kind = match std::fs::metadata(source) {
+        Ok(meta) => meta.file_type(),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(format!("`{given}` does not exist ({})", source.display())),
+        Err(e) => return Err(format!("`{given}` cannot be read ({}: {e})", source.display())),
+    };
+    let special = match kind {
+        k if k.is_file() || k.is_dir() => return Ok(()),
+        k if k.is_fifo() => "a FIFO",
+        k if k.is_socket() => "a socket",
+        k if k.is_block_device() || k.is_char_device() => "a device",
+        _ => "not a regular file",
+    };
+    Err(format!("`{given}` is {special} ({}); a tracked path must be a regular file or a directory", source.display()))
+}
+
+/// The variant dimensions each stage fans out on, sorted: its own variants, the seeds if it
+/// runs per seed, and those of its single inputs; it has one instance per combination. `stages`
+/// are in dependency order.
+pub fn dimensions(stages: &[Stage], seeded: bool) -> Vec<Vec<String>> {
+    let mut dims_of: Vec<Vec<String>> = Vec::with_capacity(stages.len());
+    for stage in stages {
+        let own = stage.variants.len() > 1 || stage.variants[0].name.is_some();
+        let mut dims: Vec<String> = if own { vec![stage.name.clone()] } else { Vec::new() };
+        if stage.per_seed && seeded {
+            dims.push(SEED_DIMENSION.to_owned());
+        }
+        for b in stage.bindings.iter().filter(|b| b.arity == Arity::One) {
+            dims.extend(dims_of[b.providers[0]].iter().cloned());
+        }
+        dims.sort();
+        dims.dedup();
+        dims_of.push(dims);
+    }
+    dims_of
 }
 
 /// The slots of `kind` that operator `op` reads.

@@ -51,7 +51,14 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
         };
         let input_labels = plan.input_labels(i);
         let input_instances = plan.input_instances(i);
-        store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone(), input_labels, input_instances })?;
+        store.write_request(&ActionRequest {
+            key,
+            stage: inst.label.clone(),
+            preimage,
+            settings: inst.settings.clone(),
+            input_labels,
+            input_instances,
+        })?;
         plan.snapshot_tracked(i, store)?;
         println!("check-determinism {} (key {})", inst.label, key.short());
         let exe = crate::exec::executable(registry.get(&inst.operator).expect("validated operator"))?;
@@ -69,7 +76,12 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
                 true => String::new(),
                 false => format!(", asking for other kernels: {}", env.iter().map(|(k, v)| format!("{k}={v}")).collect::<Vec<_>>().join(" ")),
             };
-            println!("  attempt {} (fresh process, {threads}{kernels}): output {} in {:.1}s", attempt + 1, digest.short(), clock.elapsed().as_secs_f64());
+            println!(
+                "  attempt {} (fresh process, {threads}{kernels}): output {} in {:.1}s",
+                attempt + 1,
+                digest.short(),
+                clock.elapsed().as_secs_f64()
+            );
             attempts.push((scratch, digest));
         }
         let [(dir_a, a), (dir_b, b)] = <[_; 2]>::try_from(attempts).expect("two attempts");
@@ -129,7 +141,7 @@ fn attempt_in_fresh_process(
     for line in BufReader::new(child.stdout.take().unwrap()).lines().map_while(Result::ok) {
         match line.strip_prefix(PREFIX).and_then(|m| serde_json::from_str::<Message>(m).ok()) {
             Some(Message::Done { output }) => result = Some(Ok(output)),
-            Some(Message::Failed { message }) => result = Some(Err(message)),
+            Some(Message::Failed { message, .. }) => result = Some(Err(message)),
             Some(Message::CorruptInput { digest, .. }) => result = Some(Err(format!("input {} failed verification", digest.short()))),
             _ => {}
         }

@@ -14,7 +14,7 @@ use std::time::Instant;
 use anyhow::Context as _;
 use rlmflow_cache::{ActionRecord, ActionRequest, Digest, Store, hash_tree, now_rfc3339};
 use rlmflow_stages::numerics::{PlatformRecord, Target};
-use rlmflow_stages::{Context, Device, DynOperator, Input, Outcome, Registry, Reporter};
+use rlmflow_stages::{Context, Device, DynOperator, Input, Outcome, Registry, Reporter, SettingError};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
@@ -49,7 +49,33 @@ pub enum Message {
     },
     Failed {
         message: String,
+        /// The setting the failure is about (dotted, relative to the stage table), when the
+        /// operator said so ([`SettingError`]): the engine names its file and line.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        setting: Option<String>,
     },
+}
+
+/// Why an operator failed: its message, and the setting it is about, if any.
+#[derive(Debug)]
+struct Failure {
+    message: String,
+    setting: Option<String>,
+}
+
+impl std::fmt::Display for Failure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match &self.setting {
+            Some(key) => write!(f, "{key}: {}", self.message),
+            None => f.write_str(&self.message),
+        }
+    }
+}
+
+impl From<String> for Failure {
+    fn from(message: String) -> Failure {
+        Failure { message, setting: None }
+    }
 }
 
 pub fn send(message: &Message) {
@@ -115,14 +141,18 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
     let checkpoint_dir = store.checkpoint_dir(&key);
     let (device, platform) = match pin_platform(registry, op, &request, device) {
         Ok(pinned) => pinned,
-        Err(message) => return Ok(fail(message)),
+        Err(message) => return Ok(fail(message.into())),
     };
     let started = now_rfc3339();
     let clock = Instant::now();
     let dirs = Dirs { output: output_dir.clone(), checkpoint: checkpoint_dir.clone(), responses: store.responses_dir(&request.preimage.operator) };
     let outcome = match run_operator(op, &request, inputs, dirs, threads, device)? {
         Ok(outcome) => outcome,
-        Err(message) => return Ok(fail(message)),
+        Err(failure) => {
+            store.write_failure(&key, &failure.to_string())?;
+            clean_checkpoint(&checkpoint_dir);
+            return Ok(fail(failure));
+        }
     };
     let duration_s = clock.elapsed().as_secs_f64();
     let tree = store.commit_tree(&output_dir)?;
@@ -158,16 +188,17 @@ pub fn exec_scratch(registry: &Registry, store: &Path, key: Digest, threads: usi
     };
     let device = match pin_platform(registry, op, &request, device) {
         Ok((device, _)) => device,
-        Err(message) => return Ok(fail(message)),
+        Err(message) => return Ok(fail(message.into())),
     };
     let output_dir = scratch.join("out");
-    let dirs = Dirs { output: output_dir.clone(), checkpoint: scratch.join("checkpoint"), responses: store.responses_dir(&request.preimage.operator) };
+    let dirs =
+        Dirs { output: output_dir.clone(), checkpoint: scratch.join("checkpoint"), responses: store.responses_dir(&request.preimage.operator) };
     match run_operator(op, &request, inputs, dirs, threads, device)? {
         Ok(_) => {
             send(&Message::Done { output: hash_tree(&output_dir)?.digest });
             Ok(0)
         }
-        Err(message) => Ok(fail(message)),
+        Err(failure) => Ok(fail(failure)),
     }
 }
 
@@ -206,7 +237,12 @@ fn inputs(store: &Store, request: &ActionRequest) -> anyhow::Result<Result<BTree
 /// the caller's environment says), and returns the device it computes on with the platform
 /// record for its provenance. Other operators run as asked, with no record. `Err` says why the
 /// action must not run here.
-fn pin_platform(registry: &Registry, op: &dyn DynOperator, request: &ActionRequest, device: Device) -> Result<(Device, Option<PlatformRecord>), String> {
+fn pin_platform(
+    registry: &Registry,
+    op: &dyn DynOperator,
+    request: &ActionRequest,
+    device: Device,
+) -> Result<(Device, Option<PlatformRecord>), String> {
     let resources = op.resources(&request.settings);
     let Some(kernels) = resources.kernels else { return Ok((device, None)) };
     let target = Target::of(kernels.device, device, crate::dispatch::cuda_present());
@@ -230,7 +266,7 @@ struct Dirs {
     responses: PathBuf,
 }
 
-/// Runs the operator with its output and checkpoint directories; `Ok(Err(message))` when it
+/// Runs the operator with its output and checkpoint directories; `Ok(Err(failure))` when it
 /// fails or panics.
 fn run_operator(
     op: &dyn DynOperator,
@@ -239,30 +275,53 @@ fn run_operator(
     dirs: Dirs,
     threads: usize,
     device: Device,
-) -> anyhow::Result<Result<Outcome, String>> {
+) -> anyhow::Result<Result<Outcome, Failure>> {
     std::fs::create_dir_all(&dirs.output)?;
     std::fs::create_dir_all(&dirs.checkpoint)?;
-    let mut ctx =
-        Context::new(request.stage.clone(), inputs, dirs.output, dirs.checkpoint, request.preimage.seed, threads.max(1), device, Arc::new(StdoutReporter));
+    let mut ctx = Context::new(
+        request.stage.clone(),
+        inputs,
+        dirs.output,
+        dirs.checkpoint,
+        request.preimage.seed,
+        threads.max(1),
+        device,
+        Arc::new(StdoutReporter),
+    );
     ctx.responses = Some(dirs.responses);
     Ok(match catch_unwind(AssertUnwindSafe(|| op.run(&request.settings, &mut ctx))) {
         Ok(Ok(outcome)) => Ok(outcome),
-        Ok(Err(e)) => Err(format!("{e:#}")),
+        Ok(Err(e)) => Err(match e.chain().find_map(|cause| cause.downcast_ref::<SettingError>()) {
+            Some(wrong) => Failure { message: wrong.message.clone(), setting: Some(wrong.key.clone()) },
+            None => format!("{e:#}").into(),
+        }),
         Err(panic) => {
             let text = panic
                 .downcast_ref::<String>()
                 .cloned()
                 .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
                 .unwrap_or_else(|| "unknown panic".into());
-            Err(format!("operator `{}` panicked: {text}", request.preimage.operator))
+            Err(format!("operator `{}` panicked: {text}", request.preimage.operator).into())
         }
     })
 }
 
-fn fail(message: String) -> i32 {
-    eprintln!("error: {message}");
-    send(&Message::Failed { message });
+fn fail(failure: Failure) -> i32 {
+    eprintln!("error: {failure}");
+    send(&Message::Failed { message: failure.message, setting: failure.setting });
     1
+}
+
+/// After a failed attempt: removes what no rerun resumes from (files cut off mid-write, `.part`)
+/// and the checkpoint folder if that leaves it empty, so only a resumable checkpoint stays.
+fn clean_checkpoint(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    for entry in entries.flatten() {
+        if entry.path().extension().is_some_and(|e| e == "part") {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
+    let _ = std::fs::remove_dir(dir); // only if empty
 }
 
 /// Where a cluster task with a store of its own meets the engine: `rlmflow exec KEY --remote
@@ -328,7 +387,16 @@ fn run_task(
     }
     let exe = std::env::current_exe().context("locating this executable")?;
     let mut child = std::process::Command::new(&exe)
-        .args(["exec", &key.to_string(), "--store", &store.root().to_string_lossy(), "--threads", &threads.to_string(), "--device", &device.to_string()])
+        .args([
+            "exec",
+            &key.to_string(),
+            "--store",
+            &store.root().to_string_lossy(),
+            "--threads",
+            &threads.to_string(),
+            "--device",
+            &device.to_string(),
+        ])
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
@@ -343,14 +411,15 @@ fn run_task(
     let code = status.code().unwrap_or(1);
     if code != 0 {
         if status.code().is_none() {
-            transcript.send(&Message::Failed { message: format!("the stage process ended without an exit status ({status})") });
+            transcript.send(&Message::Failed { message: format!("the stage process ended without an exit status ({status})"), setting: None });
         }
         return Ok(code);
     }
     let record = store.fresh(&key)?.context("the action finished without a record")?;
     if cache.push(store, &record, replace)?.is_none() {
         let why = cache.down().unwrap_or_default();
-        transcript.send(&Message::Failed { message: format!("computed, but the result could not be pushed to the remote cache ({why})") });
+        transcript
+            .send(&Message::Failed { message: format!("computed, but the result could not be pushed to the remote cache ({why})"), setting: None });
         return Ok(1);
     }
     Ok(0)

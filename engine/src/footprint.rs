@@ -7,29 +7,14 @@
 //! machines are not this one). Where a device's memory
 //! cannot be read (no `nvidia-smi`), nothing is refused.
 
-use std::fmt;
+use std::collections::BTreeMap;
 
 use rlmflow_stages::memory::HEADROOM;
+use rlmflow_stages::numerics::Target;
 use rlmflow_stages::{Device, Footprint, InputOutlines, Outline, Registry};
 
 use crate::config::{ConfigError, Diagnostic};
 use crate::plan::Plan;
-
-/// Where an instance will train.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Target {
-    Cpu,
-    Cuda,
-}
-
-impl fmt::Display for Target {
-    fn fmt(&self, f: &mut fmt::Formatter) -> fmt::Result {
-        f.write_str(match self {
-            Target::Cpu => "RAM",
-            Target::Cuda => "CUDA device",
-        })
-    }
-}
 
 /// An instance's estimate and where it will run.
 pub struct Fit {
@@ -47,7 +32,11 @@ impl Fit {
     /// `125.1 M parameters, peak ~ 23.4 GiB (CUDA device: 79.2 GiB)`.
     pub fn describe(&self) -> String {
         let capacity = self.capacity.map_or("size unknown".to_owned(), gib);
-        format!("{:.1} M parameters, peak ~ {} ({}: {capacity})", self.footprint.parameters as f64 / 1e6, gib(self.footprint.peak_bytes), self.target)
+        let memory = match self.target {
+            Target::Cpu => "RAM".to_owned(),
+            Target::Cuda(n) => format!("CUDA device {n}"),
+        };
+        format!("{:.1} M parameters, peak ~ {} ({memory}: {capacity})", self.footprint.parameters as f64 / 1e6, gib(self.footprint.peak_bytes))
     }
 }
 
@@ -68,7 +57,12 @@ pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> 
         fits.push(op.footprint(&inst.settings, &inputs).filter(|_| runs[fits.len()]).map(|footprint| {
             let resources = op.resources(&inst.settings);
             let cuda = resources.needs_cuda || (resources.gpu && (matches!(device, Device::Cuda(_)) || crate::dispatch::cuda_present()));
-            let target = if cuda { Target::Cuda } else { Target::Cpu };
+            // The device the stage names, else the run's, else the first.
+            let index = match (resources.kernels.map(|k| k.device), device) {
+                (Some(Device::Cuda(n)), _) | (_, Device::Cuda(n)) => n,
+                _ => 0,
+            };
+            let target = if cuda { Target::Cuda(index) } else { Target::Cpu };
             Fit { footprint, target, capacity: capacity.of(target) }
         }));
     }
@@ -77,17 +71,14 @@ pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> 
 
 /// Device memories, read once each.
 #[derive(Default)]
-struct Capacities {
-    cpu: Option<Option<u64>>,
-    cuda: Option<Option<u64>>,
-}
+struct Capacities(BTreeMap<Target, Option<u64>>);
 
 impl Capacities {
     fn of(&mut self, target: Target) -> Option<u64> {
-        match target {
-            Target::Cpu => *self.cpu.get_or_insert_with(ram),
-            Target::Cuda => *self.cuda.get_or_insert_with(cuda_memory),
-        }
+        *self.0.entry(target).or_insert_with(|| match target {
+            Target::Cpu => ram(),
+            Target::Cuda(n) => cuda_memory(n),
+        })
     }
 }
 
@@ -98,9 +89,14 @@ fn ram() -> Option<u64> {
     Some(line.split_whitespace().nth(1)?.parse::<u64>().ok()? * 1024)
 }
 
-/// The first CUDA device's memory, from `nvidia-smi`.
-fn cuda_memory() -> Option<u64> {
-    let out = std::process::Command::new("nvidia-smi").args(["--query-gpu=memory.total", "--format=csv,noheader,nounits"]).output().ok()?;
+/// CUDA device `index`'s memory, from `nvidia-smi`.
+fn cuda_memory(index: usize) -> Option<u64> {
+    let out = std::process::Command::new("nvidia-smi")
+        .args(["--query-gpu=memory.total", "--format=csv,noheader,nounits", &format!("--id={index}")])
+        .stderr(std::process::Stdio::null())
+        .output()
+        .ok()
+        .filter(|o| o.status.success())?;
     let mib: u64 = String::from_utf8_lossy(&out.stdout).lines().next()?.trim().parse().ok()?;
     Some(mib << 20)
 }

@@ -4,7 +4,7 @@
 use std::collections::{BTreeMap, HashMap};
 use std::path::PathBuf;
 
-use anyhow::bail;
+use anyhow::{Context as _, bail};
 use rlmflow_cache::{ActionRecord, Change, Digest, InputDigest, Preimage, Store};
 use rlmflow_stages::{Arity, InstanceId, Part, Registry};
 use serde_json::Value;
@@ -55,21 +55,14 @@ pub struct Plan<'p> {
 /// (set [`Plan::platform`] for another).
 pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
     let mut instances: Vec<Instance> = Vec::new();
-    let mut dims_of: Vec<Vec<String>> = Vec::new();
+    let dims_of = crate::config::dimensions(&pipeline.stages, !pipeline.seeds.is_empty());
+    // The whole (not shard) instances of each stage so far, for inputs that gather them all.
+    let mut whole_of: Vec<Vec<usize>> = vec![Vec::new(); pipeline.stages.len()];
     let mut by_assignment: HashMap<(usize, String), usize> = HashMap::new();
     for (s, stage) in pipeline.stages.iter().enumerate() {
-        let own = stage.variants.len() > 1 || stage.variants[0].name.is_some();
-        let mut dims: Vec<String> = if own { vec![stage.name.clone()] } else { Vec::new() };
-        if stage.per_seed && !pipeline.seeds.is_empty() {
-            dims.push(SEED_DIMENSION.to_owned());
-        }
-        for b in stage.bindings.iter().filter(|b| b.arity == Arity::One) {
-            dims.extend(dims_of[b.providers[0]].iter().cloned());
-        }
-        dims.sort();
-        dims.dedup();
+        let dims = &dims_of[s];
         let mut assignments = vec![BTreeMap::new()];
-        for dim in &dims {
+        for dim in dims {
             let names: Vec<String> = if dim == SEED_DIMENSION {
                 pipeline.seeds.iter().map(u64::to_string).collect()
             } else {
@@ -103,9 +96,9 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                             vec![by_assignment[&(p, key)]]
                         }
                         Arity::All => {
-                            let mut all: Vec<usize> =
-                                (0..instances.len()).filter(|&i| b.providers.contains(&instances[i].stage) && instances[i].shard.is_none()).collect();
+                            let mut all: Vec<usize> = b.providers.iter().flat_map(|&p| whole_of[p].iter().copied()).collect();
                             all.sort_by(|&x, &y| instances[x].label.cmp(&instances[y].label));
+                            all.dedup();
                             all
                         }
                     };
@@ -153,9 +146,9 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
                 }
             };
             by_assignment.insert((s, assignment_key(&assignment)), instances.len());
+            whole_of[s].push(instances.len());
             instances.push(whole);
         }
-        dims_of.push(dims);
     }
     Plan { pipeline, instances, tracked: BTreeMap::new(), platform: Platform::detect(rlmflow_stages::Device::Cpu) }
 }
@@ -224,11 +217,22 @@ impl Plan<'_> {
     /// The preimage of instance `i`, once every input's output digest is known.
     /// Digests every tracked path (`rlmflow_cache::external`: a stat per unchanged file).
     pub fn fingerprint(&mut self, store: Option<&Store>) -> anyhow::Result<()> {
-        let sources: std::collections::BTreeSet<PathBuf> = self.instances.iter().flat_map(|i| i.tracked.iter().map(|t| t.1.clone())).collect();
-        for source in sources {
-            let info = rlmflow_cache::external::fingerprint(store, &source)?;
-            self.tracked.insert(source, info.digest);
+        // Each source with the first instance and setting that name it, for the error.
+        let mut sources: BTreeMap<PathBuf, (usize, &str)> = BTreeMap::new();
+        for (i, inst) in self.instances.iter().enumerate() {
+            for (key, source) in &inst.tracked {
+                sources.entry(source.clone()).or_insert((i, key));
+            }
         }
+        let mut digests = BTreeMap::new();
+        for (source, (i, key)) in sources {
+            let inst = &self.instances[i];
+            let stage = &self.pipeline.stages[inst.stage].name;
+            let info = rlmflow_cache::external::fingerprint(store, &source)
+                .with_context(|| self.pipeline.locate(stage, inst.assignment.get(stage).map(String::as_str), key))?;
+            digests.insert(source, info.digest);
+        }
+        self.tracked = digests;
         Ok(())
     }
 
@@ -259,12 +263,7 @@ impl Plan<'_> {
             inputs.push(InputDigest { slot: slot.clone(), label: String::new(), digest: *self.tracked.get(source)? });
         }
         inputs.sort();
-        let mut config = inst.settings.clone();
-        if let Value::Object(map) = &mut config {
-            for key in op.non_result_keys().iter().chain(op.tracked_keys()) {
-                map.remove(*key);
-            }
-        }
+        let config = rlmflow_stages::operator::result_settings(&inst.settings, op.non_result_keys(), op.tracked_keys());
         let seed = inst.assignment.get(SEED_DIMENSION).map_or(self.pipeline.seed, |s| s.parse().expect("seeds are integers"));
         let platform = op.resources(&inst.settings).kernels.map(|k| self.platform.class(k));
         Some(Preimage { operator: inst.operator.clone(), operator_version: op.spec().version, config, seed, inputs, platform })
@@ -334,10 +333,15 @@ pub fn why(store: Option<&Store>, last: Option<&Digest>, key: &Digest, now: &Pre
         return Ok(vec!["never run".into()]);
     };
     if last == key {
-        return Ok(vec![match store.record(key)? {
-            Some(_) => "its output is gone (quarantined by verify, or collected)".into(),
-            None if store.checkpoint_dir(key).is_dir() => format!("interrupted; resumes from {resumes}"),
-            None => "its last attempt did not finish".into(),
+        if store.record(key)?.is_some() {
+            return Ok(vec!["its output is gone (quarantined by verify, or collected)".into()]);
+        }
+        let failure = store.failure(key).map(|f| f.lines().next().unwrap_or_default().chars().take(200).collect::<String>());
+        return Ok(vec![match (failure, store.checkpoint_dir(key).is_dir()) {
+            (Some(failure), true) => format!("failed: {failure}; a rerun resumes from {resumes}"),
+            (Some(failure), false) => format!("failed: {failure}"),
+            (None, true) => format!("interrupted; resumes from {resumes}"),
+            (None, false) => "its last attempt did not finish".into(),
         }]);
     }
     let Some(before) = previous_preimage(store, last)? else {
@@ -693,17 +697,25 @@ operator = "od"
     }
 
     #[test]
-    fn an_interrupted_action_says_what_its_operator_resumes_from() {
+    fn an_interrupted_or_failed_action_says_which_and_what_it_resumes_from() {
         let root = std::env::temp_dir().join(format!("rlmflow-why-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&root);
         let store = Store::open(&root).unwrap();
-        let preimage = Preimage { operator: "llm".into(), operator_version: 1, config: serde_json::json!({}), seed: 0, inputs: vec![], platform: None };
+        let preimage =
+            Preimage { operator: "llm".into(), operator_version: 1, config: serde_json::json!({}), seed: 0, inputs: vec![], platform: None };
         let key = preimage.key();
         let reasons = |resumes: &str| why(Some(&store), Some(&key), &key, &preimage, "captions", resumes).unwrap();
         assert_eq!(reasons("its checkpoint"), ["its last attempt did not finish"]);
         std::fs::create_dir_all(store.checkpoint_dir(&key)).unwrap();
-        assert_eq!(reasons("its response cache (the answers it already has)"), ["interrupted; resumes from its response cache (the answers it already has)"]);
+        assert_eq!(
+            reasons("its response cache (the answers it already has)"),
+            ["interrupted; resumes from its response cache (the answers it already has)"]
+        );
         assert_eq!(reasons("its checkpoint"), ["interrupted; resumes from its checkpoint"]);
+        store.write_failure(&key, "batch: larger than the training share\n(details)").unwrap();
+        assert_eq!(reasons("its checkpoint"), ["failed: batch: larger than the training share; a rerun resumes from its checkpoint"]);
+        std::fs::remove_dir_all(store.checkpoint_dir(&key)).unwrap();
+        assert_eq!(reasons("its checkpoint"), ["failed: batch: larger than the training share"]);
         std::fs::remove_dir_all(&root).unwrap();
     }
 }

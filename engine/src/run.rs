@@ -447,13 +447,11 @@ impl Executor<'_> {
     /// warns once).
     fn remote(&self) -> Option<&Remote> {
         self.remote
-            .get_or_init(|| {
-                match self.opts.remote.as_ref()?.open() {
-                    Ok(remote) => Some(remote),
-                    Err(e) => {
-                        self.ui.say(format!("  warning  remote cache not used: {e:#}"));
-                        None
-                    }
+            .get_or_init(|| match self.opts.remote.as_ref()?.open() {
+                Ok(remote) => Some(remote),
+                Err(e) => {
+                    self.ui.say(format!("  warning  remote cache not used: {e:#}"));
+                    None
                 }
             })
             .as_ref()
@@ -549,7 +547,14 @@ impl Executor<'_> {
         let inst = &self.plan.instances[i];
         let input_labels = self.plan.input_labels(i);
         let input_instances = self.plan.input_instances(i);
-        self.store.write_request(&ActionRequest { key, stage: inst.label.clone(), preimage, settings: inst.settings.clone(), input_labels, input_instances })
+        self.store.write_request(&ActionRequest {
+            key,
+            stage: inst.label.clone(),
+            preimage,
+            settings: inst.settings.clone(),
+            input_labels,
+            input_instances,
+        })
     }
 
     fn write_plan_if_dirty(&mut self) -> anyhow::Result<()> {
@@ -636,7 +641,12 @@ impl Executor<'_> {
             }
             other => {
                 let message = match other {
-                    Some(Message::Failed { message }) => message,
+                    Some(Message::Failed { message, setting: Some(key) }) => {
+                        let inst = &self.plan.instances[i];
+                        let stage = &self.plan.pipeline.stages[inst.stage].name;
+                        format!("{}: {message}", self.plan.pipeline.locate(stage, inst.assignment.get(stage).map(String::as_str), &key))
+                    }
+                    Some(Message::Failed { message, setting: None }) => message,
                     Some(Message::CorruptInput { digest, .. }) => format!("input {} is still corrupt after recomputing it", digest.short()),
                     _ => exit.describe(),
                 };
@@ -720,7 +730,9 @@ impl Ui {
     }
 
     fn bytes_style() -> ProgressStyle {
-        ProgressStyle::with_template("  {prefix} pulling [{bar:30}] {bytes}/{total_bytes} ({bytes_per_sec}, eta {eta})").unwrap().progress_chars("=> ")
+        ProgressStyle::with_template("  {prefix} pulling [{bar:30}] {bytes}/{total_bytes} ({bytes_per_sec}, eta {eta})")
+            .unwrap()
+            .progress_chars("=> ")
     }
 
     fn bar_style() -> ProgressStyle {

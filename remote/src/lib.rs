@@ -66,10 +66,16 @@ pub enum Fetched {
 /// What a pull found.
 pub enum Pulled {
     /// The record and its artifact, now in the local store.
-    Hit { record: Box<ActionRecord>, bytes: u64, seconds: f64 },
+    Hit {
+        record: Box<ActionRecord>,
+        bytes: u64,
+        seconds: f64,
+    },
     Miss,
     /// The remote's artifact is not the one its record names (`why`); nothing entered the store.
-    Corrupt { why: String },
+    Corrupt {
+        why: String,
+    },
 }
 
 impl Remote {

@@ -139,8 +139,7 @@ impl Context {
     /// A context for running an operator on its own (tests, benchmarks): one artifact per named
     /// input slot, on the CPU, reporting nothing.
     pub fn standalone(stage: &str, inputs: &[(&str, &Path)], output_dir: &Path, checkpoint_dir: &Path, seed: u64, threads: usize) -> Context {
-        let inputs =
-            inputs.iter().map(|(slot, path)| (slot.to_string(), vec![Input::new(*slot, *path)])).collect();
+        let inputs = inputs.iter().map(|(slot, path)| (slot.to_string(), vec![Input::new(*slot, *path)])).collect();
         Context::new(stage.into(), inputs, output_dir.into(), checkpoint_dir.into(), seed, threads, Device::Cpu, Arc::new(Silent))
     }
 
@@ -157,6 +156,18 @@ impl Context {
 
     pub fn optional_input(&self, slot: &str) -> Option<&Path> {
         self.inputs.get(slot).and_then(|v| v.first()).map(|i| i.path.as_path())
+    }
+
+    /// The file a tracked setting (`Settings::TRACKED`) names, in its snapshot (a file is
+    /// tracked as a tree of one); `None` where the setting is empty.
+    pub fn tracked_file(&self, slot: &str) -> anyhow::Result<Option<PathBuf>> {
+        let Some(dir) = self.optional_input(slot) else { return Ok(None) };
+        let entries: Vec<PathBuf> =
+            std::fs::read_dir(dir).and_then(|d| d.map(|e| e.map(|e| e.path())).collect()).with_context(|| format!("reading {}", dir.display()))?;
+        match &entries[..] {
+            [file] if file.is_file() => Ok(Some(file.clone())),
+            _ => anyhow::bail!("`{slot}` must name a file, but its snapshot ({}) holds {} entries", dir.display(), entries.len()),
+        }
     }
 
     /// Every artifact gathered into `slot` (for slots of arity `All`), in a stable order.

@@ -148,10 +148,13 @@ impl VisionConfig {
             Stem::Patch { .. } => 0,
             Stem::Conv { channels } => {
                 let mut side = self.image as u64;
-                channels.iter().map(|&c| {
-                    side = side.div_ceil(2);
-                    3 * c as u64 * side * side
-                }).sum()
+                channels
+                    .iter()
+                    .map(|&c| {
+                        side = side.div_ceil(2);
+                        3 * c as u64 * side * side
+                    })
+                    .sum()
             }
         };
         let tokens = (self.grid() * self.grid() + 1) as u64;
@@ -280,8 +283,10 @@ mod tests {
 
     /// The paper's towers with linear heads: ViT-B/16 at 224 px, the text tower at context 400.
     fn paper(head: Head) -> ModelConfig {
-        let vision = VisionConfig { image: 224, stem: Stem::Patch { size: 16 }, width: 768, layers: 12, heads: 12, mlp: 3072, head, quick_gelu: true };
-        let text = TextConfig { context: 400, vocab: 2048, group: 1, token_width: 512, width: 512, layers: 12, heads: 8, mlp: 2048, end_token: 1, head };
+        let vision =
+            VisionConfig { image: 224, stem: Stem::Patch { size: 16 }, width: 768, layers: 12, heads: 12, mlp: 3072, head, quick_gelu: true };
+        let text =
+            TextConfig { context: 400, vocab: 2048, group: 1, token_width: 512, width: 512, layers: 12, heads: 8, mlp: 2048, end_token: 1, head };
         ModelConfig { embed: 512, vision, text: Some(text), counts_head: 0 }
     }
 

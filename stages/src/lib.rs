@@ -39,12 +39,12 @@ pub mod weights;
 
 pub use context::{Context, Device, Input, InstanceId, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};
-pub use operator::{
-    DynOperator, InWorker, InputOutlines, ItemCount, Items, ModelOutline, Operator, OperatorSpec, Outcome, Outline, Part, Registry, Resources, SettingError, Settings,
-    Sharding, Share,
-};
 pub use memory::Footprint;
 pub use numerics::{Kernels, Numerics};
+pub use operator::{
+    DynOperator, InWorker, InputOutlines, ItemCount, Items, ModelOutline, Operator, OperatorSpec, Outcome, Outline, Part, Registry, Resources,
+    SettingError, Settings, Sharding, Share,
+};
 pub use training::Training;
 
 /// The seed of item `index` (a frame, an epoch) of a run seeded `seed`: each item's draws come

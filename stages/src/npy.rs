@@ -105,7 +105,14 @@ pub struct Npy {
 
 impl Npy {
     pub fn open(path: &Path) -> anyhow::Result<Npy> {
-        let file = File::open(path).with_context(|| format!("reading {}", path.display()))?;
+        Npy::open_as(path, path)
+    }
+
+    /// Opens `path`, naming it `shown` in every message (the user's file, not a snapshot's path
+    /// in the store).
+    pub fn open_as(path: &Path, shown: &Path) -> anyhow::Result<Npy> {
+        let file = File::open(path).with_context(|| format!("reading {}", shown.display()))?;
+        let path = shown;
         let mut start = [0u8; 10];
         file.read_exact_at(&mut start, 0).with_context(|| format!("{}: too short for a .npy file", path.display()))?;
         if &start[..8] != MAGIC {
@@ -129,7 +136,10 @@ impl Npy {
             .with_context(|| format!("{}: no shape in the header", path.display()))?
             .with_context(|| format!("{}: bad shape in the header", path.display()))?;
         let data_offset = 10 + len as u64;
-        let expected = data_offset + (shape.iter().product::<usize>() * dtype.size()) as u64;
+        let data = shape.iter().try_fold(dtype.size() as u64, |n, &d| n.checked_mul(d as u64));
+        let Some(expected) = data.and_then(|d| d.checked_add(data_offset)) else {
+            bail!("{}: its header's shape {shape:?} is larger than any file", path.display());
+        };
         let actual = file.metadata()?.len();
         if actual != expected {
             bail!("{}: {actual} bytes, but its header says {shape:?} {dtype:?} ({expected} bytes)", path.display());

@@ -53,7 +53,7 @@ pub struct Kernels {
 }
 
 /// Where an action computes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Target {
     Cpu,
     Cuda(usize),
@@ -84,8 +84,16 @@ impl Target {
 
 /// Every environment variable through which a caller could choose a library's kernels. [`apply`]
 /// sets each to its pin or removes it, so none of the caller's choices reaches a pinned action.
-pub const KERNEL_VARIABLES: &[&str] =
-    &["ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA", "MKL_CBWR", "MKL_ENABLE_INSTRUCTIONS", "MKL_DEBUG_CPU_TYPE", "MKL_DYNAMIC", "CUBLAS_WORKSPACE_CONFIG"];
+pub const KERNEL_VARIABLES: &[&str] = &[
+    "ATEN_CPU_CAPABILITY",
+    "ONEDNN_MAX_CPU_ISA",
+    "DNNL_MAX_CPU_ISA",
+    "MKL_CBWR",
+    "MKL_ENABLE_INSTRUCTIONS",
+    "MKL_DEBUG_CPU_TYPE",
+    "MKL_DYNAMIC",
+    "CUBLAS_WORKSPACE_CONFIG",
+];
 
 /// This machine's CPU, as far as kernel choice goes.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -255,7 +263,15 @@ impl PlatformRecord {
             Target::Cpu => None,
         };
         let pins = pins(numerics, &cpu, target).into_iter().map(|(k, v)| (k.to_owned(), v.unwrap_or("unset").to_owned())).collect();
-        PlatformRecord { class: class(numerics, &cpu, target, gpu.as_ref()), numerics, cpu, pins, threads, libraries: libraries.iter().map(|l| (*l).to_owned()).collect(), gpu }
+        PlatformRecord {
+            class: class(numerics, &cpu, target, gpu.as_ref()),
+            numerics,
+            cpu,
+            pins,
+            threads,
+            libraries: libraries.iter().map(|l| (*l).to_owned()).collect(),
+            gpu,
+        }
     }
 }
 
@@ -268,7 +284,12 @@ impl fmt::Display for PlatformRecord {
         }
         let pins: Vec<String> = self.pins.iter().map(|(k, v)| format!("{k}={v}")).collect();
         writeln!(f, "  kernels {} ({})", self.numerics, pins.join(" "))?;
-        write!(f, "  threads {}; {}", self.threads, if self.libraries.is_empty() { "no numeric library named".to_owned() } else { self.libraries.join(", ") })
+        write!(
+            f,
+            "  threads {}; {}",
+            self.threads,
+            if self.libraries.is_empty() { "no numeric library named".to_owned() } else { self.libraries.join(", ") }
+        )
     }
 }
 

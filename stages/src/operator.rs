@@ -20,7 +20,8 @@ pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'stat
     /// Settings that name a file or directory outside the store (relative to the pipeline file)
     /// that the operator reads: the engine tracks each by content (its digest enters the key as
     /// an input in the slot of the setting's name, `ctx.input(key)`, a snapshot of it in the
-    /// store), so the path itself stays out of the key and out of the artifact. Each must be set.
+    /// store), so the path itself stays out of the key and out of the artifact. One left empty
+    /// reads nothing; an operator that needs it says so in [`Settings::check`].
     const TRACKED: &'static [&'static str] = &[];
 
     /// Checks that types cannot express ("impossible settings"). The error names the key.
@@ -28,17 +29,35 @@ pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'stat
         Ok(())
     }
 
-    /// The settings as an artifact may record them: without [`Settings::NON_RESULT`], which the
-    /// key does not cover, so the artifact's bytes stay a function of its key.
+    /// Checks what tracked setting `key` names, before anything runs: `path` (resolved against
+    /// the pipeline file) is a regular file or a directory; the engine refuses anything else
+    /// without opening it.
+    fn check_tracked(&self, _key: &str, _path: &std::path::Path) -> Result<(), SettingError> {
+        Ok(())
+    }
+
+    /// The settings as an artifact may record them: those the key covers ([`result_settings`]).
     fn result_settings(&self) -> Value {
-        let mut value = serde_json::to_value(self).expect("settings serialise to JSON");
-        if let Value::Object(map) = &mut value {
-            for key in Self::NON_RESULT.iter().chain(Self::TRACKED) {
+        result_settings(&serde_json::to_value(self).expect("settings serialise to JSON"), Self::NON_RESULT, Self::TRACKED)
+    }
+}
+
+/// The settings an action's key covers, so an artifact that records them stays a function of its
+/// key: all but the `non_result` ones and the `tracked` ones that are set (their content is an
+/// input of the key instead).
+pub fn result_settings(settings: &Value, non_result: &[&str], tracked: &[&str]) -> Value {
+    let mut value = settings.clone();
+    if let Value::Object(map) = &mut value {
+        for key in non_result {
+            map.remove(*key);
+        }
+        for key in tracked {
+            if map.get(*key).and_then(Value::as_str).is_some_and(|path| !path.is_empty()) {
                 map.remove(*key);
             }
         }
-        value
     }
+    value
 }
 
 /// A setting that is invalid: its dotted key (relative to the stage table) and what is valid.
@@ -79,6 +98,11 @@ impl fmt::Display for SettingError {
         write!(f, "{}: {}", self.key, self.message)
     }
 }
+
+/// An operator's run may fail with one (`anyhow::Error::new(SettingError::new(..))`, context
+/// around it allowed) when only the data shows a setting is wrong: the engine then names the
+/// setting's file and line.
+impl std::error::Error for SettingError {}
 
 /// What identifies an operator to the engine.
 #[derive(Clone, Copy, Debug)]
@@ -335,6 +359,8 @@ pub trait DynOperator: Send + Sync {
     fn settings(&self, raw: Value) -> Result<Value, SettingError>;
     fn non_result_keys(&self) -> &'static [&'static str];
     fn tracked_keys(&self) -> &'static [&'static str];
+    /// [`Settings::check_tracked`] of these settings.
+    fn check_tracked(&self, settings: &Value, key: &str, path: &std::path::Path) -> Result<(), SettingError>;
     fn resources(&self, settings: &Value) -> Resources;
     fn worker(&self) -> Option<&'static str>;
     /// The operator that merges this one's shards, when it can be sharded.
@@ -367,6 +393,10 @@ impl<O: Operator> DynOperator for O {
 
     fn tracked_keys(&self) -> &'static [&'static str] {
         O::Settings::TRACKED
+    }
+
+    fn check_tracked(&self, settings: &Value, key: &str, path: &std::path::Path) -> Result<(), SettingError> {
+        parse_settings::<O::Settings>(settings.clone())?.check_tracked(key, path)
     }
 
     fn resources(&self, settings: &Value) -> Resources {

@@ -78,13 +78,17 @@ impl Training {
     pub fn check(&self) -> Result<(), SettingError> {
         SettingError::check_range("epochs", self.epochs, 0..=10_000)?;
         if self.epochs == 0 && self.warmup_epochs > 0.0 {
-            let message = format!("0 leaves the model untrained, with no room for the {} warmup epochs; set `warmup_epochs = 0.0` too", self.warmup_epochs);
+            let message =
+                format!("0 leaves the model untrained, with no room for the {} warmup epochs; set `warmup_epochs = 0.0` too", self.warmup_epochs);
             return Err(SettingError::new("epochs", message));
         }
         SettingError::check_range("batch", self.batch, 1..=65_536)?;
         SettingError::check_range("accumulate", self.accumulate, 1..=self.batch)?;
         if !self.batch.is_multiple_of(self.accumulate) {
-            return Err(SettingError::new("accumulate", format!("must divide `batch` ({}) into equal micro-batches; {} does not", self.batch, self.accumulate)));
+            return Err(SettingError::new(
+                "accumulate",
+                format!("must divide `batch` ({}) into equal micro-batches; {} does not", self.batch, self.accumulate),
+            ));
         }
         SettingError::check_positive("lr", self.lr, 1.0)?;
         SettingError::check_range("warmup_epochs", self.warmup_epochs, 0.0..=self.epochs as f64)?;
@@ -113,7 +117,10 @@ impl Training {
         if let Some(frames) = outline.frames
             && self.batch > frames
         {
-            return Err(SettingError::new("batch", format!("{} is more than the {frames} frames its scenes hold (it trains on a share of them)", self.batch)));
+            return Err(SettingError::new(
+                "batch",
+                format!("{} is more than the {frames} frames its scenes hold (it trains on a share of them)", self.batch),
+            ));
         }
         Ok(outline)
     }

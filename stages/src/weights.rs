@@ -1,6 +1,6 @@
-//! Weights a setting names (`init`), checked when the pipeline is validated rather than when the
-//! stage has run for an hour: the file exists, is a whole safetensors file, and holds the model
-//! the setting expects.
+//! Weights a setting names (`init`, a tracked path: its content is in the key), checked when the
+//! pipeline is validated rather than when the stage has run for an hour: the file exists, is a
+//! whole safetensors file, and holds the model the setting expects.
 
 use std::path::Path;
 
@@ -17,26 +17,31 @@ pub struct Expected<'a> {
     pub source: &'a str,
 }
 
-/// Checks setting `key`'s file at `path` against `expected`; the error says what is wrong.
-pub fn check_init(key: &str, path: &str, expected: &Expected) -> Result<(), SettingError> {
+/// Checks setting `key`'s file at `path` (a regular file: the engine has refused anything else
+/// unopened) against `expected`; the error says what is wrong.
+pub fn check_init(key: &str, path: &Path, expected: &Expected) -> Result<(), SettingError> {
     let wrong = |what: String| Err(SettingError::new(key, format!("{what}; give a {} safetensors file ({})", expected.model, expected.source)));
-    let file = match std::fs::File::open(Path::new(path)) {
+    let shown = path.display();
+    if !path.is_file() {
+        return wrong(format!("`{shown}` is not a file"));
+    }
+    let file = match std::fs::File::open(path) {
         Ok(file) => file,
-        Err(e) => return wrong(format!("cannot open `{path}` ({e})")),
+        Err(e) => return wrong(format!("cannot open `{shown}` ({e})")),
     };
     // SAFETY: the map is read-only and dropped before this returns; a file changed meanwhile can
     // only make the check fail.
     let map = match unsafe { memmap2::Mmap::map(&file) } {
         Ok(map) => map,
-        Err(e) => return wrong(format!("cannot read `{path}` ({e})")),
+        Err(e) => return wrong(format!("cannot read `{shown}` ({e})")),
     };
     let tensors = match SafeTensors::deserialize(&map) {
         Ok(tensors) => tensors,
-        Err(e) => return wrong(format!("`{path}` is not a whole safetensors file ({e:?}: truncated or of another format)")),
+        Err(e) => return wrong(format!("`{shown}` is not a whole safetensors file ({e:?}: truncated or of another format)")),
     };
     let names = tensors.names();
     if !expected.names.iter().any(|n| names.iter().any(|m| m == n)) {
-        return wrong(format!("`{path}` holds {} tensors, none of them {}", names.len(), expected.names.join(" or ")));
+        return wrong(format!("`{shown}` holds {} tensors, none of them {}", names.len(), expected.names.join(" or ")));
     }
     Ok(())
 }
@@ -59,8 +64,9 @@ pub(crate) mod tests {
     fn a_missing_truncated_or_other_models_file_names_the_setting_and_what_is_wrong() {
         let dir = std::env::temp_dir().join(format!("rlmflow-weights-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let expected = Expected { model: "GPT-2", names: &["h.0.attn.c_attn.weight", "transformer.h.0.attn.c_attn.weight"], source: "see the README" };
-        let check = |path: &Path| check_init("init", path.to_str().unwrap(), &expected);
+        let expected =
+            Expected { model: "GPT-2", names: &["h.0.attn.c_attn.weight", "transformer.h.0.attn.c_attn.weight"], source: "see the README" };
+        let check = |path: &Path| check_init("init", path, &expected);
 
         let good = dir.join("gpt2.safetensors");
         write_weights(&good, &["transformer.h.0.attn.c_attn.weight", "transformer.wte.weight"]);
@@ -68,7 +74,7 @@ pub(crate) mod tests {
 
         let e = check(&dir.join("absent.safetensors")).unwrap_err();
         assert_eq!(e.key, "init");
-        assert!(e.message.contains("cannot open") && e.message.ends_with("give a GPT-2 safetensors file (see the README)"), "{}", e.message);
+        assert!(e.message.contains("is not a file") && e.message.ends_with("give a GPT-2 safetensors file (see the README)"), "{}", e.message);
 
         let bytes = std::fs::read(&good).unwrap();
         let truncated = dir.join("truncated.safetensors");

@@ -64,7 +64,9 @@ fn bad_variant_setting_points_at_the_variant() {
 
 #[test]
 fn a_bad_setting_every_variant_inherits_is_one_error() {
-    let err = error_for("[stages.source]\noperator = \"write-text\"\nsteps = \"many\"\n[stages.source.variants]\na = { text = \"a\" }\nb = { text = \"b\" }\n");
+    let err = error_for(
+        "[stages.source]\noperator = \"write-text\"\nsteps = \"many\"\n[stages.source.variants]\na = { text = \"a\" }\nb = { text = \"b\" }\n",
+    );
     assert_eq!(err.matches("stages.source.steps: invalid type").count(), 1, "{err}");
 }
 
@@ -162,6 +164,78 @@ fn a_table_nested_thousands_deep_is_reported_at_its_line() {
     assert_has(&err, &["p.toml:4: nested more than 32 levels deep"]);
     let arrays = format!("[stages.source]\noperator = \"write-text\"\ntext = {}\n", "[".repeat(5000));
     assert_has(&error_for(&arrays), &["p.toml:3: nested more than 32 levels deep"]);
+}
+
+#[test]
+fn numbers_and_dots_in_values_are_not_nesting() {
+    // 40 floats on one line, and a multi-line string of 40 dots: values, not 40 levels.
+    let floats = (1..=40).map(|i| format!("{i}.5")).collect::<Vec<_>>().join(", ");
+    let err = error_for(&format!("[pipeline]\nseeds = [{floats}]\n[stages.source]\noperator = \"write-text\"\n"));
+    assert_has(&err, &["p.toml:2: pipeline.seeds: must be a list of non-negative integers"]);
+    assert!(!err.contains("nested"), "{err}");
+    let s = Scratch::new("cfg-dots");
+    s.pipeline(&format!("[stages.source]\noperator = \"write-text\"\ntext = \"\"\"\n{}\n{}\"\"\"\n", ".".repeat(40), "a.b.".repeat(20)));
+    let out = s.cli(&["run", "p.toml", "--dry-run"]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    // Nesting is still counted where it is: inline tables and dotted keys inside them.
+    let inline = format!("[stages.source]\noperator = \"write-text\"\nvariants = {}{}\n", "{ a = ".repeat(40), "}".repeat(40));
+    assert_has(&error_for(&inline), &["p.toml:3: nested more than 32 levels deep"]);
+}
+
+#[test]
+fn variants_that_multiply_past_the_instance_bound_are_refused_before_expanding() {
+    // 20 variants on each of four chained stages: 160,000 instances.
+    let variants = (0..20).map(|v| format!("v{v} = {{}}")).collect::<Vec<_>>().join(", ");
+    let pipeline = format!(
+        "[stages.source]\noperator = \"write-text\"\nvariants = {{ {variants} }}\n\n\
+         [stages.map]\noperator = \"shout\"\nvariants = {{ {variants} }}\n\n\
+         [stages.again]\nkind = \"remap\"\noperator = \"echo\"\ninputs = {{ mapped = \"map\" }}\nvariants = {{ {variants} }}\n\n\
+         [stages.measure]\noperator = \"count\"\ninputs = {{ mapped = \"again\" }}\nvariants = {{ {variants} }}\n"
+    );
+    let started = std::time::Instant::now();
+    let err = error_for(&pipeline);
+    assert_has(
+        &err,
+        &[
+            "p.toml:15: stages.measure: the plan would have more than 10000 instances (`[pipeline] max_instances`): this stage makes 160000 (20 variants of `again` x 20 variants of `map` x 20 variants of `measure` x 20 variants of `source`), 168420 with the stages before it",
+            "raise `[pipeline] max_instances`",
+        ],
+    );
+    assert!(started.elapsed() < std::time::Duration::from_secs(20), "refused in {:?}", started.elapsed());
+    // The bound is a setting: raised, 8,000 of one stage's variants plan (and are listed).
+    let many = (0..8000).map(|v| format!("v{v} = {{}}")).collect::<Vec<_>>().join(", ");
+    let s = Scratch::new("cfg-many-variants");
+    s.pipeline(&format!("[pipeline]\nmax_instances = 8000\n[stages.source]\noperator = \"write-text\"\nvariants = {{ {many} }}\n"));
+    let out = s.cli(&["run", "p.toml", "--dry-run"]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(text(&out.stdout).contains("source[v7999]"), "{}", text(&out.stdout));
+}
+
+#[test]
+fn a_chain_of_stages_longer_than_the_bound_is_refused_and_a_long_one_plans() {
+    let chain = |n: usize| {
+        let mut p = String::from(
+            "[stages.s0]\nkind = \"map\"\noperator = \"shout\"\ninputs = { text = \"t\" }\n[stages.t]\nkind = \"source\"\noperator = \"write-text\"\n",
+        );
+        for i in 1..n {
+            p.push_str(&format!("[stages.s{i}]\nkind = \"remap\"\noperator = \"echo\"\ninputs = {{ mapped = \"s{}\" }}\n", i - 1));
+        }
+        p
+    };
+    let err = error_for(&chain(200_000));
+    assert_has(&err, &["stages: 200001 stages, and each makes at least one instance; at most 10000 (`[pipeline] max_instances`)"]);
+    // Ordered without recursion: a chain of 50,000 (raised bound) plans in a dry run.
+    let s = Scratch::new("cfg-long-chain");
+    s.pipeline(&format!("[pipeline]\nmax_instances = 60000\n{}", chain(50_000)));
+    let out = s.cli(&["run", "p.toml", "--dry-run"]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(!s.store().exists(), "a dry run writes nothing");
+}
+
+#[test]
+fn an_empty_list_for_a_required_input_is_a_config_error() {
+    let err = error_for("[stages.source]\noperator = \"write-text\"\n[stages.map]\noperator = \"shout\"\ninputs = { text = [] }\n");
+    assert_has(&err, &["p.toml:5: stages.map.inputs.text: names no stage, but `shout` needs its `text` input", "name a stage that produces Text"]);
 }
 
 #[test]

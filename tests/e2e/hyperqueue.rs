@@ -166,8 +166,11 @@ fn workers_with_stores_of_their_own_share_only_the_remote_and_give_the_bytes_of_
     local.pipeline(CHAIN).run();
     let s = Scratch::new("hq-own");
     let remote = s.dir.join("remote");
-    let pipeline = hyperqueue(CHAIN, "workers = 2\ncores = 1\nworker_store = \"temporary\"")
-        .replacen("seed = 7\n", &format!("seed = 7\nremote = \"file://{}\"\nremote_push = true\n", remote.display()), 1);
+    let pipeline = hyperqueue(CHAIN, "workers = 2\ncores = 1\nworker_store = \"temporary\"").replacen(
+        "seed = 7\n",
+        &format!("seed = 7\nremote = \"file://{}\"\nremote_push = true\n", remote.display()),
+        1,
+    );
     s.pipeline(&pipeline);
     let events = s.run();
     assert_eq!(events.with_status("ran").len(), 5, "{:?}", events.finished());
@@ -196,7 +199,12 @@ fn workers_with_stores_of_their_own_share_only_the_remote_and_give_the_bytes_of_
     assert_eq!(other["error"], "asked to fail", "{other}");
     // The failed task's output stays on its worker (here, this machine's temporary directory).
     let run = failed.of("run_started")[0]["run"].as_str().unwrap().to_owned();
-    let kept: Vec<_> = fs::read_dir(std::env::temp_dir()).unwrap().flatten().map(|e| e.path()).filter(|p| p.to_string_lossy().contains(&format!("rlmflow-{run}-other."))).collect();
+    let kept: Vec<_> = fs::read_dir(std::env::temp_dir())
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.to_string_lossy().contains(&format!("rlmflow-{run}-other.")))
+        .collect();
     assert_eq!(kept.len(), 2, "its stdout and stderr: {kept:?}");
     kept.iter().for_each(|p| fs::remove_file(p).unwrap());
 }
@@ -220,11 +228,19 @@ fn a_worker_store_on_a_path_keeps_what_its_tasks_fetched_and_computed() {
     let s = Scratch::new("hq-own-path");
     let (remote, worker) = (s.dir.join("remote"), s.dir.join("worker-store"));
     let table = format!("workers = 1\ncores = 1\nworker_store = \"{}\"", worker.display());
-    s.pipeline(&hyperqueue(CHAIN, &table).replacen("seed = 7\n", &format!("seed = 7\nremote = \"file://{}\"\nremote_push = true\n", remote.display()), 1));
+    s.pipeline(&hyperqueue(CHAIN, &table).replacen(
+        "seed = 7\n",
+        &format!("seed = 7\nremote = \"file://{}\"\nremote_push = true\n", remote.display()),
+        1,
+    ));
     let events = s.run();
     assert_eq!(events.with_status("ran").len(), 5, "{:?}", events.finished());
     // The worker's store holds every result its tasks computed (the inputs among them), and the
     // run's store the same objects, pulled back.
     assert_eq!(objects(&worker), objects(&s.store()));
-    assert!(s.trace().iter().filter(|l| l.starts_with("start write-text")).all(|l| l.contains(&format!("out={}", worker.display()))), "{:?}", s.trace());
+    assert!(
+        s.trace().iter().filter(|l| l.starts_with("start write-text")).all(|l| l.contains(&format!("out={}", worker.display()))),
+        "{:?}",
+        s.trace()
+    );
 }

@@ -1,6 +1,7 @@
 //! End-to-end tests of the engine through the `rlmflow-test` binary (the real CLI with the test
 //! operators of this crate).
 
+mod bad_input;
 mod config_errors;
 mod engine;
 mod harness;

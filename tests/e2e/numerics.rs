@@ -27,7 +27,13 @@ fn written(s: &Scratch) -> String {
 fn the_pins_win_over_the_callers_kernel_choices() {
     let s = Scratch::new("pins");
     s.pipeline(PORTABLE);
-    let out = s.command(&["run", "p.toml"]).env("ATEN_CPU_CAPABILITY", "avx512").env("ONEDNN_MAX_CPU_ISA", "AVX512_CORE").env("MKL_CBWR", "AUTO").output().unwrap();
+    let out = s
+        .command(&["run", "p.toml"])
+        .env("ATEN_CPU_CAPABILITY", "avx512")
+        .env("ONEDNN_MAX_CPU_ISA", "AVX512_CORE")
+        .env("MKL_CBWR", "AUTO")
+        .output()
+        .unwrap();
     assert!(out.status.success(), "{}", text(&out.stderr));
     let seen = written(&s);
     let cpu = Cpu::detect();
@@ -64,7 +70,10 @@ fn the_numeric_platform_is_in_the_key_and_native_names_the_cpu() {
     assert_eq!(s.run().with_status("ran"), ["source"]);
     let show = text(&s.cli(&["show", "p.toml", "source"]).stdout);
     assert!(show.contains(&format!("platform {native}")) && show.contains("kernels native"), "{show}");
-    let provenance = fs::read_dir(s.store().join("runs")).unwrap().map(|r| fs::read_to_string(r.unwrap().path().join("provenance.md")).unwrap_or_default()).collect::<String>();
+    let provenance = fs::read_dir(s.store().join("runs"))
+        .unwrap()
+        .map(|r| fs::read_to_string(r.unwrap().path().join("provenance.md")).unwrap_or_default())
+        .collect::<String>();
     assert!(provenance.contains(&format!("| {native} |")), "{provenance}");
     // An operator whose bytes do not follow kernels has no platform in its key.
     s.pipeline(&PORTABLE.replace("numerics = \"portable\"\n", ""));

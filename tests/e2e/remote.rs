@@ -39,11 +39,8 @@ fn records_have_objects(remote: &Path) {
 
 /// The output digest of each finished instance of a run.
 fn outputs(events: &crate::harness::Events) -> Vec<(String, String)> {
-    let mut v: Vec<(String, String)> = events
-        .of("stage_finished")
-        .iter()
-        .filter_map(|e| Some((e["stage"].as_str()?.to_owned(), e["output"].as_str()?.to_owned())))
-        .collect();
+    let mut v: Vec<(String, String)> =
+        events.of("stage_finished").iter().filter_map(|e| Some((e["stage"].as_str()?.to_owned(), e["output"].as_str()?.to_owned()))).collect();
     v.sort();
     v
 }
@@ -133,7 +130,9 @@ fn silent_server() -> (u16, std::thread::JoinHandle<()>) {
 fn a_remote_that_never_answers_costs_one_timeout_and_one_warning() {
     let (port, _server) = silent_server();
     let s = Scratch::new("remote-silent");
-    s.pipeline(&CHAIN.replace("seed = 7", &format!("seed = 7\nremote = \"http://127.0.0.1:{port}/cache\"\nremote_push = true\nremote_timeout_s = 1.0")));
+    s.pipeline(
+        &CHAIN.replace("seed = 7", &format!("seed = 7\nremote = \"http://127.0.0.1:{port}/cache\"\nremote_push = true\nremote_timeout_s = 1.0")),
+    );
     let t0 = Instant::now();
     let events = s.run();
     assert_eq!(events.with_status("ran").len(), 5, "the run finishes locally");
@@ -304,7 +303,8 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
     let slow = CHAIN.replace("text = \"radar\"", "text = \"radar, again\"\nsteps = 10\nstep_ms = 100");
     let late = Scratch::new("remote-s3-stopped");
     late.pipeline(&slow);
-    let child = late.command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/ci", "--push"]).envs(s3_env).stdout(Stdio::piped()).spawn().unwrap();
+    let child =
+        late.command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/ci", "--push"]).envs(s3_env).stdout(Stdio::piped()).spawn().unwrap();
     std::thread::sleep(Duration::from_millis(300));
     let _ = weed.0.kill();
     let _ = weed.0.wait();

@@ -9,7 +9,8 @@ use super::{artifacts, rlmflow, root, scratch};
 /// A `.npy` file of float32 (`<f4`) or uint8 (`|u1`) values in `shape`.
 fn write_npy(path: &Path, descr: &str, shape: &[usize], data: &[u8]) {
     let dims: Vec<String> = shape.iter().map(usize::to_string).collect();
-    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': ({}), }}", dims.join(", ") + if shape.len() == 1 { "," } else { "" });
+    let mut header =
+        format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': ({}), }}", dims.join(", ") + if shape.len() == 1 { "," } else { "" });
     let total = (10 + header.len() + 1).div_ceil(64) * 64;
     header.push_str(&" ".repeat(total - 10 - header.len() - 1));
     header.push('\n');
@@ -47,7 +48,8 @@ fn write_recording(dir: &Path) {
     for e in 0..12 {
         let episode = format!("e{e:02}");
         for k in 0..3 {
-            let cars: Vec<(f64, f64)> = (0..1 + (e + k) % 3).map(|c| (8.0 + ((e * 7 + k * 5 + c * 11) % 30) as f64, -12.0 + ((e * 5 + k * 7 + c * 5) % 24) as f64)).collect();
+            let cars: Vec<(f64, f64)> =
+                (0..1 + (e + k) % 3).map(|c| (8.0 + ((e * 7 + k * 5 + c * 11) % 30) as f64, -12.0 + ((e * 5 + k * 7 + c * 5) % 24) as f64)).collect();
             let name = format!("frames/{episode}-{k:02}.npy");
             let map = power_map(&cars, e * 3 + k);
             let image = if (e, k) == (1, 2) {
@@ -67,8 +69,10 @@ fn write_recording(dir: &Path) {
             let line = if e == 3 && k < 2 {
                 serde_json::json!({"image": image, "episode": episode, "time": time, "grid": {"10-20m": {"total_vehicles": 1, "in_lane_front_side": 1}, "walkers": 0, "traffic_signs": []}})
             } else {
-                let actors: Vec<serde_json::Value> =
-                    cars.iter().map(|&(x, y)| serde_json::json!({"class": "car", "x": x, "y": y, "heading": 0.0, "length": 4.5, "width": 1.8})).collect();
+                let actors: Vec<serde_json::Value> = cars
+                    .iter()
+                    .map(|&(x, y)| serde_json::json!({"class": "car", "x": x, "y": y, "heading": 0.0, "length": 4.5, "width": 1.8}))
+                    .collect();
                 serde_json::json!({"image": image, "episode": episode, "time": time, "actors": actors})
             };
             manifest += &format!("{line}\n");
@@ -170,10 +174,15 @@ fn an_edited_image_reruns_the_import_and_is_named_and_a_touched_one_reruns_nothi
 /// refuses, saying why, rather than train on empty masks.
 #[test]
 fn segmentation_refuses_frames_imported_without_positions() {
-    let pipeline = format!("{IMPORT_AND_LABELS}[stages.unet]\nkind = \"segment\"\noperator = \"unet\"\ndevice = \"cpu\"\nepochs = 1\nbatch = 8\nchannels = [4, 8]\n");
+    let pipeline = format!(
+        "{IMPORT_AND_LABELS}[stages.unet]\nkind = \"segment\"\noperator = \"unet\"\ndevice = \"cpu\"\nepochs = 1\nbatch = 8\nchannels = [4, 8]\n"
+    );
     let dir = new_recording("import-segment", &pipeline);
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
-    assert!(!ok && out.contains("2 of the 36 frames were imported with a grid but no actors") && out.contains("segmentation needs actors with positions"), "{out}");
+    assert!(
+        !ok && out.contains("2 of the 36 frames were imported with a grid but no actors") && out.contains("segmentation needs actors with positions"),
+        "{out}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -204,23 +213,98 @@ fn importing_a_procedural_stages_mcap_gives_byte_identical_labels() {
 #[test]
 fn each_bad_recording_says_what_is_wrong_and_leaves_no_artifact() {
     type Spoil = fn(&Path);
-    let cases: [(&str, Spoil, &str); 7] = [
+    let cases: [(&str, Spoil, &str); 13] = [
+        (
+            "an absolute image path",
+            |d| append(d, "{\"image\": \"/etc/hostname\", \"actors\": []}\n"),
+            "manifest.jsonl:37: image `/etc/hostname`: is an absolute path, outside the recording",
+        ),
+        (
+            "an image path that climbs out",
+            |d| append(d, "{\"image\": \"../p.toml\", \"actors\": []}\n"),
+            "manifest.jsonl:37: image `../p.toml`: climbs out of the recording with `..`",
+        ),
+        (
+            "a symbolic link out",
+            |d| {
+                std::os::unix::fs::symlink("/etc/hostname", d.join("frames/link.npy")).unwrap();
+                append(d, "{\"image\": \"frames/link.npy\", \"actors\": []}\n");
+            },
+            "p.toml:6: stages.scenes.path: ",
+        ),
+        (
+            "a 0x0 image",
+            |d| write_npy(&d.join("frames/e00-00.npy"), "<f4", &[0, 0], &[]),
+            "manifest.jsonl:1: image `frames/e00-00.npy`: an image of 0x0 pixels",
+        ),
+        (
+            "a 0xN image",
+            |d| write_npy(&d.join("frames/e00-00.npy"), "<f4", &[0, COLS], &[]),
+            "manifest.jsonl:1: image `frames/e00-00.npy`: an image of 0x30 pixels",
+        ),
+        (
+            "a shape whose size overflows",
+            |d| write_npy(&d.join("frames/e00-01.npy"), "<f4", &[1 << 62, 8], &[]),
+            "recording/frames/e00-01.npy: its header's shape [4611686018427387904, 8] is larger than any file",
+        ),
         ("a malformed line", |d| append(d, "{\"image\": \"frames/e00-00.npy\", \"actors\": [}\n"), "recording/manifest.jsonl:37: "),
-        ("a missing image", |d| append(d, "{\"image\": \"frames/gone.npy\", \"actors\": []}\n"), "manifest.jsonl:37: image `frames/gone.npy`: no such file"),
+        (
+            "a missing image",
+            |d| append(d, "{\"image\": \"frames/gone.npy\", \"actors\": []}\n"),
+            "manifest.jsonl:37: image `frames/gone.npy`: no such file",
+        ),
         ("a wrong dtype", |d| write_npy(&d.join("frames/e00-00.npy"), "<f8", &[ROWS, COLS], &[0; ROWS * COLS * 8]), "<f4 (float32)"),
-        ("a wrong shape", |d| write_npy(&d.join("frames/e00-01.npy"), "<f4", &[ROWS, COLS, 2], &[0; ROWS * COLS * 8]), "shape [20, 30, 2]; valid: a 2-D array"),
-        ("inconsistent sizes", |d| write_npy(&d.join("frames/e01-00.npy"), "<f4", &[ROWS, COLS + 1], &f32_bytes(&vec![1.0; ROWS * (COLS + 1)])), "manifest.jsonl:4: image `frames/e01-00.npy` is 20x31, but `frames/e00-00.npy` (the first frame's) is 20x30"),
-        ("a NaN", |d| write_npy(&d.join("frames/e05-01.npy"), "<f4", &[ROWS, COLS], &f32_bytes(&[vec![1.0; 31], vec![f32::NAN], vec![1.0; ROWS * COLS - 32]].concat())), "manifest.jsonl:17: image `frames/e05-01.npy` holds NaN at row 1, column 1"),
-        ("an unknown class", |d| append(d, "{\"image\": \"frames/e00-00.npy\", \"actors\": [{\"class\": \"bus\", \"x\": 1, \"y\": 0, \"heading\": 0, \"length\": 4, \"width\": 2}]}\n"), "actor 0: unknown class `bus`; valid: car, truck, walker, sign:<name>"),
+        (
+            "a wrong shape",
+            |d| write_npy(&d.join("frames/e00-01.npy"), "<f4", &[ROWS, COLS, 2], &[0; ROWS * COLS * 8]),
+            "shape [20, 30, 2]; valid: a 2-D array",
+        ),
+        (
+            "inconsistent sizes",
+            |d| write_npy(&d.join("frames/e01-00.npy"), "<f4", &[ROWS, COLS + 1], &f32_bytes(&vec![1.0; ROWS * (COLS + 1)])),
+            "manifest.jsonl:4: image `frames/e01-00.npy` is 20x31, but `frames/e00-00.npy` (the first frame's) is 20x30",
+        ),
+        (
+            "a NaN",
+            |d| {
+                write_npy(
+                    &d.join("frames/e05-01.npy"),
+                    "<f4",
+                    &[ROWS, COLS],
+                    &f32_bytes(&[vec![1.0; 31], vec![f32::NAN], vec![1.0; ROWS * COLS - 32]].concat()),
+                )
+            },
+            "manifest.jsonl:17: image `frames/e05-01.npy` holds NaN at row 1, column 1",
+        ),
+        (
+            "an unknown class",
+            |d| {
+                append(
+                    d,
+                    "{\"image\": \"frames/e00-00.npy\", \"actors\": [{\"class\": \"bus\", \"x\": 1, \"y\": 0, \"heading\": 0, \"length\": 4, \"width\": 2}]}\n",
+                )
+            },
+            "actor 0: unknown class `bus`; valid: car, truck, walker, sign:<name>",
+        ),
     ];
     for (what, spoil, expected) in cases {
         let dir = new_recording("import-bad", IMPORT_AND_LABELS);
         spoil(&dir.join("recording"));
         let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
         assert!(!ok && out.contains(expected), "{what}: expected `{expected}` in {out}");
-        let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
-        assert!(store.record_keys().unwrap().is_empty(), "{what}: no record");
-        assert!(artifacts(&dir.join(".rlmflow/objects"), "scenes.json").is_empty(), "{what}: no Scenes artifact");
+        assert!(!out.contains("panicked"), "{what}: {out}");
+        if let Some(store) = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap() {
+            assert!(store.record_keys().unwrap().is_empty(), "{what}: no record");
+            assert!(artifacts(&dir.join(".rlmflow/objects"), "scenes.json").is_empty(), "{what}: no Scenes artifact");
+        }
+    }
+    // A manifest named outside the recording is a settings error, before anything is read.
+    for (manifest, problem) in [("/etc/passwd", "is an absolute path, outside the recording"), ("../p.toml", "climbs out of the recording with `..`")]
+    {
+        let dir = new_recording("import-bad", &IMPORT_AND_LABELS.replace("image = 32", &format!("image = 32\nmanifest = \"{manifest}\"")));
+        let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
+        assert!(!ok && out.contains(&format!("stages.scenes.manifest: `{manifest}` {problem}")), "{out}");
+        assert!(!dir.join(".rlmflow").exists(), "nothing ran");
     }
     // A span the azimuths cannot have is a settings error, before anything runs.
     let dir = new_recording("import-bad", &IMPORT_AND_LABELS.replace("image = 32", "image = 32\naxes = { azimuth_span_deg = 400.0 }"));

@@ -12,7 +12,8 @@ use std::time::Duration;
 
 use anyhow::bail;
 use rlmflow_stages::{
-    Catalog, Context, Device, Items, Kernels, Numerics, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding, Slot, StageKind,
+    Catalog, Context, Device, Items, Kernels, Numerics, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding, Slot,
+    StageKind,
 };
 use serde::{Deserialize, Serialize};
 
@@ -55,6 +56,8 @@ pub struct WriteTextSettings {
     pub steps: u32,
     pub step_ms: u64,
     pub fail: bool,
+    /// Fails at run time with an error about this setting (a check only the data can make).
+    pub fail_on: String,
     pub panic: bool,
     pub threads: usize,
     /// Asks for a GPU (the operator never uses one): for the scheduler's GPU rule.
@@ -66,16 +69,38 @@ pub struct WriteTextSettings {
     /// Its bytes follow the numeric kernels, as a model operator's do: it appends every kernel
     /// variable of its environment to the text, so a choice that reaches it shows.
     pub numerics: Option<Numerics>,
+    /// A file (tracked by content) whose text goes before `text`; it must be UTF-8.
+    pub from: String,
 }
 
 impl Default for WriteTextSettings {
     fn default() -> Self {
-        WriteTextSettings { text: "hello".into(), steps: 0, step_ms: 0, fail: false, panic: false, threads: 1, gpu: false, cuda: false, nondeterministic: false, numerics: None }
+        WriteTextSettings {
+            text: "hello".into(),
+            steps: 0,
+            step_ms: 0,
+            fail: false,
+            fail_on: String::new(),
+            panic: false,
+            threads: 1,
+            gpu: false,
+            cuda: false,
+            nondeterministic: false,
+            numerics: None,
+            from: String::new(),
+        }
     }
 }
 
 impl Settings for WriteTextSettings {
     const NON_RESULT: &'static [&'static str] = &["threads", "step_ms", "gpu", "cuda"];
+    const TRACKED: &'static [&'static str] = &["from"];
+    fn check_tracked(&self, key: &str, path: &std::path::Path) -> Result<(), SettingError> {
+        match fs::read(path) {
+            Ok(bytes) if std::str::from_utf8(&bytes).is_err() => Err(SettingError::new(key, "is not UTF-8 text")),
+            _ => Ok(()),
+        }
+    }
     fn check(&self) -> Result<(), SettingError> {
         if self.threads == 0 {
             return Err(SettingError::new("threads", "must be at least 1"));
@@ -119,6 +144,10 @@ impl Operator for WriteText {
         if s.fail {
             bail!("asked to fail");
         }
+        if !s.fail_on.is_empty() {
+            return Err(anyhow::Error::new(SettingError::new(s.fail_on.clone(), "is wrong for this data (a check only a run can make)"))
+                .context("checking the data"));
+        }
         let progress = ctx.progress(s.steps as u64, "steps");
         progress.set_position(start as u64);
         for step in start..s.steps {
@@ -130,6 +159,9 @@ impl Operator for WriteText {
         progress.finish();
         ctx.event("wrote", serde_json::json!({"bytes": s.text.len()}));
         let mut text = if s.nondeterministic { format!("{} {}", s.text, std::process::id()) } else { s.text.clone() };
+        if let Some(from) = ctx.tracked_file("from")? {
+            text = fs::read_to_string(from)? + &text;
+        }
         if s.numerics.is_some() {
             for var in rlmflow_stages::numerics::KERNEL_VARIABLES {
                 text += &format!("\n{var}={}", std::env::var(var).unwrap_or_default());

@@ -48,7 +48,10 @@ fn parent() {
         digests.push(("native", digest));
     }
     let (p, n) = (step::median(portable), step::median(native));
-    println!("laptop step, batch 128, 2 threads: portable {p:.1} ms, native {n:.1} ms; portable / native {:.3} (medians of {ROUNDS} alternating rounds)", p / n);
+    println!(
+        "laptop step, batch 128, 2 threads: portable {p:.1} ms, native {n:.1} ms; portable / native {:.3} (medians of {ROUNDS} alternating rounds)",
+        p / n
+    );
     for mode in ["portable", "native"] {
         let mine: Vec<&Digest> = digests.iter().filter(|(m, _)| *m == mode).map(|(_, d)| d).collect();
         let same = mine.windows(2).all(|w| w[0] == w[1]);

@@ -277,7 +277,8 @@ impl Task {
             attempt += 1;
             let data = json!({"job": job, "attempt": attempt, "retries": self.retries, "reason": exit.describe()});
             let _ = tx.send((id, Report::Message(Message::Event { name: "hyperqueue_retry".into(), data })));
-            let _ = writeln!(log.lock().unwrap(), "rlmflow: HyperQueue job {job} ended without an outcome ({}); submitting it again", exit.describe());
+            let _ =
+                writeln!(log.lock().unwrap(), "rlmflow: HyperQueue job {job} ended without an outcome ({}); submitting it again", exit.describe());
         }
     }
 
@@ -354,7 +355,8 @@ impl OwnTask {
     /// when that cannot be done.
     fn prepare(own: &OwnStores, launch: &Launch) -> anyhow::Result<Result<OwnTask, Exit>> {
         let remote = own.remote.open()?;
-        let engine = rlmflow_cache::Store::open_existing(&launch.store)?.with_context(|| format!("no rlmflow store at {}", launch.store.display()))?;
+        let engine =
+            rlmflow_cache::Store::open_existing(&launch.store)?.with_context(|| format!("no rlmflow store at {}", launch.store.display()))?;
         let request = engine.request(&launch.key)?.with_context(|| format!("the store has no request for action {}", launch.key))?;
         for input in &request.preimage.inputs {
             if remote.push_object(&engine, &input.digest, false)?.is_none() {
@@ -384,7 +386,15 @@ impl OwnTask {
     /// After the job ended (HyperQueue's `reason` it failed, "" if it did not): forwards the
     /// transcript, and pulls the result into the engine's store. Returns how the task ended
     /// and whether it reported an outcome.
-    fn finish(&self, reason: &str, transcript: &str, stderr: &Path, id: usize, tx: &Sender<(usize, Report)>, log: &Mutex<File>) -> anyhow::Result<(Exit, bool)> {
+    fn finish(
+        &self,
+        reason: &str,
+        transcript: &str,
+        stderr: &Path,
+        id: usize,
+        tx: &Sender<(usize, Report)>,
+        log: &Mutex<File>,
+    ) -> anyhow::Result<(Exit, bool)> {
         let mut exit = if reason.is_empty() { Exit::Code(0) } else { exit_of(reason) };
         let mut outcome = None;
         match self.remote.transcript(transcript) {
@@ -412,7 +422,7 @@ impl OwnTask {
             };
             if let Some(why) = why {
                 let message = format!("the task finished, but its result could not be fetched from the remote cache: {why}");
-                let _ = tx.send((id, Report::Message(Message::Failed { message })));
+                let _ = tx.send((id, Report::Message(Message::Failed { message, setting: None })));
                 exit = Exit::Code(1);
             }
         }

@@ -182,7 +182,9 @@ impl HyperQueueSettings {
             path if path.starts_with('/') => Ok(WorkerStore::Own(PathBuf::from(path))),
             other => Err((
                 "worker_store",
-                format!("`{other}` is not valid; valid: \"shared\" (the run's store), \"temporary\" (one per task) or an absolute path on the workers"),
+                format!(
+                    "`{other}` is not valid; valid: \"shared\" (the run's store), \"temporary\" (one per task) or an absolute path on the workers"
+                ),
             )),
         }
     }

@@ -491,6 +491,8 @@ struct Stats {
     sent: AtomicU64,
     cached: AtomicU64,
     retries: AtomicU64,
+    /// Stored answers found damaged, set aside and asked for again.
+    repaired: AtomicU64,
     prompt_tokens: AtomicU64,
     completion_tokens: AtomicU64,
 }
@@ -510,7 +512,7 @@ impl Stats {
 
     fn json(&self) -> Value {
         let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
-        json!({"sent": get(&self.sent), "from_cache": get(&self.cached), "retries": get(&self.retries), "prompt_tokens": get(&self.prompt_tokens), "completion_tokens": get(&self.completion_tokens)})
+        json!({"sent": get(&self.sent), "from_cache": get(&self.cached), "retries": get(&self.retries), "repaired": get(&self.repaired), "prompt_tokens": get(&self.prompt_tokens), "completion_tokens": get(&self.completion_tokens)})
     }
 }
 
@@ -570,9 +572,19 @@ impl Client {
     fn complete(&self, body: &str, attempt: u32) -> anyhow::Result<Answer> {
         let digest = blake3::hash(format!("{}\n{attempt}\n{body}", self.identity).as_bytes()).to_hex();
         let path = self.cache.join(format!("{digest}.json"));
-        if let Some(answer) = std::fs::read_to_string(&path).ok().and_then(|text| Answer::parse(&text).ok()) {
-            self.stats.cached.fetch_add(1, Ordering::Relaxed);
-            return Ok(answer);
+        if let Ok(text) = std::fs::read_to_string(&path) {
+            match Answer::parse(&text) {
+                Ok(answer) => {
+                    self.stats.cached.fetch_add(1, Ordering::Relaxed);
+                    return Ok(answer);
+                }
+                // Damaged (a disk fault, a hand edit): set aside once and asked again, so the
+                // next run reads the new answer rather than asking forever.
+                Err(_) => {
+                    quarantine(&path)?;
+                    self.stats.repaired.fetch_add(1, Ordering::Relaxed);
+                }
+            }
         }
         let mut tries = 0;
         loop {
@@ -592,7 +604,7 @@ impl Client {
                 Failure::Fatal(e) => return Err(e),
                 Failure::Retry(why, _) if tries >= self.retries => bail!("{}: gave up after {} tries: {why}", self.url, tries + 1),
                 Failure::Retry(_, wait) => {
-                    let backoff = self.backoff.saturating_mul(1 << tries.min(16)).min(Duration::from_secs(60));
+                    let backoff = self.backoff.saturating_mul(1 << tries.min(16)).min(MAX_WAIT);
                     std::thread::sleep(wait.unwrap_or(backoff));
                     tries += 1;
                     self.stats.retries.fetch_add(1, Ordering::Relaxed);
@@ -620,8 +632,7 @@ impl Client {
             Err(e) => return Err(Failure::Fatal(anyhow!("{}: {e}", self.url))),
         };
         let status = response.status().as_u16();
-        let retry_after =
-            response.headers().get("retry-after").and_then(|v| v.to_str().ok()?.trim().parse::<f64>().ok()).map(Duration::from_secs_f64);
+        let retry_after = response.headers().get("retry-after").and_then(|v| retry_after(v.to_str().ok()?));
         let text = response.body_mut().read_to_string().map_err(|e| Failure::Retry(format!("reading the answer: {e}"), None))?;
         match status {
             200..=299 => Ok(text),
@@ -638,22 +649,45 @@ impl Client {
     }
 }
 
-/// Stores an answer under `path` unless one is there already, and returns the stored one: when
-/// two frames send the same request at once, both get the answer that a rerun will read. The answer is written to a file of its own and linked into place, so a reader
-/// never sees half of it.
+/// The longest a retry waits, whatever the backoff or a server's `Retry-After` asks for.
+const MAX_WAIT: Duration = Duration::from_secs(60);
+
+/// A `Retry-After` header's seconds, at most [`MAX_WAIT`]; `None` for anything but a finite,
+/// non-negative number (an HTTP date, a negative or NaN value), so the backoff applies.
+fn retry_after(header: &str) -> Option<Duration> {
+    let seconds = header.trim().parse::<f64>().ok().filter(|s| s.is_finite() && *s >= 0.0)?;
+    Some(Duration::from_secs_f64(seconds.min(MAX_WAIT.as_secs_f64())))
+}
+
+/// Sets a damaged stored answer aside (`<digest>.damaged`, kept for a look) so its request can
+/// be answered again.
+fn quarantine(path: &Path) -> anyhow::Result<()> {
+    std::fs::rename(path, path.with_extension("damaged")).with_context(|| format!("setting the damaged stored answer {} aside", path.display()))
+}
+
+/// Stores an answer under `path` unless a whole one is there already, and returns the stored
+/// one: when two frames send the same request at once, both get the answer that a rerun will
+/// read. The answer is written to a file of its own and linked into place, so a reader never
+/// sees half of it; a damaged answer in the way is set aside and replaced.
 fn store(path: &Path, text: &str, answer: Answer) -> anyhow::Result<Answer> {
     static WRITES: AtomicU64 = AtomicU64::new(0);
     let tmp = path.with_extension(format!("tmp-{}-{}", std::process::id(), WRITES.fetch_add(1, Ordering::Relaxed)));
-    let stored = std::fs::write(&tmp, text).and_then(|()| std::fs::hard_link(&tmp, path));
-    let _ = std::fs::remove_file(&tmp);
-    match stored {
+    let stored = match std::fs::write(&tmp, text).and_then(|()| std::fs::hard_link(&tmp, path)) {
         Ok(()) => Ok(answer),
         Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-            let text = std::fs::read_to_string(path).with_context(|| format!("reading the stored answer {}", path.display()))?;
-            Answer::parse(&text).with_context(|| format!("the stored answer {} is damaged", path.display()))
+            let before = std::fs::read_to_string(path).with_context(|| format!("reading the stored answer {}", path.display()));
+            match before.map(|text| Answer::parse(&text)) {
+                Ok(Ok(kept)) => Ok(kept),
+                Ok(Err(_)) => quarantine(path)
+                    .and_then(|()| std::fs::rename(&tmp, path).with_context(|| format!("storing the answer in {}", path.display())))
+                    .map(|()| answer),
+                Err(e) => Err(e),
+            }
         }
         Err(e) => Err(e).with_context(|| format!("storing the answer in {}", path.display())),
-    }
+    };
+    let _ = std::fs::remove_file(&tmp);
+    stored
 }
 
 /// A chat-completions answer: its captions (whitespace collapsed), each with whether it was cut
@@ -1061,14 +1095,56 @@ mod tests {
         let path = root.join("cache").join("digest.json");
         let text = |caption: &str| json!({"choices": [{"message": {"content": caption}}]}).to_string();
         let first = text("From zero to ten meters,   there are no vehicles.");
-        assert_eq!(store(&path, &first, Answer::parse(&first).unwrap()).unwrap().captions, [("From zero to ten meters, there are no vehicles.".to_owned(), false)]);
+        assert_eq!(
+            store(&path, &first, Answer::parse(&first).unwrap()).unwrap().captions,
+            [("From zero to ten meters, there are no vehicles.".to_owned(), false)]
+        );
         // A second answer to the same request (sent at the same time by another frame) yields
         // the stored one, so both frames agree with what a rerun reads.
         let second = text("Close by, a single car is right in front of us.");
-        assert_eq!(store(&path, &second, Answer::parse(&second).unwrap()).unwrap().captions, [("From zero to ten meters, there are no vehicles.".to_owned(), false)]);
+        assert_eq!(
+            store(&path, &second, Answer::parse(&second).unwrap()).unwrap().captions,
+            [("From zero to ten meters, there are no vehicles.".to_owned(), false)]
+        );
         assert_eq!(std::fs::read_to_string(&path).unwrap(), first);
         assert_eq!(std::fs::read_dir(root.join("cache")).unwrap().count(), 1, "no scratch files left");
         std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn a_damaged_stored_answer_is_set_aside_and_asked_for_once() {
+        let root = scratch("damaged");
+        write_labels(&root, 4);
+        let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Never);
+        let s = settings(&server, &root);
+        run(&root, &s).unwrap();
+        let cache = root.join("cache");
+        let stored: Vec<PathBuf> = std::fs::read_dir(&cache).unwrap().map(|e| e.unwrap().path()).collect();
+        std::fs::write(&stored[0], b"{\"choices\": [{\"mess").unwrap();
+        let sent = server.requests.load(Ordering::SeqCst);
+        let again = run(&root, &s).unwrap();
+        assert_eq!(server.requests.load(Ordering::SeqCst), sent + 1, "the damaged answer's request, once");
+        assert_eq!(again.metrics["requests"]["repaired"], 1, "{}", again.metrics);
+        assert!(Answer::parse(&std::fs::read_to_string(&stored[0]).unwrap()).is_ok(), "replaced by a whole answer");
+        assert_eq!(std::fs::read(stored[0].with_extension("damaged")).unwrap(), b"{\"choices\": [{\"mess", "kept aside");
+        run(&root, &s).unwrap();
+        assert_eq!(server.requests.load(Ordering::SeqCst), sent + 1, "repaired once, not asked again");
+        // Two answers racing for a damaged file: the one stored replaces it.
+        let path = cache.join("race.json");
+        std::fs::write(&path, "not json").unwrap();
+        let text = json!({"choices": [{"message": {"content": "No vehicles."}}]}).to_string();
+        assert_eq!(store(&path, &text, Answer::parse(&text).unwrap()).unwrap().captions[0].0, "No vehicles.");
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), text);
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn retry_after_is_read_only_as_a_bounded_number_of_seconds() {
+        assert_eq!(retry_after(" 2.5 "), Some(Duration::from_millis(2500)));
+        assert_eq!(retry_after("86400"), Some(MAX_WAIT));
+        for bad in ["-1", "NaN", "inf", "1e400", "Wed, 21 Oct 2015 07:28:00 GMT", ""] {
+            assert_eq!(retry_after(bad), None, "{bad}");
+        }
     }
 
     #[test]

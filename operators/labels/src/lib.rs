@@ -567,8 +567,14 @@ mod tests {
         assert_eq!(at(20, 34), 0, "beyond the radius");
         assert_eq!(at(60, 60), 0, "walkers are not vehicles");
         assert_eq!(m.iter().filter(|v| **v > 0).count(), 37, "pixels within 3.5 px of a pixel centre");
-        let off =
-            Frame { index: 0, id: String::new(), episode: None, scenario: "t".into(), actors: vec![actor("car", 10.0, 0.0, 0.0, (-40.0, 30.5))], grid: None };
+        let off = Frame {
+            index: 0,
+            id: String::new(),
+            episode: None,
+            scenario: "t".into(),
+            actors: vec![actor("car", 10.0, 0.0, 0.0, (-40.0, 30.5))],
+            grid: None,
+        };
         assert!(mask(&off, &g).iter().all(|v| *v == 0));
     }
 

@@ -70,7 +70,9 @@ pub fn cached_contrastive(
 ) -> (f64, Vec<Tensor>) {
     let n = images.size()[0];
     let chunks: Vec<(i64, i64)> = (0..n).step_by(chunk as usize).map(|start| (start, chunk.min(n - start))).collect();
-    let embed = |(start, len): (i64, i64)| (model.encode_image(&images.narrow(0, start, len), true).embedding, model.encode_text(&tokens.narrow(0, start, len)));
+    let embed = |(start, len): (i64, i64)| {
+        (model.encode_image(&images.narrow(0, start, len), true).embedding, model.encode_text(&tokens.narrow(0, start, len)))
+    };
     let (images_cut, texts_cut): (Vec<Tensor>, Vec<Tensor>) = tch::no_grad(|| chunks.iter().map(|&c| embed(c)).unzip());
     let image = Tensor::cat(&images_cut, 0).set_requires_grad(true);
     let text = Tensor::cat(&texts_cut, 0).set_requires_grad(true);
@@ -128,8 +130,10 @@ mod tests {
     fn a_batch_embedded_in_chunks_has_the_whole_batchs_loss_and_gradients() {
         tch::manual_seed(7);
         let vs = nn::VarStore::new(tch::Device::Cpu);
-        let vision = VisionConfig { image: 16, stem: Stem::Patch { size: 8 }, width: 32, layers: 2, heads: 2, mlp: 64, head: Head::Mlp, quick_gelu: false };
-        let text = TextConfig { context: 8, vocab: 40, group: 1, token_width: 32, width: 32, layers: 2, heads: 2, mlp: 64, end_token: 1, head: Head::Mlp };
+        let vision =
+            VisionConfig { image: 16, stem: Stem::Patch { size: 8 }, width: 32, layers: 2, heads: 2, mlp: 64, head: Head::Mlp, quick_gelu: false };
+        let text =
+            TextConfig { context: 8, vocab: 40, group: 1, token_width: 32, width: 32, layers: 2, heads: 2, mlp: 64, end_token: 1, head: Head::Mlp };
         let config = ModelConfig { embed: 16, vision, text: Some(text), counts_head: 0 };
         let model = Clip::new(&vs.root(), &config, 0.07, true);
         let opt = AdamW::new(&vs, (0.9, 0.98), 1e-8, 0.0);

@@ -23,4 +23,3 @@ pub mod transformer;
 pub mod vision;
 
 pub use tch;
-

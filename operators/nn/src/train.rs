@@ -290,11 +290,17 @@ mod tests {
         let training = Training { epochs: 1, batch: 8, accumulate, warmup_epochs: 0.0, lr: 0.1, eps: 1.0, clip_norm: 1e6, ..Training::default() };
         let frames: Vec<usize> = (0..8).collect();
         let fit_on = Fit { training: &training, frames: &frames, per_batch: false };
-        fit(&vs, fit_on, &mut ctx, |batch, _, _| {
-            let index = Tensor::from_slice(&batch.iter().map(|&i| i as i64).collect::<Vec<_>>());
-            let predicted = nn::Module::forward(&layer, &inputs.index_select(0, &index));
-            Ok(Step::from((predicted - targets.index_select(0, &index)).square().mean(tch::Kind::Float)))
-        }, || Ok(Vec::new()))
+        fit(
+            &vs,
+            fit_on,
+            &mut ctx,
+            |batch, _, _| {
+                let index = Tensor::from_slice(&batch.iter().map(|&i| i as i64).collect::<Vec<_>>());
+                let predicted = nn::Module::forward(&layer, &inputs.index_select(0, &index));
+                Ok(Step::from((predicted - targets.index_select(0, &index)).square().mean(tch::Kind::Float)))
+            },
+            || Ok(Vec::new()),
+        )
         .unwrap();
         std::fs::remove_dir_all(&dir).unwrap();
         layer.ws.detach()

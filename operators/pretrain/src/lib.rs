@@ -17,9 +17,11 @@
 
 use rlmflow_stages::encoder::{Distance, Head, ModelConfig, Stem, TextConfig, VisionConfig};
 use rlmflow_stages::grid::CELLS;
-use rlmflow_stages::weights::{Expected, check_init};
 use rlmflow_stages::memory::{FLOAT, LOWER_BY_ACCUMULATING, TRAINED};
-use rlmflow_stages::{Device, Footprint, InWorker, Numerics, InputOutlines, ModelOutline, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
+use rlmflow_stages::weights::{Expected, check_init};
+use rlmflow_stages::{
+    Device, Footprint, InWorker, InputOutlines, ModelOutline, Numerics, OperatorSpec, Outline, Resources, SettingError, Settings, Training,
+};
 use serde::{Deserialize, Serialize};
 
 /// The binary the torch operators run in.
@@ -115,6 +117,12 @@ impl Default for ClipSettings {
 }
 
 impl Settings for ClipSettings {
+    const TRACKED: &'static [&'static str] = &["init"];
+
+    fn check_tracked(&self, key: &str, path: &std::path::Path) -> Result<(), SettingError> {
+        check_init(key, path, &CLIP_WEIGHTS)
+    }
+
     fn check(&self) -> Result<(), SettingError> {
         let one_of = |key: &str, value: &str, valid: &[&str]| {
             if valid.contains(&value) {
@@ -135,9 +143,6 @@ impl Settings for ClipSettings {
         if !self.init.is_empty() && self.encoder != "vit-b16" {
             return Err(SettingError::new("init", "CLIP weights fit only encoder = \"vit-b16\""));
         }
-        if !self.init.is_empty() {
-            check_init("init", &self.init, &CLIP_WEIGHTS)?;
-        }
         if self.text_head != Head::Linear && self.objective == Objective::Counts {
             return Err(SettingError::new("text_head", "the `counts` objective trains no text tower"));
         }
@@ -154,7 +159,10 @@ impl Settings for ClipSettings {
         if self.chunk > 0 && self.encoder != "vit-b16" {
             return Err(SettingError::new(
                 "chunk",
-                format!("needs a tower without BatchNorm (encoder = \"vit-b16\"): `{}`'s conv stem normalises by batch, which chunks would change", self.encoder),
+                format!(
+                    "needs a tower without BatchNorm (encoder = \"vit-b16\"): `{}`'s conv stem normalises by batch, which chunks would change",
+                    self.encoder
+                ),
             ));
         }
         Ok(())
@@ -236,8 +244,12 @@ pub fn model_config(s: &ClipSettings, image: i64, context: i64, vocab: i64, end_
     let vision = VisionConfig { image, stem, width, layers, heads, mlp, head: s.head, quick_gelu: s.quick_gelu };
     let text = match (s.objective, s.text.as_str()) {
         (Objective::Counts, _) => None,
-        (_, "tiny") => Some(TextConfig { context, vocab, group: 8, token_width: 64, width: 128, layers: 2, heads: 4, mlp: 512, end_token, head: s.text_head }),
-        _ => Some(TextConfig { context, vocab, group: 1, token_width: 512, width: 512, layers: 12, heads: 8, mlp: 2048, end_token, head: s.text_head }),
+        (_, "tiny") => {
+            Some(TextConfig { context, vocab, group: 8, token_width: 64, width: 128, layers: 2, heads: 4, mlp: 512, end_token, head: s.text_head })
+        }
+        _ => {
+            Some(TextConfig { context, vocab, group: 1, token_width: 512, width: 512, layers: 12, heads: 8, mlp: 2048, end_token, head: s.text_head })
+        }
     };
     if let Some(t) = &text
         && context % t.group != 0

@@ -24,9 +24,11 @@
 //! or length-normalised beam search, to the end token), read back by the LLM-free parser and
 //! scored per cell like `linear`.
 
-use rlmflow_stages::weights::{Expected, check_init};
 use rlmflow_stages::memory::{self, Blocks, FLOAT, TRAINED};
-use rlmflow_stages::{Device, Footprint, InWorker, InputOutlines, Kernels, Numerics, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
+use rlmflow_stages::weights::{Expected, check_init};
+use rlmflow_stages::{
+    Device, Footprint, InWorker, InputOutlines, Kernels, Numerics, OperatorSpec, Outline, Resources, SettingError, Settings, Training,
+};
 use serde::{Deserialize, Serialize};
 
 /// The binary the probes run in.
@@ -154,15 +156,18 @@ impl Default for ClipcapSettings {
 }
 
 impl Settings for ClipcapSettings {
+    const TRACKED: &'static [&'static str] = &["init"];
+
+    fn check_tracked(&self, key: &str, path: &std::path::Path) -> Result<(), SettingError> {
+        check_init(key, path, &GPT2_WEIGHTS)
+    }
+
     fn check(&self) -> Result<(), SettingError> {
         if !DECODERS.contains(&self.decoder.as_str()) {
             return Err(SettingError::new("decoder", format!("unknown decoder `{}`; valid: {}", self.decoder, DECODERS.join(", "))));
         }
         if !self.init.is_empty() && self.decoder != "gpt2" {
             return Err(SettingError::new("init", "GPT-2 weights fit only decoder = \"gpt2\""));
-        }
-        if !self.init.is_empty() {
-            check_init("init", &self.init, &GPT2_WEIGHTS)?;
         }
         SettingError::check_range("prefix", self.prefix, 1..=64)?;
         SettingError::check_range("mapper_layers", self.mapper_layers, 1..=24)?;
@@ -194,7 +199,12 @@ fn clipcap_footprint(s: &ClipcapSettings, inputs: &InputOutlines) -> Option<Foot
     let positions = prefix + context;
     let mapper = Blocks { width, layers: s.mapper_layers as u64, mlp: 4 * width, quick_gelu: false };
     let decoder = Blocks { width, layers: layers as u64, mlp: 4 * width, quick_gelu: true };
-    let trained = memory::linear(encoder.embed, prefix * width) + prefix * width + mapper.parameters() + (vocab + positions) * width + decoder.parameters() + 2 * width;
+    let trained = memory::linear(encoder.embed, prefix * width)
+        + prefix * width
+        + mapper.parameters()
+        + (vocab + positions) * width
+        + decoder.parameters()
+        + 2 * width;
     let per_caption = mapper.activations(2 * prefix) + decoder.activations(positions) + 3 * positions * vocab;
     let peak_bytes = encoder.parameters * FLOAT + trained * TRAINED + per_caption * s.training.micro_batch() * FLOAT;
     Some(Footprint { parameters: encoder.parameters + trained, peak_bytes, lower_with: memory::LOWER_BY_ACCUMULATING })

@@ -77,7 +77,10 @@ fn mcap_throughput(frames: u64, size: usize) {
         let batch: Vec<_> = (start..(start + 100).min(frames))
             .map(|i| {
                 let pixels: Vec<u8> = (0..size * size).map(|_| rng.random()).collect();
-                (Frame { index: i, id: String::new(), episode: None, scenario: "bench".into(), actors: vec![actor.clone(); 8], grid: None }, vec![pixels])
+                (
+                    Frame { index: i, id: String::new(), episode: None, scenario: "bench".into(), actors: vec![actor.clone(); 8], grid: None },
+                    vec![pixels],
+                )
             })
             .collect();
         writer.append(&batch).unwrap();

@@ -63,7 +63,10 @@ impl Operator for Concat {
         let sizes: std::collections::BTreeSet<u64> = parts.iter().filter_map(|o| o.image).collect();
         if sizes.len() > 1 {
             let sizes: Vec<String> = sizes.iter().map(|s| format!("{s} px")).collect();
-            return Err(SettingError::new("inputs.scenes", format!("mixes scenes of {}; a mix needs one image size (set each input's `radar.image` alike)", sizes.join(" and "))));
+            return Err(SettingError::new(
+                "inputs.scenes",
+                format!("mixes scenes of {}; a mix needs one image size (set each input's `radar.image` alike)", sizes.join(" and ")),
+            ));
         }
         let image = if parts.iter().all(|o| o.image.is_some()) { sizes.first().copied() } else { None };
         Ok(Outline { image, frames: parts.iter().map(|o| o.frames).sum(), ..Outline::default() })

@@ -142,6 +142,15 @@ impl Settings for ImportSettings {
     const TRACKED: &'static [&'static str] = &["path"];
 
     fn check(&self) -> Result<(), SettingError> {
+        if self.path.is_empty() {
+            return Err(SettingError::new(
+                "path",
+                "must be set: the recording's directory (with its manifest) or an .mcap file, relative to the pipeline file",
+            ));
+        }
+        if let Err(problem) = inside_recording(&self.manifest) {
+            return Err(SettingError::new("manifest", format!("`{}` {problem}; the manifest is named relative to `path`", self.manifest)));
+        }
         if self.image != 0 {
             SettingError::check_range("image", self.image, 8..=1024)?;
         }
@@ -184,7 +193,8 @@ impl Operator for Import {
         let mut sink = Sink { checkpoint: ctx.checkpoint_dir.clone(), batch: s.batch as usize, writer: None, pending: Vec::new(), seen: 0 };
         let from = match mcap {
             Some(file) if !source.join(&s.manifest).exists() => {
-                let shown = if s.path.ends_with(".mcap") { PathBuf::from(&s.path) } else { Path::new(&s.path).join(file.file_name().unwrap_or_default()) };
+                let shown =
+                    if s.path.ends_with(".mcap") { PathBuf::from(&s.path) } else { Path::new(&s.path).join(file.file_name().unwrap_or_default()) };
                 read_mcap(&file, &shown, s, &mut sink)?;
                 "mcap"
             }
@@ -313,29 +323,45 @@ fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink)
                 "{at}: {e}; a line is {{\"image\": \"frames/0001.npy\", \"episode\": \"...\", \"time\": 0.1, \"actors\": [{{\"class\": \"car\", \"x\": 12.0, \"y\": -1.5, \"heading\": 0.0, \"length\": 4.5, \"width\": 1.8}}]}} or {{\"image\": ..., \"grid\": {{...}}}}"
             )
         })?;
-        let raw = read_image(dir, &line.image).with_context(|| format!("{at}: image `{}`", line.image))?;
+        let raw = read_image(dir, Path::new(&s.path), &line.image).with_context(|| format!("{at}: image `{}`", line.image))?;
         match &shape {
             None => shape = Some((raw.height, raw.width, line.image.clone())),
             Some((h, w, first)) if (*h, *w) != (raw.height, raw.width) => {
-                bail!("{at}: image `{}` is {}x{}, but `{first}` (the first frame's) is {h}x{w}; every image of a recording must have one shape", line.image, raw.height, raw.width)
+                bail!(
+                    "{at}: image `{}` is {}x{}, but `{first}` (the first frame's) is {h}x{w}; every image of a recording must have one shape",
+                    line.image,
+                    raw.height,
+                    raw.width
+                )
             }
             Some(_) => {}
         }
         if let Some((row, col)) = (0..raw.values.len()).find(|&i| !raw.values[i].is_finite()).map(|i| (i / raw.width, i % raw.width)) {
-            bail!("{at}: image `{}` holds {} at row {row}, column {col}; every value must be a finite number", line.image, raw.values[row * raw.width + col]);
+            bail!(
+                "{at}: image `{}` holds {} at row {row}, column {col}; every value must be a finite number",
+                line.image,
+                raw.values[row * raw.width + col]
+            );
         }
         if let (Some(time), Some(episode)) = (line.time, &line.episode) {
             if !time.is_finite() {
                 bail!("{at}: `time` must be a finite number of seconds, not {time}");
             }
             if let Some(&before) = last_time.get(episode).filter(|&&before| time <= before) {
-                bail!("{at}: `time` {time} does not follow the episode's previous frame ({before}); within an episode the lines must be in time order");
+                bail!(
+                    "{at}: `time` {time} does not follow the episode's previous frame ({before}); within an episode the lines must be in time order"
+                );
             }
             last_time.insert(episode.clone(), time);
         }
         if s.axes.layout == Layout::AsGiven && side == 0 {
             if raw.height != raw.width {
-                bail!("{at}: image `{}` is {}x{}; kept as given (image = 0) it must be square, or set `image` to resize it", line.image, raw.height, raw.width);
+                bail!(
+                    "{at}: image `{}` is {}x{}; kept as given (image = 0) it must be square, or set `image` to resize it",
+                    line.image,
+                    raw.height,
+                    raw.width
+                );
             }
             side = raw.width;
         }
@@ -349,7 +375,12 @@ fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink)
         let index = index as u64;
         let mut frame = match (line.actors, line.grid) {
             (Some(actors), None) => {
-                let actors = actors.into_iter().enumerate().map(|(k, a)| actor(k, a, &raw, side, s)).collect::<Result<Vec<_>, String>>().map_err(|e| anyhow::anyhow!("{at}: {e}"))?;
+                let actors = actors
+                    .into_iter()
+                    .enumerate()
+                    .map(|(k, a)| actor(k, a, &raw, side, s))
+                    .collect::<Result<Vec<_>, String>>()
+                    .map_err(|e| anyhow::anyhow!("{at}: {e}"))?;
                 Frame::new(index, scenario, actors, std::slice::from_ref(&bytes))
             }
             (None, Some(grid)) => {
@@ -357,7 +388,9 @@ fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink)
                 Frame::with_grid(index, scenario, grid, std::slice::from_ref(&bytes))
             }
             (Some(_), Some(_)) => bail!("{at}: give either `actors` or `grid`, not both"),
-            (None, None) => bail!("{at}: no `actors` and no `grid`; give the frame's actors in the ego frame (an empty list for none) or the paper's grid JSON"),
+            (None, None) => {
+                bail!("{at}: no `actors` and no `grid`; give the frame's actors in the ego frame (an empty list for none) or the paper's grid JSON")
+            }
         };
         frame.episode = line.episode;
         if images.is_empty() {
@@ -370,20 +403,43 @@ fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink)
     Ok(())
 }
 
-/// An image file: `.npy` (2-D, float32 or uint8) or `.png` (grayscale, 8 or 16 bits).
-fn read_image(dir: &Path, name: &str) -> anyhow::Result<Raw> {
+/// `Ok` for a path that names a file inside the recording: relative, without `..`; else what
+/// is wrong with it. The recording is tracked by content, so a file outside it would be read
+/// without entering the key.
+fn inside_recording(name: &str) -> Result<(), &'static str> {
+    use std::path::Component;
+    let components: Vec<Component> = Path::new(name).components().collect();
+    if components.iter().any(|c| matches!(c, Component::RootDir | Component::Prefix(_))) {
+        return Err("is an absolute path, outside the recording");
+    }
+    if components.contains(&Component::ParentDir) {
+        return Err("climbs out of the recording with `..`");
+    }
+    if !components.iter().any(|c| matches!(c, Component::Normal(_))) {
+        return Err("names no file");
+    }
+    Ok(())
+}
+
+/// An image file of the recording in `dir` (its snapshot), named `name` by the manifest of the
+/// user's recording `shown`: `.npy` (2-D, float32 or uint8) or `.png` (grayscale, 8 or 16
+/// bits), at least one pixel.
+fn read_image(dir: &Path, shown: &Path, name: &str) -> anyhow::Result<Raw> {
+    if let Err(problem) = inside_recording(name) {
+        bail!("{problem}; images are named relative to the recording's directory");
+    }
     let path = dir.join(name);
     if !path.is_file() {
         bail!("no such file in the recording");
     }
-    match path.extension().and_then(|e| e.to_str()) {
+    let raw = match path.extension().and_then(|e| e.to_str()) {
         Some("npy") => {
-            let npy = Npy::open(&path)?;
+            let npy = Npy::open_as(&path, &shown.join(name))?;
             let [height, width] = npy.shape[..] else {
                 bail!("shape {:?}; valid: a 2-D array (rows, columns)", npy.shape);
             };
             let integer_max = (npy.dtype == rlmflow_stages::npy::Dtype::U8).then_some(255.0);
-            Ok(Raw { height, width, values: npy.all_f32()?, integer_max })
+            Raw { height, width, values: npy.all_f32()?, integer_max }
         }
         Some("png") => {
             let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&path)?));
@@ -398,10 +454,14 @@ fn read_image(dir: &Path, name: &str) -> anyhow::Result<Raw> {
                 }
                 (color, depth) => bail!("a {color:?} PNG of {depth:?} bits; valid: grayscale, 8 or 16 bits"),
             };
-            Ok(Raw { height, width, values, integer_max: Some(max) })
+            Raw { height, width, values, integer_max: Some(max) }
         }
         _ => bail!("unknown image type; valid: .npy (float32 or uint8) or .png (grayscale)"),
+    };
+    if raw.height == 0 || raw.width == 0 {
+        bail!("an image of {}x{} pixels; an image needs at least one row and one column", raw.height, raw.width);
     }
+    Ok(raw)
 }
 
 /// Values in [0, 1] as `axes.power` says to read them.
@@ -499,7 +559,9 @@ fn actor(k: usize, a: LineActor, raw: &Raw, side: usize, s: &ImportSettings) -> 
     }
     let (row, col) = match (s.axes.layout, a.row, a.col) {
         (Layout::RangeAzimuth, None, None) => range_azimuth(side, s).pixel(a.x, a.y),
-        (Layout::RangeAzimuth, _, _) => return Err(format!("actor {k}: `row`/`col` are for layout = \"as-given\"; with a range-azimuth layout the position comes from x and y")),
+        (Layout::RangeAzimuth, _, _) => {
+            return Err(format!("actor {k}: `row`/`col` are for layout = \"as-given\"; with a range-azimuth layout the position comes from x and y"));
+        }
         (Layout::AsGiven, Some(row), Some(col)) => (row * side as f64 / raw.height as f64, col * side as f64 / raw.width as f64),
         (Layout::AsGiven, _, _) => {
             return Err(format!(
@@ -507,7 +569,19 @@ fn actor(k: usize, a: LineActor, raw: &Raw, side: usize, s: &ImportSettings) -> 
             ));
         }
     };
-    Ok(Actor { id: k as u32, class: a.class, x: a.x, y: a.y, heading: a.heading, length: a.length, width: a.width, speed: a.speed, lane_heading: a.lane_heading, row, col })
+    Ok(Actor {
+        id: k as u32,
+        class: a.class,
+        x: a.x,
+        y: a.y,
+        heading: a.heading,
+        length: a.length,
+        width: a.width,
+        speed: a.speed,
+        lane_heading: a.lane_heading,
+        row,
+        col,
+    })
 }
 
 /// An MCAP file's frames: the `/actors` message (a Frame, JSON) and the `foxglove.RawImage`
@@ -519,8 +593,8 @@ fn read_mcap(file: &Path, shown: &Path, s: &ImportSettings, sink: &mut Sink) -> 
     let bytes = unsafe { memmap2::Mmap::map(&opened) }.with_context(|| format!("reading {}", shown.display()))?;
     let messages = || mcap::MessageStream::new(&bytes).with_context(|| format!("{}: not an MCAP file", shown.display()));
     let mut channels: Vec<Image> = Vec::new();
-    for message in messages()? {
-        let message = message.with_context(|| format!("{}: a damaged record", shown.display()))?;
+    for (read, message) in messages()?.enumerate() {
+        let message = message.with_context(|| damaged(shown, read))?;
         if is_raw_image(&message.channel) && !channels.iter().any(|c| c.topic == message.channel.topic) {
             let size = (raw_image(shown, &message)?.len() as f64).sqrt() as usize;
             let topic = message.channel.topic.clone();
@@ -536,18 +610,25 @@ fn read_mcap(file: &Path, shown: &Path, s: &ImportSettings, sink: &mut Sink) -> 
     // By log time: the frame's actors once seen, and its images by channel.
     let mut pending: BTreeMap<u64, Partial> = BTreeMap::new();
     let mut index = 0;
-    for message in messages()? {
-        let message = message.with_context(|| format!("{}: a damaged record", shown.display()))?;
+    for (read, message) in messages()?.enumerate() {
+        let message = message.with_context(|| damaged(shown, read))?;
         let topic = &message.channel.topic;
         let entry = pending.entry(message.log_time).or_default();
         if topic == ACTORS_TOPIC {
-            let frame: Frame = serde_json::from_slice(&message.data)
-                .with_context(|| format!("{}: message {} on {topic}: not a frame (JSON with index, id, scenario, actors)", shown.display(), message.sequence))?;
+            let frame: Frame = serde_json::from_slice(&message.data).with_context(|| {
+                format!("{}: message {} on {topic}: not a frame (JSON with index, id, scenario, actors)", shown.display(), message.sequence)
+            })?;
             entry.0 = Some(frame);
         } else if let Some(slot) = channels.iter().position(|c| &c.topic == topic) {
             let data = raw_image(shown, &message)?;
             if data.len() != channels[slot].size * channels[slot].size {
-                bail!("{}: message {} on {topic}: an image of {} bytes, but the channel's first was {} pixels square", shown.display(), message.sequence, data.len(), channels[slot].size);
+                bail!(
+                    "{}: message {} on {topic}: an image of {} bytes, but the channel's first was {} pixels square",
+                    shown.display(),
+                    message.sequence,
+                    data.len(),
+                    channels[slot].size
+                );
             }
             entry.1.insert(slot, data);
         }
@@ -555,7 +636,8 @@ fn read_mcap(file: &Path, shown: &Path, s: &ImportSettings, sink: &mut Sink) -> 
         if whole {
             let (frame, mut pixels) = pending.remove(&message.log_time).expect("the entry above");
             let mut frame = frame.expect("whole");
-            let views: Vec<Vec<u8>> = (0..channels.len()).map(|slot| resize_bytes(pixels.remove(&slot).expect("whole"), channels[slot].size, side)).collect();
+            let views: Vec<Vec<u8>> =
+                (0..channels.len()).map(|slot| resize_bytes(pixels.remove(&slot).expect("whole"), channels[slot].size, side)).collect();
             if side != channels[0].size {
                 let scale = side as f64 / channels[0].size as f64;
                 frame.actors.iter_mut().for_each(|a| (a.row, a.col) = (a.row * scale, a.col * scale));
@@ -568,7 +650,10 @@ fn read_mcap(file: &Path, shown: &Path, s: &ImportSettings, sink: &mut Sink) -> 
     if let Some((time, (frame, pixels))) = pending.into_iter().next() {
         let missing = match frame {
             None => format!("no {ACTORS_TOPIC} message"),
-            Some(_) => format!("no image on {}", channels.iter().enumerate().find(|(slot, _)| !pixels.contains_key(slot)).map_or("", |(_, c)| c.topic.as_str())),
+            Some(_) => format!(
+                "no image on {}",
+                channels.iter().enumerate().find(|(slot, _)| !pixels.contains_key(slot)).map_or("", |(_, c)| c.topic.as_str())
+            ),
         };
         bail!("{}: the frame at log time {time} ns has {missing}; every frame needs its actors and one image per radar channel", shown.display());
     }
@@ -576,6 +661,11 @@ fn read_mcap(file: &Path, shown: &Path, s: &ImportSettings, sink: &mut Sink) -> 
 }
 
 type Partial = (Option<Frame>, BTreeMap<usize, Vec<u8>>);
+
+/// An MCAP file damaged after its first `read` messages, for the error.
+fn damaged(shown: &Path, read: usize) -> String {
+    format!("{}: a damaged record after message {read} (the first {read} messages read whole)", shown.display())
+}
 
 fn is_raw_image(channel: &mcap::Channel<'_>) -> bool {
     channel.schema.as_ref().is_some_and(|schema| schema.name == "foxglove.RawImage")
@@ -638,7 +728,14 @@ mod tests {
             let raw = Raw { height: rows, width: cols, values, integer_max: None };
             let unit = normalise(&raw, &s.axes).unwrap();
             let image = resample_range_azimuth(&unit, rows, cols, 64, &s);
-            let placed = actor(0, LineActor { class: "car".into(), x, y, heading: 0.0, length: 4.5, width: 1.8, speed: 0.0, lane_heading: None, row: None, col: None }, &raw, 64, &s).unwrap();
+            let placed = actor(
+                0,
+                LineActor { class: "car".into(), x, y, heading: 0.0, length: 4.5, width: 1.8, speed: 0.0, lane_heading: None, row: None, col: None },
+                &raw,
+                64,
+                &s,
+            )
+            .unwrap();
             let at = |r: f64, c: f64| image[r as usize * 64 + c as usize];
             assert!(at(placed.row, placed.col) > 0.9, "{row_order:?} {col_order:?}: {}", at(placed.row, placed.col));
             // Behind the ego, outside the map's 180 degrees: black.

@@ -62,7 +62,14 @@ pub struct PupSettings {
 
 impl Default for PupSettings {
     fn default() -> Self {
-        PupSettings { channels: Vec::new(), rollout_layers: 3, samples: 8, dice_weight: 0.6, allow_test_overlap: false, training: Training::default() }
+        PupSettings {
+            channels: Vec::new(),
+            rollout_layers: 3,
+            samples: 8,
+            dice_weight: 0.6,
+            allow_test_overlap: false,
+            training: Training::default(),
+        }
     }
 }
 
@@ -147,7 +154,10 @@ impl UnetSettings {
     pub fn check_depth(&self, image: u64) -> Result<(), SettingError> {
         let divisor = 1u64 << (self.channels.len() - 1);
         if !image.is_multiple_of(divisor) {
-            return Err(SettingError::new("channels", format!("{} levels need an image side divisible by {divisor}; the scenes have {image}", self.channels.len())));
+            return Err(SettingError::new(
+                "channels",
+                format!("{} levels need an image side divisible by {divisor}; the scenes have {image}", self.channels.len()),
+            ));
         }
         Ok(())
     }

@@ -56,11 +56,14 @@ const AVX512: &[(&str, &str)] = &[("ATEN_CPU_CAPABILITY", "avx512"), ("ONEDNN_MA
 #[test]
 fn every_model_operator_gives_its_stored_bytes_whatever_kernels_the_caller_asks() {
     let _turn = crate::common::one_at_a_time();
-    let dir = crate::common::scratch("numerics", &format!("{}{MODELS}", crate::common::data_stages("numerics").replace("frames = 1000", "frames = 300")));
+    let dir =
+        crate::common::scratch("numerics", &format!("{}{MODELS}", crate::common::data_stages("numerics").replace("frames = 1000", "frames = 300")));
     let (ok, out) = crate::common::rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
     if !std::arch::is_x86_feature_detected!("avx512f") {
-        println!("this machine has no AVX-512: asking for it cannot change libtorch's kernels here; the second attempts (older instruction sets) are what show the pins hold");
+        println!(
+            "this machine has no AVX-512: asking for it cannot change libtorch's kernels here; the second attempts (older instruction sets) are what show the pins hold"
+        );
     }
     let mut command = std::process::Command::new(rlmflow_exe());
     command.current_dir(&dir).args(["run", "p.toml"]).env_remove("MKL_CBWR").envs(AVX512.iter().copied());

@@ -3,8 +3,6 @@
 //! learns (retrieval well above chance and above the same model untrained), a run killed
 //! between epochs resumes to the same weights, and two fresh processes give the same bytes.
 
-
-
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -13,7 +11,11 @@ use crate::common::{rlmflow, rlmflow_exe, scratch};
 
 /// Pipeline `name`: the data stages, then `pretrain` as given.
 fn pipeline(name: &str, pretrain: &str) -> String {
-    format!("{}\n[stages.pretrain]\noperator = \"clip\"\ndevice = \"cpu\"\n{}\nbatch = 64\n{pretrain}\n", crate::common::data_stages(name), crate::common::NATIVE)
+    format!(
+        "{}\n[stages.pretrain]\noperator = \"clip\"\ndevice = \"cpu\"\n{}\nbatch = 64\n{pretrain}\n",
+        crate::common::data_stages(name),
+        crate::common::NATIVE
+    )
 }
 
 /// The Encoder artifact of `label` in the last run of pipeline `name`.

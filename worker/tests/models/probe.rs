@@ -3,8 +3,6 @@
 //! counts back better than a trivial predictor (each frame given the training split's mean
 //! counts, rounded), and the pixel baseline does not fan out over the encoder's variants.
 
-
-
 use std::path::{Path, PathBuf};
 
 use crate::common::rlmflow;
@@ -46,7 +44,9 @@ fn ridge_on_encoder_features_and_on_pixels_beats_a_trivial_predictor() {
     let truth: Vec<[u32; CELLS]> = labels.split(Split::Test).map(|f| f.grid.counts).collect();
     let trivial = score(&vec![mean; truth.len()], &truth).overall.f1;
 
-    for (label, rows) in [("pixels", vec!["pixels"]), ("linear[clip]", vec!["cls", "mean-patch", "patches"]), ("linear[random]", vec!["cls", "mean-patch", "patches"])] {
+    for (label, rows) in
+        [("pixels", vec!["pixels"]), ("linear[clip]", vec!["cls", "mean-patch", "patches"]), ("linear[random]", vec!["cls", "mean-patch", "patches"])]
+    {
         let summary = rlmflow_stages::probe::read_summary(&object(&dir, label)).unwrap();
         let names: Vec<&str> = summary.rows.iter().map(|r| r.features.as_str()).collect();
         assert_eq!(names, rows, "{label}");
@@ -73,7 +73,8 @@ lr = 3e-3
 #[test]
 fn clipcap_learns_to_caption_and_true_captions_score_perfectly() {
     let _turn = crate::common::one_at_a_time();
-    let dir = crate::common::scratch("probe-clipcap", &format!("{}{}{CAPTIONER}", crate::common::data_stages("clipcap"), crate::common::encoders(false)));
+    let dir =
+        crate::common::scratch("probe-clipcap", &format!("{}{}{CAPTIONER}", crate::common::data_stages("clipcap"), crate::common::encoders(false)));
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
     let labels = Labels::open(&crate::common::output(&dir, "clipcap", "labels")).unwrap();

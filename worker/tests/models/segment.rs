@@ -4,8 +4,6 @@
 //! U-Net runs once rather than per encoder variant, the artifact holds the sample masks and
 //! the rollout maps, and every result is the same bytes in fresh processes.
 
-
-
 use crate::common::rlmflow;
 use rlmflow_stages::npy::Npy;
 use rlmflow_stages::segment::{self, read_summary};

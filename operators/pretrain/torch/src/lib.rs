@@ -58,8 +58,8 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     tch::manual_seed(ctx.seed as i64);
     let vs = nn::VarStore::new(device);
     let model = Model::new(&vs.root(), &config, s.tau, s.learn_tau);
-    if !s.init.is_empty() {
-        load_clip_vision(&vs, Path::new(&s.init))?;
+    if let Some(init) = ctx.tracked_file("init")? {
+        load_clip_vision(&vs, &init)?;
     }
 
     let chunked = s.chunk > 0 && s.chunk < s.training.batch;
@@ -178,10 +178,7 @@ fn write_artifact(
         }
         _ => format!("test counts MSE {:.3}", last.get("test_mse").and_then(Value::as_f64).unwrap_or(f64::NAN)),
     };
-    Ok(Outcome {
-        metrics: json!({"last": last, "steps": steps, "chance_top1": 1.0 / n}),
-        summary: format!("{epochs} epochs, {steps} steps; {text}"),
-    })
+    Ok(Outcome { metrics: json!({"last": last, "steps": steps, "chance_top1": 1.0 / n}), summary: format!("{epochs} epochs, {steps} steps; {text}") })
 }
 
 /// Starts the radar tower from a CLIP ViT-B/16 safetensors file with open_clip names
@@ -270,7 +267,16 @@ mod tests {
     use super::*;
 
     fn tiny() -> (nn::VarStore, Model) {
-        let vision = VisionConfig { image: 32, stem: Stem::Patch { size: 16 }, width: 16, layers: 1, heads: 2, mlp: 32, head: Head::Linear, quick_gelu: false };
+        let vision = VisionConfig {
+            image: 32,
+            stem: Stem::Patch { size: 16 },
+            width: 16,
+            layers: 1,
+            heads: 2,
+            mlp: 32,
+            head: Head::Linear,
+            quick_gelu: false,
+        };
         let config = ModelConfig { embed: 8, vision, text: None, counts_head: 0 };
         let vs = nn::VarStore::new(tch::Device::Cpu);
         let model = Model::new(&vs.root(), &config, 0.07, false);

@@ -4,7 +4,6 @@
 //! (the validation F1 is what settings are chosen on). Each epoch draws its frame order and captions from (seed,
 //! epoch), so a checkpoint needs only the epoch to resume.
 
-use std::path::Path;
 use std::time::Instant;
 
 use rand::RngExt;
@@ -117,22 +116,28 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     let config = decoder_config(s, i64::from(summary.vocab), captions.context);
     let mapper = Mapper::new(&(vs.root() / "mapper"), encoder.embed, config.width, s.prefix, s.mapper_layers, config.heads);
     let gpt = Gpt::new(&(vs.root() / "gpt"), &config);
-    if !s.init.is_empty() {
-        let loaded = Gpt::load_gpt2(&vs, "gpt.", Path::new(&s.init))?;
+    if let Some(init) = ctx.tracked_file("init")? {
+        let loaded = Gpt::load_gpt2(&vs, "gpt.", &init)?;
         ctx.event("init", json!({"path": s.init, "tensors": loaded}));
     }
 
-    let loss = |frames: &[usize], rows: &[usize]| caption_loss(&gpt, &mapper.forward(&data.embedding(frames)), &captions.ids(rows, device), pad, LENGTH_GROUPS);
+    let loss = |frames: &[usize], rows: &[usize]| {
+        caption_loss(&gpt, &mapper.forward(&data.embedding(frames)), &captions.ids(rows, device), pad, LENGTH_GROUPS)
+    };
     let batch_loss = |frames: &[usize], rng: &mut EpochRng, _: &Backward| -> anyhow::Result<Step> {
         let rows: Vec<usize> = frames.iter().map(|&f| captions.rows[f][rng.random_range(0..captions.rows[f].len())]).collect();
         Ok(loss(frames, &rows).into())
     };
     let validation_loss = || -> anyhow::Result<Figures> {
         let sum: f64 = tch::no_grad(|| {
-            data.split.validation.chunks(CHUNK).map(|frames| {
-                let rows: Vec<usize> = frames.iter().map(|&f| captions.rows[f][0]).collect();
-                loss(frames, &rows).double_value(&[]) * frames.len() as f64
-            }).sum()
+            data.split
+                .validation
+                .chunks(CHUNK)
+                .map(|frames| {
+                    let rows: Vec<usize> = frames.iter().map(|&f| captions.rows[f][0]).collect();
+                    loss(frames, &rows).double_value(&[]) * frames.len() as f64
+                })
+                .sum()
         });
         Ok(vec![("validation_loss", sum / data.split.validation.len() as f64)])
     };

@@ -81,8 +81,11 @@ impl Operator for Unet {
         tch::manual_seed(ctx.seed as i64);
         let unet = UNet::new(&vs.root(), &s.channels);
         let frames = &data.frames;
-        let segmenter =
-            Segmenter { name: "unet", vs, forward: Box::new(move |batch: &[usize], train: bool| unet.forward_t(&frames.images(batch, device), train)) };
+        let segmenter = Segmenter {
+            name: "unet",
+            vs,
+            forward: Box::new(move |batch: &[usize], train: bool| unet.forward_t(&frames.images(batch, device), train)),
+        };
         let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: s.result_settings() };
         train(&s.training, &segmentation, ctx, &data, device, segmenter, None)
     }
