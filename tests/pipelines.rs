@@ -8,6 +8,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
+#[path = "pipelines/fuzz.rs"]
+mod fuzz;
 #[path = "pipelines/import.rs"]
 mod import;
 
@@ -82,6 +84,14 @@ fn the_paper_pipeline_names_its_checkpoints_and_shows_what_each_stage_costs() {
     );
     assert!(out.contains("126.0 M parameters, peak ~ 0.5 GiB (CUDA device 0:"), "the untrained encoder: {out}");
     assert!(!out.contains("DOES NOT FIT"), "{out}");
+    // `init` is tracked by content (a replaced checkpoint changes the key, as
+    // tests/e2e/bad_input.rs shows for the mechanism), for both operators that take one.
+    let (ok, operators) = rlmflow(&dir, &["operators", "--json"]);
+    assert!(ok, "{operators}");
+    for name in ["clip", "clipcap"] {
+        let line = operators.lines().find(|l| l.contains(&format!("\"name\":\"{name}\""))).unwrap();
+        assert!(line.contains("\"tracked\":[\"init\"]"), "{line}");
+    }
     // A stage that names another device is set against that device's memory.
     let text = std::fs::read_to_string(dir.join("p.toml")).unwrap().replacen("device = \"cuda\"", "device = \"cuda:1\"", 1);
     std::fs::write(dir.join("p.toml"), text).unwrap();

@@ -151,6 +151,11 @@ pub struct Outline {
     pub image: Option<u64>,
     /// The frames the artifact holds.
     pub frames: Option<u64>,
+    /// The groups a split keeps whole (a sequence's frames; a frame outside any is its own).
+    pub groups: Option<u64>,
+    /// The frames of the training split, in expectation (the split is by identity): what a
+    /// batch is checked against.
+    pub train_frames: Option<u64>,
     /// A tokens artifact's tokens per caption and largest vocabulary.
     pub context: Option<u64>,
     pub vocab: Option<u64>,
@@ -178,6 +183,8 @@ impl Outline {
         Outline {
             image: same(self.image, other.image),
             frames: same(self.frames, other.frames),
+            groups: same(self.groups, other.groups),
+            train_frames: same(self.train_frames, other.train_frames),
             context: same(self.context, other.context),
             vocab: same(self.vocab, other.vocab),
             model: same(self.model, other.model),

@@ -122,6 +122,18 @@ impl Training {
                 format!("{} is more than the {frames} frames its scenes hold (it trains on a share of them)", self.batch),
             ));
         }
+        // The labels' training split, in expectation.
+        if let Some(train) = inputs.values().flatten().find_map(|o| o.train_frames)
+            && self.batch > train
+        {
+            return Err(SettingError::new(
+                "batch",
+                format!(
+                    "{} is more than the about {train} frames of the labels' training split (the scenes' frames less its test_fraction)",
+                    self.batch
+                ),
+            ));
+        }
         Ok(outline)
     }
 

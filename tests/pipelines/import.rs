@@ -87,17 +87,21 @@ pub(super) fn walk_recording() -> std::path::PathBuf {
     DIR.get_or_init(|| {
         let dir = std::env::temp_dir().join(format!("rlmflow-walk-recording-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(dir.join("frames")).unwrap();
-        write_recording(&dir);
+        write_recording_into(&dir);
         dir
     })
     .clone()
 }
 
+/// The recording of [`write_recording`] in a new directory `dir`.
+pub(super) fn write_recording_into(dir: &Path) {
+    std::fs::create_dir_all(dir.join("frames")).unwrap();
+    write_recording(dir);
+}
+
 fn new_recording(name: &str, pipeline: &str) -> std::path::PathBuf {
     let dir = scratch(name, pipeline);
-    std::fs::create_dir_all(dir.join("recording/frames")).unwrap();
-    write_recording(&dir.join("recording"));
+    write_recording_into(&dir.join("recording"));
     dir
 }
 

@@ -32,7 +32,7 @@ use rlmflow_stages::identity::split_of;
 use rlmflow_stages::labels::{self, FrameLabel, MaskGeometry, NearestNeighbour, Split, SplitSummary, Stratum};
 use rlmflow_stages::npy::{Dtype, NpyWriter};
 use rlmflow_stages::scenes::{Frame, Scenes};
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, SettingError, Settings};
+use rlmflow_stages::{Context, InputOutlines, Operator, OperatorSpec, Outcome, Outline, SettingError, Settings};
 use serde::{Deserialize, Serialize};
 
 pub struct EgoGrid;
@@ -142,6 +142,30 @@ impl Operator for EgoGrid {
             inputs: None,
             summary: "the paper's 4 x 12 ego grid, a train/test split that follows each frame (and episode), and Gaussian vehicle masks",
         }
+    }
+
+    /// The split in expectation, where the scenes' settings tell their frames and groups: both
+    /// sides need at least one group, or every model stage downstream fails after the scenes
+    /// are made.
+    fn outline(&self, s: &EgoGridSettings, inputs: &InputOutlines) -> Result<Outline, SettingError> {
+        let scenes = Outline::passed_on(inputs);
+        let (Some(frames), Some(groups)) = (scenes.frames, scenes.groups) else { return Ok(scenes) };
+        let (groups, unit) = match s.split_by {
+            SplitBy::Episode => (groups, "split groups (sequences, or frames outside any)"),
+            SplitBy::Frame => (frames, "frames"),
+        };
+        let test = groups as f64 * s.test_fraction;
+        if test < 1.0 || groups as f64 - test < 1.0 {
+            return Err(SettingError::new(
+                "test_fraction",
+                format!(
+                    "{} holds out {test:.1} of the scenes' {groups} {unit} in expectation and trains on {:.1}; a model needs both sides: more frames (or shorter sequences), or a test_fraction nearer 0.5",
+                    s.test_fraction,
+                    groups as f64 - test
+                ),
+            ));
+        }
+        Ok(Outline { train_frames: Some((frames as f64 * (1.0 - s.test_fraction)).floor() as u64), ..scenes })
     }
 
     fn run(&self, s: &EgoGridSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {

@@ -150,7 +150,15 @@ impl Splits {
         if t == 0 || e == 0 || (validation && v == 0) {
             let counts =
                 if validation { format!("{t} training, {v} validation and {e} test frames") } else { format!("{t} training and {e} test frames") };
-            bail!("{counts}: {user} needs frames in each (raise the frame count{})", if validation { " or the validation share" } else { "" });
+            // Advice that can help: the share that is empty, or more frames.
+            let advice = if e == 0 {
+                "more frames, or a larger test_fraction in the labels stage"
+            } else if t == 0 {
+                "more frames, or a smaller test_fraction in the labels stage"
+            } else {
+                "more frames, or a larger `validation` share"
+            };
+            bail!("{counts}: {user} needs frames in each ({advice})");
         }
         Ok(())
     }
@@ -180,14 +188,11 @@ mod tests {
         let split = Splits { train: vec![0, 1], validation: Vec::new(), test: vec![2] };
         assert!(split.require("the encoder", false).is_ok(), "no validation slice asked for");
         let e = split.require("segmentation", true).unwrap_err().to_string();
-        assert_eq!(
-            e,
-            "2 training, 0 validation and 1 test frames: segmentation needs frames in each (raise the frame count or the validation share)"
-        );
+        assert_eq!(e, "2 training, 0 validation and 1 test frames: segmentation needs frames in each (more frames, or a larger `validation` share)");
         let none = Splits { train: Vec::new(), validation: Vec::new(), test: vec![2] };
         assert_eq!(
             none.require("the encoder", false).unwrap_err().to_string(),
-            "0 training and 1 test frames: the encoder needs frames in each (raise the frame count)"
+            "0 training and 1 test frames: the encoder needs frames in each (more frames, or a smaller test_fraction in the labels stage)"
         );
     }
 }

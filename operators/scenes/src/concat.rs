@@ -69,7 +69,7 @@ impl Operator for Concat {
             ));
         }
         let image = if parts.iter().all(|o| o.image.is_some()) { sizes.first().copied() } else { None };
-        Ok(Outline { image, frames: parts.iter().map(|o| o.frames).sum(), ..Outline::default() })
+        Ok(Outline { image, frames: parts.iter().map(|o| o.frames).sum(), groups: parts.iter().map(|o| o.groups).sum(), ..Outline::default() })
     }
 
     fn run(&self, s: &ConcatSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {

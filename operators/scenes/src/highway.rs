@@ -152,7 +152,8 @@ impl Operator for HighwayEnv {
     }
 
     fn outline(&self, s: &HighwaySettings, _: &InputOutlines) -> Result<Outline, SettingError> {
-        Ok(Outline { image: Some(s.radar.image as u64), frames: Some(s.frames), ..Outline::default() })
+        let groups = s.frames.div_ceil(u64::from(s.episode_frames));
+        Ok(Outline { image: Some(s.radar.image as u64), frames: Some(s.frames), groups: Some(groups), ..Outline::default() })
     }
 
     fn run(&self, s: &HighwaySettings, ctx: &mut Context) -> anyhow::Result<Outcome> {

@@ -156,7 +156,8 @@ impl Operator for Procedural {
     }
 
     fn outline(&self, s: &ProceduralSettings, _: &InputOutlines) -> Result<Outline, SettingError> {
-        Ok(Outline { image: Some(s.radar.image as u64), frames: Some(s.frames), ..Outline::default() })
+        // Placed frames belong to no sequence: each is its own split group.
+        Ok(Outline { image: Some(s.radar.image as u64), frames: Some(s.frames), groups: Some(s.frames), ..Outline::default() })
     }
 
     fn run(&self, s: &ProceduralSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
