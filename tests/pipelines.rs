@@ -100,13 +100,62 @@ fn the_paper_pipeline_names_its_checkpoints_and_shows_what_each_stage_costs() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// `init` is a path tracked by content, resolved against the pipeline file: a replaced
+/// checkpoint changes its stage's key (`status` names it), and a FIFO in its place is refused
+/// without being opened, in bounded time.
+#[test]
+fn a_replaced_init_checkpoint_reruns_its_stage_and_a_fifo_is_refused_unopened() {
+    let pipeline = "[pipeline]\nname = \"init\"\n[stages.scenes]\noperator = \"procedural\"\nframes = 20\nradar = { image = 32 }\n\
+                    [stages.labels]\noperator = \"ego-grid\"\ntest_fraction = 0.25\n[stages.captions]\noperator = \"template\"\n[stages.tokens]\noperator = \"bpe\"\n\
+                    [stages.pretrain]\noperator = \"clip\"\nencoder = \"vit-b16\"\nbatch = 4\ndevice = \"cpu\"\ninit = \"weights/clip.safetensors\"\n";
+    let dir = scratch("init-tracked", pipeline);
+    write_safetensors(&dir.join("weights/clip.safetensors"), &["visual.conv1.weight"]);
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--only", "tokens"]);
+    assert!(ok, "{out}");
+    let key = |dir: &Path| {
+        let (ok, out) = rlmflow(dir, &["explain", "p.toml", "pretrain"]);
+        assert!(ok, "{out}");
+        out.lines().find_map(|l| l.trim().strip_prefix("will run: key ").map(str::to_owned)).unwrap_or_else(|| panic!("{out}"))
+    };
+    let before = key(&dir);
+    // Run from elsewhere: the file beside the pipeline is the one read.
+    let (ok, out) = rlmflow(&dir.join("weights"), &["explain", "../p.toml", "pretrain"]);
+    assert!(ok && out.contains(&before), "{out}");
+    write_safetensors(&dir.join("weights/clip.safetensors"), &["visual.conv1.weight", "visual.proj"]);
+    assert_ne!(key(&dir), before, "a replaced checkpoint is a new key");
+    let (_, status) = rlmflow(&dir, &["status", "p.toml"]);
+    assert!(status.contains("pretrain") && status.contains("never run"), "{status}");
+
+    std::fs::remove_file(dir.join("weights/clip.safetensors")).unwrap();
+    let fifo = std::ffi::CString::new(dir.join("weights/clip.safetensors").to_str().unwrap()).unwrap();
+    assert_eq!(unsafe { libc::mkfifo(fifo.as_ptr(), 0o644) }, 0);
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rlmflow"))
+        .current_dir(&dir)
+        .args(["run", "p.toml", "--dry-run"])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if t0.elapsed() > Duration::from_secs(20) {
+            child.kill().unwrap();
+            panic!("a FIFO as `init` blocked the dry run");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("stages.pretrain.init: `weights/clip.safetensors` is a FIFO"), "{stderr}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// A stage whose estimate exceeds its device's memory is refused before anything runs, with the
 /// settings that lower it; the same batch in chunks fits.
 #[test]
 fn a_stage_that_would_not_fit_its_device_is_refused_with_the_setting_to_change() {
     let pipeline = |chunk: u64| {
         format!(
-            "[pipeline]\nname = \"big\"\n[stages.scenes]\noperator = \"procedural\"\nframes = 10000\nradar = {{ image = 224 }}\n\
+            "[pipeline]\nname = \"big\"\n[stages.scenes]\noperator = \"procedural\"\nframes = 12000\nradar = {{ image = 224 }}\n\
              [stages.labels]\noperator = \"ego-grid\"\n[stages.captions]\noperator = \"template\"\n\
              [stages.tokens]\noperator = \"bpe\"\ncontext = 400\n\
              [stages.pretrain]\noperator = \"clip\"\nencoder = \"vit-b16\"\ntext = \"paper\"\nbatch = 8192\nchunk = {chunk}\ndevice = \"cpu\"\n"
@@ -229,6 +278,10 @@ fn settings_that_do_not_fit_their_inputs_are_config_errors() {
             "p.toml:16: stages.pretrain.batch: 128 is more than the 100 frames its scenes hold",
         ),
         (
+            "[stages.pretrain]\noperator = \"clip\"\nbatch = 90\n",
+            "p.toml:16: stages.pretrain.batch: 90 is more than the about 80 frames of the labels' training split",
+        ),
+        (
             "[stages.pretrain]\noperator = \"clip\"\nencoder = \"vit-b16\"\nbatch = 16\n",
             "stages.pretrain.encoder: `vit-b16` needs an image side divisible by 16; the scenes have 40",
         ),
@@ -252,6 +305,27 @@ fn settings_that_do_not_fit_their_inputs_are_config_errors() {
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(2), "{stage}: {stderr}");
         assert!(stderr.contains(expected), "{stage}: expected `{expected}` in {stderr}");
+    }
+    // A split that leaves no test or no training group fails every model stage after the scenes
+    // are made: it is the labels' config error.
+    let split_cases = [
+        (("frames = 100", "frames = 2"), "p.toml:7: stages.labels.test_fraction: 0.2 holds out 0.4 of the scenes' 2 split groups"),
+        (
+            ("operator = \"ego-grid\"\n", "operator = \"ego-grid\"\ntest_fraction = 0.0\n"),
+            "stages.labels.test_fraction: 0 holds out 0.0 of the scenes' 100",
+        ),
+        (("operator = \"ego-grid\"\n", "operator = \"ego-grid\"\ntest_fraction = 0.999\n"), "and trains on 0.1"),
+        (
+            ("operator = \"procedural\"\nframes = 100\n", "operator = \"highway-env\"\nframes = 40\nepisode_frames = 40\n"),
+            "0.2 holds out 0.2 of the scenes' 1 split groups (sequences, or frames outside any)",
+        ),
+    ];
+    for ((from, to), expected) in split_cases {
+        std::fs::write(dir.join("p.toml"), BASE.replace(from, to)).unwrap();
+        let out = Command::new(env!("CARGO_BIN_EXE_rlmflow")).current_dir(&dir).args(["run", "p.toml", "--dry-run"]).output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{to}: {stderr}");
+        assert!(stderr.contains(expected), "{to}: expected `{expected}` in {stderr}");
     }
 }
 
@@ -985,7 +1059,7 @@ fn every_setting_of_every_operator_enters_the_key_or_leaves_the_bytes_alone() {
             import::walk_recording().display()
         ),
     );
-    let mut config_paths: std::collections::BTreeMap<String, Vec<std::collections::BTreeSet<String>>> = Default::default();
+    let mut config_paths: std::collections::BTreeMap<String, Vec<(std::collections::BTreeSet<String>, serde_json::Value)>> = Default::default();
     for dir in [&ci, &llm_dir] {
         let (ok, out) = rlmflow(dir, &["run", "p.toml"]);
         assert!(ok, "{out}");
@@ -994,21 +1068,26 @@ fn every_setting_of_every_operator_enters_the_key_or_leaves_the_bytes_alone() {
             let preimage = store.record(&key).unwrap().unwrap().preimage;
             let mut paths = Default::default();
             key_paths(&preimage.config, "", &mut paths);
-            config_paths.entry(preimage.operator).or_default().push(paths);
+            config_paths.entry(preimage.operator).or_default().push((paths, preimage.config));
         }
     }
     for op in &operators {
         let name = op["name"].as_str().unwrap();
         let non_result: Vec<&str> = op["non_result"].as_array().unwrap().iter().map(|k| k.as_str().unwrap()).collect();
-        // A tracked path enters the key by its content (an input), not by its name.
+        // A tracked path, when set, enters the key by its content (an input), not by its name;
+        // left empty (an optional one, as `init` is by default) it stays in the key as "".
         let tracked: Vec<&str> = op["tracked"].as_array().unwrap().iter().map(|k| k.as_str().unwrap()).collect();
         let mut settings = Default::default();
         key_paths(&op["defaults"], "", &mut settings);
         let instances = config_paths.get(name).unwrap_or_else(|| panic!("`{name}` ran in neither pipeline: add it to one"));
-        for paths in instances {
+        for (paths, config) in instances {
             for setting in &settings {
                 let top = setting.split('.').next().unwrap();
-                let in_key = !non_result.contains(&top) && !tracked.contains(&top);
+                if tracked.contains(&top) {
+                    assert!(!paths.contains(setting) || config[top] == "", "`{name}`: `{setting}`, set, is in the key by its path: {config}");
+                    continue;
+                }
+                let in_key = !non_result.contains(&top);
                 assert_eq!(paths.contains(setting), in_key, "`{name}`: `{setting}` in the key: {}", paths.contains(setting));
             }
         }

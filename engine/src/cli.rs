@@ -442,7 +442,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             for kind in &registry.catalog.kinds {
                 for op in registry.operators_of(kind.name) {
                     let spec = op.spec();
-                    let defaults = op.settings(serde_json::json!({})).unwrap_or_default();
+                    let defaults = op.defaults();
                     let line = serde_json::json!({"name": spec.name, "kind": spec.kind, "version": spec.version, "defaults": defaults, "non_result": op.non_result_keys(), "tracked": op.tracked_keys()});
                     println!("{line}");
                 }
@@ -455,7 +455,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 println!("{} ({}) -> {}", kind.name, inputs.join(", "), kind.produces);
                 for op in registry.operators_of(kind.name) {
                     let spec = op.spec();
-                    let defaults = op.settings(serde_json::json!({})).unwrap_or_default();
+                    let defaults = op.defaults();
                     println!("  {} v{}: {}\n    defaults: {}", spec.name, spec.version, spec.summary, canonical_json(&defaults));
                     if !op.tracked_keys().is_empty() {
                         println!("    paths tracked by content (their files' digests enter the key, not the path): {}", op.tracked_keys().join(", "));

@@ -364,6 +364,8 @@ pub trait DynOperator: Send + Sync {
     fn spec(&self) -> OperatorSpec;
     /// Fills in defaults and checks a stage's settings; returns every setting, canonical.
     fn settings(&self, raw: Value) -> Result<Value, SettingError>;
+    /// Every setting at its default (which need not be valid alone: `import`'s `path` must be set).
+    fn defaults(&self) -> Value;
     fn non_result_keys(&self) -> &'static [&'static str];
     fn tracked_keys(&self) -> &'static [&'static str];
     /// [`Settings::check_tracked`] of these settings.
@@ -392,6 +394,10 @@ impl<O: Operator> DynOperator for O {
     fn settings(&self, raw: Value) -> Result<Value, SettingError> {
         let typed = parse_settings::<O::Settings>(raw)?;
         Ok(serde_json::to_value(&typed).expect("settings serialise to JSON"))
+    }
+
+    fn defaults(&self) -> Value {
+        serde_json::to_value(O::Settings::default()).expect("settings serialise to JSON")
     }
 
     fn non_result_keys(&self) -> &'static [&'static str] {

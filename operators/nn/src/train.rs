@@ -20,7 +20,7 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use rlmflow_stages::numerics::Target;
-use rlmflow_stages::{Context, Device, Training};
+use rlmflow_stages::{Context, Device, SettingError, Training};
 use serde_json::{Value, json};
 use tch::{Tensor, nn};
 
@@ -57,7 +57,7 @@ fn epoch_rng(seed: u64, epoch: u64) -> EpochRng {
 /// The loss of `step` (1-based), or an error naming the step when it is not finite.
 fn finite(loss: f64, step: u64, epoch: u64) -> anyhow::Result<f64> {
     if !loss.is_finite() {
-        bail!("the loss is {loss} at step {step} (epoch {epoch}); lower `lr` or raise `batch`");
+        return Err(SettingError::new("lr", format!("the loss is {loss} at step {step} (epoch {epoch}); lower `lr` or raise `batch`")).into());
     }
     Ok(loss)
 }
@@ -139,7 +139,11 @@ pub fn fit(
     let micro_batches = t.accumulate as usize;
     let steps_per_epoch = (fit.frames.len() / batch) as u64;
     if steps_per_epoch == 0 && t.epochs > 0 {
-        bail!("batch {batch} is larger than the {} training frames; lower `batch`", fit.frames.len());
+        let message = format!(
+            "{batch} is larger than the {} frames this stage trains on (the labels' training split, less any validation slice); lower it",
+            fit.frames.len()
+        );
+        return Err(SettingError::new("batch", message).into());
     }
     let total = t.epochs * steps_per_epoch;
     let warmup = (t.warmup_epochs * steps_per_epoch as f64).round() as u64;
@@ -269,7 +273,7 @@ mod tests {
     fn a_non_finite_loss_stops_training_naming_the_step() {
         assert_eq!(finite(2.5, 3, 1).unwrap(), 2.5);
         let err = finite(f64::NAN, 17, 2).unwrap_err().to_string();
-        assert_eq!(err, "the loss is NaN at step 17 (epoch 2); lower `lr` or raise `batch`");
+        assert_eq!(err, "lr: the loss is NaN at step 17 (epoch 2); lower `lr` or raise `batch`");
         assert!(finite(f64::INFINITY, 1, 1).unwrap_err().to_string().contains("the loss is inf at step 1"));
     }
 

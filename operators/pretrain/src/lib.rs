@@ -297,8 +297,10 @@ mod tests {
         assert_eq!(key(serde_json::json!({"chunk": 40})), "chunk", "conv-tiny has BatchNorm");
         assert_eq!(key(serde_json::json!({"encoder": "vit-b16", "chunk": 40, "objective": "counts"})), "chunk");
         assert!(op.settings(serde_json::json!({"encoder": "vit-b16", "chunk": 40, "batch": 640})).is_ok());
-        let e = op.settings(serde_json::json!({"encoder": "vit-b16", "init": "/nowhere/clip.safetensors"})).unwrap_err();
+        // The file `init` names is checked once the engine has resolved it (a tracked path).
+        let settings = op.settings(serde_json::json!({"encoder": "vit-b16", "init": "/nowhere/clip.safetensors"})).unwrap();
+        let e = op.check_tracked(&settings, "init", std::path::Path::new("/nowhere/clip.safetensors")).unwrap_err();
         assert_eq!(e.key, "init");
-        assert!(e.message.contains("cannot open `/nowhere/clip.safetensors`") && e.message.contains("CLIP ViT-B/16"), "{}", e.message);
+        assert!(e.message.contains("`/nowhere/clip.safetensors` is not a file") && e.message.contains("CLIP ViT-B/16"), "{}", e.message);
     }
 }

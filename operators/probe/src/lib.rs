@@ -279,8 +279,10 @@ mod tests {
         let zeros = [0u8; 16];
         let tensor = safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![2, 2], &zeros).unwrap();
         safetensors::serialize_to_file([("h.0.attn.c_attn.weight", tensor)], &None, &gpt2).unwrap();
-        assert!(clipcap().settings(serde_json::json!({"decoder": "gpt2", "init": gpt2})).is_ok());
-        assert_eq!(key(serde_json::json!({"decoder": "gpt2", "init": dir.join("absent.safetensors")})), "init");
+        // The file is checked once the engine has resolved the tracked path.
+        let settings = clipcap().settings(serde_json::json!({"decoder": "gpt2", "init": gpt2})).unwrap();
+        assert!(clipcap().check_tracked(&settings, "init", &gpt2).is_ok());
+        assert_eq!(clipcap().check_tracked(&settings, "init", &dir.join("absent.safetensors")).unwrap_err().key, "init");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

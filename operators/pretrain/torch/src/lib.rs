@@ -52,8 +52,7 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     let split = frames.splits(0.0, text);
     split.require(if text { "the encoder (frames with captions)" } else { "the encoder" }, false)?;
     let summary = &captions.tokens.summary;
-    let config = rlmflow_pretrain::model_config(s, frames.side, captions.context, i64::from(summary.vocab), i64::from(summary.special.end))
-        .map_err(|e| anyhow::anyhow!("setting `{e}`"))?;
+    let config = rlmflow_pretrain::model_config(s, frames.side, captions.context, i64::from(summary.vocab), i64::from(summary.special.end))?;
 
     tch::manual_seed(ctx.seed as i64);
     let vs = nn::VarStore::new(device);

@@ -76,7 +76,7 @@ impl Operator for Unet {
 
     fn run(&self, s: &UnetSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         let (device, data) = prepare(&s.training, ctx, false)?;
-        s.check_depth(data.frames.side as u64).map_err(|e| anyhow::anyhow!("setting `{}`: {}", e.key, e.message))?;
+        s.check_depth(data.frames.side as u64)?;
         let vs = nn::VarStore::new(device);
         tch::manual_seed(ctx.seed as i64);
         let unet = UNet::new(&vs.root(), &s.channels);
