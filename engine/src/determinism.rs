@@ -20,7 +20,7 @@ use std::process::{Command, Stdio};
 use std::time::Instant;
 
 use anyhow::{Context as _, bail};
-use rlmflow_cache::{ActionRequest, Digest, Store, differing_files, hash_tree};
+use rlmflow_cache::{Digest, Store, differing_files, hash_tree};
 use rlmflow_stages::Registry;
 
 use crate::exec::{Message, PREFIX};
@@ -49,16 +49,7 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
             Freshness::Stale { key, preimage, .. } => (*key, (**preimage).clone(), None),
             Freshness::Pending { reason } => bail!("{}: {reason}", inst.label),
         };
-        let input_labels = plan.input_labels(i);
-        let input_instances = plan.input_instances(i);
-        store.write_request(&ActionRequest {
-            key,
-            stage: inst.label.clone(),
-            preimage,
-            settings: inst.settings.clone(),
-            input_labels,
-            input_instances,
-        })?;
+        store.write_request(&plan.request(i, key, preimage))?;
         plan.snapshot_tracked(i, store)?;
         println!("check-determinism {} (key {})", inst.label, key.short());
         let exe = crate::exec::executable(registry.get(&inst.operator).expect("validated operator"))?;

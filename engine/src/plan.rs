@@ -5,7 +5,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::PathBuf;
 
 use anyhow::{Context as _, bail};
-use rlmflow_cache::{ActionRecord, Change, Digest, InputDigest, Preimage, Store};
+use rlmflow_cache::{ActionRecord, ActionRequest, Change, Digest, InputDigest, Preimage, Store};
 use rlmflow_stages::{Arity, InstanceId, Part, Registry};
 use serde_json::Value;
 
@@ -200,6 +200,19 @@ impl Plan<'_> {
     pub fn input_labels(&self, i: usize) -> BTreeMap<String, String> {
         let one = self.instances[i].inputs.iter().filter(|input| input.arity == Arity::One);
         one.filter_map(|input| Some((input.slot.to_owned(), self.instances[*input.providers.first()?].label.clone()))).collect()
+    }
+
+    /// What an action of instance `i` with `key` is run from: its preimage, settings and inputs.
+    pub fn request(&self, i: usize, key: Digest, preimage: Preimage) -> ActionRequest {
+        let inst = &self.instances[i];
+        ActionRequest {
+            key,
+            stage: inst.label.clone(),
+            preimage,
+            settings: inst.settings.clone(),
+            input_labels: self.input_labels(i),
+            input_instances: self.input_instances(i),
+        }
     }
 
     /// Every input provider of instance `i` as data, by label (`{"stage", "variant"}`).

@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
-use rlmflow_cache::{ActionRecord, ActionRequest, Digest, PlanEntry, Preimage, RunPlan, Store, file_safe, now_rfc3339, run_id};
+use rlmflow_cache::{ActionRecord, Digest, PlanEntry, Preimage, RunPlan, Store, file_safe, now_rfc3339, run_id};
 use rlmflow_remote::{Pulled, Remote};
 use rlmflow_stages::{Device, Registry};
 use serde_json::{Value, json};
@@ -544,17 +544,7 @@ impl Executor<'_> {
     }
 
     fn write_request(&self, i: usize, key: Digest, preimage: Preimage) -> anyhow::Result<()> {
-        let inst = &self.plan.instances[i];
-        let input_labels = self.plan.input_labels(i);
-        let input_instances = self.plan.input_instances(i);
-        self.store.write_request(&ActionRequest {
-            key,
-            stage: inst.label.clone(),
-            preimage,
-            settings: inst.settings.clone(),
-            input_labels,
-            input_instances,
-        })
+        self.store.write_request(&self.plan.request(i, key, preimage))
     }
 
     fn write_plan_if_dirty(&mut self) -> anyhow::Result<()> {
