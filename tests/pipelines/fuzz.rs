@@ -1,7 +1,7 @@
 //! A fuzzer in the tree: the shipped pipelines and an import recording's manifest, mutated at
 //! random from a seed, through the real binary. Every case must end within its bound, never
 //! panic, write nothing on a dry run, and name the file of any error. The budget is
-//! `RLMFLOW_FUZZ_SECONDS` (20 in the test suite, split between pipelines and manifests) and the
+//! `RLMFLOW_FUZZ_SECONDS` (12 in the test suite, split between pipelines and manifests) and the
 //! seed `RLMFLOW_FUZZ_SEED` (1 unless set, so the suite's cases are the same every run; another
 //! seed explores further); a finding prints its case, which replays it. The test prints how
 //! many cases it ran.
@@ -189,7 +189,7 @@ fn problem(out: Option<&Output>, names: &[&str]) -> Option<String> {
 }
 
 fn budget() -> Duration {
-    Duration::from_secs_f64(std::env::var("RLMFLOW_FUZZ_SECONDS").ok().and_then(|s| s.parse().ok()).unwrap_or(20.0))
+    Duration::from_secs_f64(std::env::var("RLMFLOW_FUZZ_SECONDS").ok().and_then(|s| s.parse().ok()).unwrap_or(12.0))
 }
 
 fn seed() -> u64 {
