@@ -40,14 +40,17 @@ struct RemoteArg {
 }
 
 impl RemoteArg {
-    /// The pipeline's remote settings with the flags over them; `None` without a URL.
-    fn settings(&self, p: &Pipeline) -> Option<config::RemoteSettings> {
+    /// The pipeline's remote settings with the flags over them; `None` without a URL. A bad
+    /// `--remote` is a usage error (exit 2), before anything runs.
+    fn settings(&self, p: &Pipeline) -> anyhow::Result<Option<config::RemoteSettings>> {
         let mut settings = p.remote.clone();
         if let Some(url) = &self.remote {
-            settings.url = Some(config::resolve_remote(url, Path::new(".")));
+            let resolved = config::resolve_remote(url, Path::new("."));
+            rlmflow_remote::check_url(&resolved).map_err(|problem| UsageError(format!("--remote: {problem}")))?;
+            settings.url = Some(resolved);
         }
         settings.push |= self.push;
-        settings.url.is_some().then_some(settings)
+        Ok(settings.url.is_some().then_some(settings))
     }
 }
 
@@ -205,6 +208,24 @@ enum Command {
     },
 }
 
+/// A command-line argument that cannot work (exit 2, like a config error).
+#[derive(Debug)]
+struct UsageError(String);
+
+impl std::fmt::Display for UsageError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for UsageError {}
+
+/// The remote `settings` name; one that cannot be used (a bad URL or endpoint, a bucket that
+/// does not exist) is a usage error (exit 2).
+fn open_remote(settings: &config::RemoteSettings) -> anyhow::Result<rlmflow_remote::Remote> {
+    settings.open().map_err(|e| UsageError(format!("{e:#}")).into())
+}
+
 /// The command line of a binary with `registry`'s operators. Call it first thing in `main`.
 pub fn main(registry: Registry) -> ExitCode {
     #[cfg(feature = "python")]
@@ -213,6 +234,10 @@ pub fn main(registry: Registry) -> ExitCode {
     match dispatch(cli.command, &registry) {
         Ok(code) => code,
         Err(e) => {
+            if let Some(usage) = e.downcast_ref::<UsageError>() {
+                eprintln!("error: {}", usage.0);
+                return ExitCode::from(2);
+            }
             if let Some(config) = e.downcast_ref::<ConfigError>() {
                 eprintln!("{config}");
                 let n = config.diagnostics.len();
@@ -315,7 +340,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 crate::footprint::refuse_oversized(&plan, &fits)?;
             }
             let store = Store::open(&root)?;
-            let opts = RunOptions { jobs, json, device, verify_inputs, remote: remote.settings(&p) };
+            let opts = RunOptions { jobs, json, device, verify_inputs, remote: remote.settings(&p)? };
             if !check_determinism.is_empty() {
                 let same = crate::determinism::check(&plan, registry, &store, &check_determinism, &opts)?;
                 print_warnings(Some(&store));
@@ -332,7 +357,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let all = vec![true; plan.instances.len()];
             let states = assess(&plan, registry, store.as_ref())?;
             let fits = crate::footprint::fits(&plan, registry, rlmflow_stages::Device::Auto, &crate::run::will_run(&states, &all));
-            let remote = remote.settings(&p).map(|r| r.open()).transpose()?;
+            let remote = remote.settings(&p)?.map(|r| open_remote(&r)).transpose()?;
             print_status(&plan, &states, &all, &fits, remote.as_ref(), json);
             if let Some(why) = remote.as_ref().and_then(|r| r.down()) {
                 eprintln!("warning: remote cache {} not asked: {why}", remote.as_ref().map_or("", |r| r.url()));
@@ -345,8 +370,8 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let store = Store::open_existing(&store_root(&p, &store))?.context("the pipeline has not run yet; nothing to push")?;
             let plan = planned(&p, Some(&store), Device::Cpu)?;
             let selected = plan.select(&only)?;
-            let settings = remote.settings(&p).context("no remote cache: set `[pipeline] remote` or give --remote")?;
-            let remote = config::RemoteSettings { push: true, ..settings }.open()?;
+            let settings = remote.settings(&p)?.context("no remote cache: set `[pipeline] remote` or give --remote")?;
+            let remote = open_remote(&config::RemoteSettings { push: true, ..settings })?;
             let (mut pushed, mut bytes) = (0, 0);
             for (i, state) in assess(&plan, registry, Some(&store))?.iter().enumerate().filter(|(i, _)| selected[*i]) {
                 let Freshness::Cached(record) = state else { continue };
@@ -367,8 +392,8 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let store = Store::open(&store_root(&p, &store))?;
             let plan = planned(&p, Some(&store), Device::Cpu)?;
             let selected = plan.select(&only)?;
-            let settings = remote.settings(&p).context("no remote cache: set `[pipeline] remote` or give --remote")?;
-            let remote = settings.open()?;
+            let settings = remote.settings(&p)?.context("no remote cache: set `[pipeline] remote` or give --remote")?;
+            let remote = open_remote(&settings)?;
             let (pulled, bytes) = pull(&plan, registry, &store, &remote, &selected)?;
             println!("pull: {pulled} results downloaded ({:.1} MB) from {}", bytes as f64 / 1e6, remote.url());
             Ok(ExitCode::SUCCESS)

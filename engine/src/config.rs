@@ -122,10 +122,11 @@ impl Default for RemoteSettings {
 
 const REMOTE_SCHEMES: &[&str] = &["s3://", "http://", "https://", "file://"];
 
-/// A remote URL with a relative `file://` path made absolute against `dir`.
+/// A remote URL with a relative `file://` path made absolute against `dir` (`file://` alone
+/// names no directory and stays as it is, for [`rlmflow_remote::check_url`] to refuse).
 pub fn resolve_remote(url: &str, dir: &Path) -> String {
     match url.strip_prefix("file://") {
-        Some(path) if !path.starts_with('/') => {
+        Some(path) if !path.is_empty() && !path.starts_with('/') => {
             let path = dir.join(path);
             format!("file://{}", std::path::absolute(&path).unwrap_or(path).display())
         }
@@ -656,11 +657,14 @@ impl Checker {
     fn remote(&mut self, file: &Path, header: &Map<String, Value>) -> RemoteSettings {
         let mut remote = RemoteSettings { url: self.string(header, "pipeline", "remote"), ..RemoteSettings::default() };
         if let Some(url) = remote.url.clone() {
-            remote.url = Some(resolve_remote(&url, file.parent().unwrap_or(Path::new("."))));
+            let resolved = resolve_remote(&url, file.parent().unwrap_or(Path::new(".")));
+            let help = "e.g. remote = \"s3://bucket/rlmflow\", \"https://cache.example/rlmflow\" (WebDAV) or \"file:///srv/rlmflow\"";
             if !REMOTE_SCHEMES.iter().any(|scheme| url.starts_with(scheme)) {
-                let help = "e.g. remote = \"s3://bucket/rlmflow\", \"https://cache.example/rlmflow\" (WebDAV) or \"file:///srv/rlmflow\"";
                 self.error(self.line("pipeline.remote"), "pipeline.remote", format!("`{url}` is not a remote URL"), Some(help.into()));
+            } else if let Err(problem) = rlmflow_remote::check_url(&resolved) {
+                self.error(self.line("pipeline.remote"), "pipeline.remote", problem, Some(help.into()));
             }
+            remote.url = Some(resolved);
         }
         match header.get("remote_push") {
             None => {}

@@ -78,15 +78,56 @@ pub enum Pulled {
     },
 }
 
+/// `Ok` for a remote URL this client can use, else what is wrong with it and what is valid:
+/// checked before any client is built (a malformed endpoint would otherwise panic inside the S3
+/// client), for `[pipeline] remote` at validation and for `--remote` before a run.
+pub fn check_url(url: &str) -> Result<(), String> {
+    const VALID: &str = "valid: s3://bucket/prefix, https://host/path (WebDAV), file:///path";
+    if let Some(rest) = url.strip_prefix("s3://") {
+        if rest.split('/').next().is_none_or(str::is_empty) {
+            return Err(format!("`{url}` names no bucket; {VALID}"));
+        }
+        // The variables the S3 client reads its endpoint from.
+        for var in ["AWS_ENDPOINT_URL", "AWS_ENDPOINT"] {
+            if let Ok(endpoint) = std::env::var(var) {
+                check_endpoint(&format!("the environment variable {var}"), &endpoint)?;
+            }
+        }
+        Ok(())
+    } else if url.starts_with("http://") || url.starts_with("https://") {
+        check_endpoint("the remote", url)
+    } else if let Some(path) = url.strip_prefix("file://") {
+        match path {
+            "" => Err(format!("`{url}` names no directory; {VALID}")),
+            p if !Path::new(p).is_absolute() => Err(format!("`{url}` is not an absolute path; {VALID}")),
+            _ => Ok(()),
+        }
+    } else {
+        Err(format!("`{url}`: unknown scheme; {VALID}"))
+    }
+}
+
+/// `Ok` for an http(s) URL with a host (and a valid port).
+fn check_endpoint(what: &str, endpoint: &str) -> Result<(), String> {
+    let valid = "valid: http(s)://host[:port][/path]";
+    let url = reqwest::Url::parse(endpoint).map_err(|e| format!("{what} `{endpoint}` is not a URL ({e}); {valid}"))?;
+    if !matches!(url.scheme(), "http" | "https") || url.host_str().is_none_or(str::is_empty) {
+        return Err(format!("{what} `{endpoint}` is not an http(s) URL with a host; {valid}"));
+    }
+    Ok(())
+}
+
 impl Remote {
     /// `s3://bucket/prefix` (endpoint and credentials from the standard `AWS_*` variables,
     /// `AWS_ENDPOINT_URL` for a non-AWS server), `http(s)://host/path` (WebDAV, a Bazel-style
-    /// HTTP cache) or `file:///path`.
+    /// HTTP cache) or `file:///path`. A bad URL or endpoint is an error ([`check_url`]).
     pub fn open(url: &str, push: bool, timeout: Duration) -> anyhow::Result<Remote> {
+        check_url(url).map_err(|problem| anyhow::anyhow!("remote {problem}"))?;
         // TLS on ring; an error only says a provider is installed already.
         let _ = rustls::crypto::ring::default_provider().install_default();
         let client = ClientOptions::new().with_timeout(timeout).with_connect_timeout(timeout).with_allow_http(true);
         let retry = RetryConfig { max_retries: 1, retry_timeout: timeout, ..RetryConfig::default() };
+        let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
         let objects: Arc<dyn ObjectStore> = if let Some(rest) = url.strip_prefix("s3://") {
             let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
             let store = object_store::aws::AmazonS3Builder::from_env()
@@ -95,6 +136,15 @@ impl Remote {
                 .with_retry(retry)
                 .build()
                 .with_context(|| format!("remote `{url}`"))?;
+            // A bucket that does not exist would read as an empty cache: asked once here. A
+            // server that does not answer is not an error yet (the first request marks it down).
+            let listed = runtime.block_on(async { tokio::time::timeout(timeout, store.list_with_delimiter(None)).await });
+            if let Ok(Err(e)) = listed
+                && (matches!(e, object_store::Error::NotFound { .. }) || e.to_string().contains("NoSuchBucket"))
+            {
+                let endpoint = std::env::var("AWS_ENDPOINT_URL").or_else(|_| std::env::var("AWS_ENDPOINT")).unwrap_or_else(|_| "AWS".into());
+                bail!("remote `{url}`: bucket `{bucket}` does not exist at {endpoint}");
+            }
             Arc::new(object_store::prefix::PrefixStore::new(store, prefix))
         } else if url.starts_with("http://") || url.starts_with("https://") {
             Arc::new(
@@ -111,7 +161,6 @@ impl Remote {
         } else {
             bail!("remote `{url}`: unknown scheme; valid: s3://bucket/prefix, https://host/path (WebDAV), file:///path");
         };
-        let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
         Ok(Remote { url: url.to_owned(), objects, runtime, timeout, push, down: RefCell::new(None), told: Default::default() })
     }
 

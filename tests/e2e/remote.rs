@@ -282,6 +282,12 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
         ("AWS_SECRET_ACCESS_KEY", "rlmflow"),
         ("AWS_REGION", "us-east-1"),
     ];
+    // A bucket that does not exist is named, not read as an empty cache.
+    let missing = Scratch::new("remote-s3-missing");
+    missing.pipeline(CHAIN);
+    let out = missing.command(&["pull", "p.toml", "--remote", "s3://no-such-bucket/ci"]).envs(s3_env).output().unwrap();
+    assert_eq!(out.status.code(), Some(2), "{}", text(&out.stdout));
+    assert!(text(&out.stderr).contains(&format!("bucket `no-such-bucket` does not exist at {endpoint}")), "{}", text(&out.stderr));
     let run = |s: &Scratch, extra: &[&str]| {
         let mut args = vec!["run", "p.toml", "--json"];
         args.extend_from_slice(extra);
@@ -350,4 +356,35 @@ fn a_bad_remote_setting_is_a_config_error_naming_its_key() {
     assert!(err.contains("p.toml:5: pipeline.remote: `ftp://cache/rlmflow` is not a remote URL"), "{err}");
     assert!(err.contains("pipeline.remote_timeout_s: must be a number of seconds in 0.1..=3600, not 0.0"), "{err}");
     assert!(!s.store().join("objects").exists(), "nothing ran");
+
+    // A URL that names nothing, in the file or on the command line: exit 2, the setting named.
+    for (url, problem) in
+        [("file://", "`file://` names no directory"), ("s3://", "`s3://` names no bucket"), ("s3:///ci", "`s3:///ci` names no bucket")]
+    {
+        s.pipeline(&CHAIN.replace("seed = 7", &format!("seed = 7\nremote = \"{url}\"")));
+        let out = s.cli(&["run", "p.toml"]);
+        assert_eq!(out.status.code(), Some(2), "{url}");
+        assert!(text(&out.stderr).contains(&format!("pipeline.remote: {problem}")), "{url}: {}", text(&out.stderr));
+        s.pipeline(CHAIN);
+        let out = s.cli(&["run", "p.toml", "--remote", url, "--push"]);
+        assert_eq!(out.status.code(), Some(2), "{url}");
+        assert!(text(&out.stderr).contains(&format!("--remote: {problem}")), "{url}: {}", text(&out.stderr));
+        assert!(!s.dir.join("ac").exists() && !s.dir.join("cas").exists(), "nothing written beside the pipeline");
+    }
+    // A malformed S3 endpoint: exit 2 naming the variable, never a panic, on every command.
+    for endpoint in ["127.0.0.1:9000", "not-a-url", "http://", "http://127.0.0.1:99999"] {
+        for command in [
+            &["run", "p.toml", "--remote", "s3://bucket/ci"][..],
+            &["status", "p.toml", "--remote", "s3://bucket/ci"],
+            &["pull", "p.toml", "--remote", "s3://bucket/ci"],
+        ] {
+            let out = s.command(command).env("AWS_ENDPOINT_URL", endpoint).output().unwrap();
+            let err = text(&out.stderr);
+            assert_eq!(out.status.code(), Some(2), "{endpoint} {command:?}: {err}");
+            assert!(
+                err.contains(&format!("the environment variable AWS_ENDPOINT_URL `{endpoint}`")) && !err.contains("panicked"),
+                "{endpoint}: {err}"
+            );
+        }
+    }
 }
