@@ -54,5 +54,7 @@ pub use digest::Digest;
 pub use gc::GcReport;
 pub use lock::Lock;
 pub use preimage::{Change, InputDigest, Preimage, canonical_json};
-pub use store::{ActionRecord, ActionRequest, Corruption, DamagedFile, PlanEntry, RunPlan, Store, VerifyReport, file_safe, now_rfc3339, run_id};
+pub use store::{
+    ActionRecord, ActionRequest, Corruption, DamagedFile, PlanEntry, RecordSignature, RunPlan, Store, VerifyReport, file_safe, now_rfc3339, run_id,
+};
 pub use tree::{TreeInfo, differing_files, hash_file, hash_tree};

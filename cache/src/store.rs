@@ -35,6 +35,30 @@ pub struct ActionRecord {
     /// whose bytes depend on it: provenance, outside the key (the key holds its class).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub platform: Option<Value>,
+    /// Signatures of the pushers that vouched for it on a remote cache (see `rlmflow_remote`):
+    /// outside the key, over [`ActionRecord::signed_message`].
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub signatures: Vec<RecordSignature>,
+}
+
+/// One signer's signature of a record: the signer's key name and its ed25519 signature, base64.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RecordSignature {
+    pub key: String,
+    pub signature: String,
+}
+
+impl ActionRecord {
+    /// What a signature vouches for: this action key (the BLAKE3 of its preimage: operator,
+    /// version, settings, seed and inputs) has this output (its tree digest, file count and
+    /// size), computed by this operator (what type of artifact it is).
+    pub fn signed_message(&self) -> Vec<u8> {
+        format!(
+            "rlmflow action record v1\nkey {}\noperator {} {}\noutput {} {} {}\n",
+            self.key, self.preimage.operator, self.preimage.operator_version, self.output, self.files, self.bytes
+        )
+        .into_bytes()
+    }
 }
 
 /// Everything `rlmflow exec` needs to run an action, stored before it runs so that the same
@@ -344,6 +368,12 @@ impl Store {
             }
         }
         Ok(found)
+    }
+
+    /// Moves action `key`'s record to `quarantine/` (a record found untrustworthy); its action
+    /// reruns when needed.
+    pub fn quarantine_record(&self, key: &Digest) -> anyhow::Result<PathBuf> {
+        self.quarantine_path(&self.record_path(key))
     }
 
     /// Moves any store file or directory to `quarantine/`, keeping its name.
@@ -676,6 +706,7 @@ pub(crate) mod tests {
             metrics: Value::Null,
             summary: String::new(),
             platform: None,
+            signatures: Vec::new(),
         };
         store.write_record(&record).unwrap();
         record

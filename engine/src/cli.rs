@@ -169,6 +169,13 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Make an ed25519 key pair for signing remote cache records: writes NAME.secret (for the
+    /// pusher's RLMFLOW_SIGNING_KEY; keep it secret) and NAME.public, and prints the public key
+    /// for readers' `remote_trusted_keys`.
+    Key {
+        #[command(subcommand)]
+        action: KeyAction,
+    },
     /// Parse captions into the paper's grid JSON with the LLM-free parser: one caption per line,
     /// or JSON lines with a `caption` field; writes one grid JSON per line. Warnings go to stderr.
     Parse {
@@ -205,6 +212,17 @@ enum Command {
         /// Upload the result even over an object of the same digest (the remote's copy is corrupt).
         #[arg(long)]
         replace: bool,
+    },
+}
+
+#[derive(clap::Subcommand)]
+enum KeyAction {
+    /// A new key pair named NAME (letters, digits, `-`, `_`, `.`).
+    Generate {
+        name: String,
+        /// Where to write NAME.secret and NAME.public.
+        #[arg(long, default_value = ".")]
+        dir: PathBuf,
     },
 }
 
@@ -283,6 +301,7 @@ fn pull(
             }
             rlmflow_remote::Pulled::Miss => println!("  missing  {}", inst.label),
             rlmflow_remote::Pulled::Corrupt { why } => println!("  corrupt  {}  the remote's copy is not used: {why}", inst.label),
+            rlmflow_remote::Pulled::Untrusted { why } => println!("  untrusted {}  the remote's record is not used: {why}", inst.label),
         }
         if let Some(why) = remote.down() {
             bail!("remote cache {}: {why}", remote.url());
@@ -434,8 +453,16 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             for (key, output) in &report.records_without_output {
                 println!("  record {} needs object {}, which is gone: its action reruns when needed", key.short(), output.short());
             }
-            println!("verify: {n} objects, {} damaged; {} damaged store files", report.objects.len(), report.files.len());
-            Ok(if report.is_clean() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+            let forged = match pipeline.as_deref() {
+                Some(file) => verify_signatures(&store, &config::load(file, registry)?.remote)?,
+                None => 0,
+            };
+            println!(
+                "verify: {n} objects, {} damaged; {} damaged store files; {forged} records with a bad signature",
+                report.objects.len(),
+                report.files.len()
+            );
+            Ok(if report.is_clean() && forged == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
         }
         Command::Pin { pipeline, name, store } => {
             config::check_name(&name).map_err(|problem| anyhow::anyhow!("the pin name {problem}"))?;
@@ -457,6 +484,21 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Parse { file } => parse_captions(file.as_deref()),
+        Command::Key { action: KeyAction::Generate { name, dir } } => {
+            let (secret, public) = rlmflow_remote::signing::generate(&name)?;
+            let (secret_file, public_file) = (dir.join(format!("{name}.secret")), dir.join(format!("{name}.public")));
+            if secret_file.exists() {
+                anyhow::bail!("{} exists; a key is never overwritten", secret_file.display());
+            }
+            use std::os::unix::fs::OpenOptionsExt as _;
+            let mut file = std::fs::OpenOptions::new().write(true).create_new(true).mode(0o600).open(&secret_file)?;
+            std::io::Write::write_all(&mut file, format!("{secret}\n").as_bytes())?;
+            std::fs::write(&public_file, format!("{public}\n"))?;
+            println!("secret key: {} (for the pusher: {}={})", secret_file.display(), config::SIGNING_KEY_VARIABLE, secret_file.display());
+            println!("public key: {public}");
+            println!("readers trust it with: remote_trusted_keys = [\"{public}\"]");
+            Ok(ExitCode::SUCCESS)
+        }
         Command::Setup => {
             let env = rlmflow_python::ensure(&mut |note| eprintln!("{note}"))?;
             println!("Python {} environment: {}", env.version, env.root.display());
@@ -522,6 +564,29 @@ pub(crate) fn print_warnings(store: Option<&Store>) {
     for warning in store.map(Store::take_warnings).unwrap_or_default() {
         eprintln!("warning: {warning}");
     }
+}
+
+/// Checks every signed record of `store` (pulled from a remote cache, the signatures kept)
+/// against the pipeline's trusted keys: one whose signature does not match it, or that only
+/// untrusted keys signed, is quarantined and named. Returns how many.
+fn verify_signatures(store: &Store, remote: &config::RemoteSettings) -> anyhow::Result<usize> {
+    let trusted = rlmflow_remote::signing::TrustedKeys::parse(&remote.trusted_keys)?;
+    if trusted.is_empty() {
+        return Ok(0);
+    }
+    let mut bad = 0;
+    for key in store.record_keys()? {
+        let Some(record) = store.record(&key)?.filter(|r| !r.signatures.is_empty()) else { continue };
+        match trusted.check(&record) {
+            rlmflow_remote::signing::Trust::Signed(_) => {}
+            other => {
+                let to = store.quarantine_record(&key)?;
+                println!("  record {} is {other}: quarantined to {} (its action reruns when needed)", key.short(), to.display());
+                bad += 1;
+            }
+        }
+    }
+    Ok(bad)
 }
 
 fn existing_store(registry: &Registry, pipeline: Option<&Path>, arg: &StoreArg) -> anyhow::Result<Store> {

@@ -10,6 +10,8 @@ use std::fmt;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
+use anyhow::Context as _;
+
 use rlmflow_stages::{Arity, DynOperator, InputOutlines, ItemCount, Need, Outline, Part, Registry, Share, StageKind};
 
 use crate::dispatch::HyperQueueSettings;
@@ -104,11 +106,36 @@ pub struct RemoteSettings {
     pub push: bool,
     /// The most one request may take before the remote is given up for the run.
     pub timeout_s: f64,
+    /// `remote_trusted_keys`: public keys (`NAME:BASE64`) whose signatures make a remote record
+    /// usable; empty: every record is used, unverified.
+    pub trusted_keys: Vec<String>,
 }
 
+/// The environment variable naming the secret key file a pushing run signs its records with
+/// (never a pipeline setting: the file is shared, the key is not).
+pub const SIGNING_KEY_VARIABLE: &str = "RLMFLOW_SIGNING_KEY";
+
 impl RemoteSettings {
-    /// The remote these settings name (the client only: nothing is asked yet).
+    /// The remote these settings name, with its trusted keys and, when pushing, the signing key
+    /// of [`SIGNING_KEY_VARIABLE`].
     pub fn open(&self) -> anyhow::Result<rlmflow_remote::Remote> {
+        let trusted = rlmflow_remote::signing::TrustedKeys::parse(&self.trusted_keys).context("pipeline.remote_trusted_keys")?;
+        let signer = match std::env::var_os(SIGNING_KEY_VARIABLE).filter(|_| self.push) {
+            None => None,
+            Some(file) => {
+                let text = std::fs::read_to_string(&file).with_context(|| format!("{SIGNING_KEY_VARIABLE}: reading {}", file.to_string_lossy()))?;
+                Some(
+                    rlmflow_remote::signing::SigningKey::parse(&text)
+                        .with_context(|| format!("{SIGNING_KEY_VARIABLE} ({})", file.to_string_lossy()))?,
+                )
+            }
+        };
+        Ok(self.open_transport()?.with_trust(trusted, signer))
+    }
+
+    /// The remote as a transport between this engine and its own cluster tasks (their inputs and
+    /// results): no signatures asked or made.
+    pub fn open_transport(&self) -> anyhow::Result<rlmflow_remote::Remote> {
         let url = self.url.as_deref().ok_or_else(|| anyhow::anyhow!("no remote cache URL"))?;
         rlmflow_remote::Remote::open(url, self.push, std::time::Duration::from_secs_f64(self.timeout_s))
     }
@@ -116,7 +143,7 @@ impl RemoteSettings {
 
 impl Default for RemoteSettings {
     fn default() -> Self {
-        RemoteSettings { url: None, push: false, timeout_s: 10.0 }
+        RemoteSettings { url: None, push: false, timeout_s: 10.0, trusted_keys: Vec::new() }
     }
 }
 
@@ -239,8 +266,19 @@ impl Pipeline {
     }
 }
 
-const PIPELINE_KEYS: &[&str] =
-    &["name", "seed", "seeds", "cache", "executor", "hyperqueue", "remote", "remote_push", "remote_timeout_s", "max_instances"];
+const PIPELINE_KEYS: &[&str] = &[
+    "name",
+    "seed",
+    "seeds",
+    "cache",
+    "executor",
+    "hyperqueue",
+    "remote",
+    "remote_push",
+    "remote_timeout_s",
+    "remote_trusted_keys",
+    "max_instances",
+];
 const STAGE_KEYS: &[&str] = &["kind", "operator", "inputs", "variants", "per_seed", "shards", "shard_size"];
 /// The most parts one stage instance may be split into.
 const MAX_SHARDS: u64 = 4_096;
@@ -670,6 +708,17 @@ impl Checker {
             None => {}
             Some(Value::Bool(push)) => remote.push = *push,
             Some(other) => self.error(self.line("pipeline.remote_push"), "pipeline.remote_push", format!("must be true or false, not {other}"), None),
+        }
+        if let Some(value) = header.get("remote_trusted_keys") {
+            let key = "pipeline.remote_trusted_keys";
+            let keys: Option<Vec<String>> = value.as_array().and_then(|items| items.iter().map(|v| v.as_str().map(str::to_owned)).collect());
+            match keys.map(|k| rlmflow_remote::signing::TrustedKeys::parse(&k).map(|_| k)) {
+                Some(Ok(keys)) => remote.trusted_keys = keys,
+                Some(Err(e)) => {
+                    self.error(self.line(key), key, format!("{e:#}"), Some("a key is NAME:BASE64, as `rlmflow key generate NAME` prints it".into()))
+                }
+                None => self.error(self.line(key), key, format!("must be a list of public keys (strings), not {value}"), None),
+            }
         }
         match header.get("remote_timeout_s").map(|v| v.as_f64().filter(|t| (0.1..=3600.0).contains(t))) {
             None => {}

@@ -49,6 +49,9 @@ pub struct Summary {
 /// estimate of each that will run.
 pub fn print_status(plan: &Plan, states: &[Freshness], selected: &[bool], fits: &[Option<Fit>], remote: Option<&Remote>, json: bool) {
     let width = plan.instances.iter().map(|i| i.label.len()).max().unwrap_or(0);
+    if let Some(remote) = remote.filter(|r| !r.verified() && !json) {
+        println!("  note      remote cache {}: its records are used unverified (no `remote_trusted_keys`)", remote.url());
+    }
     for (i, state) in states.iter().enumerate().filter(|(i, _)| selected[*i]) {
         let label = &plan.instances[i].label;
         if json {
@@ -448,7 +451,12 @@ impl Executor<'_> {
     fn remote(&self) -> Option<&Remote> {
         self.remote
             .get_or_init(|| match self.opts.remote.as_ref()?.open() {
-                Ok(remote) => Some(remote),
+                Ok(remote) => {
+                    if !remote.verified() {
+                        self.ui.say(format!("  note     remote cache {}: its records are used unverified (no `remote_trusted_keys`)", remote.url()));
+                    }
+                    Some(remote)
+                }
                 Err(e) => {
                     self.ui.say(format!("  warning  remote cache not used: {e:#}"));
                     None
@@ -495,6 +503,13 @@ impl Executor<'_> {
             Pulled::Corrupt { why } => {
                 self.events.write("remote_corrupt", json!({"stage": label, "key": key, "why": why}))?;
                 self.ui.say(format!("  warning  {label}: the remote cache's copy is corrupt ({why}); not used, recomputing"));
+                self.corrupt_remote.insert(*key);
+                Ok(None)
+            }
+            // Replaced by this run's own signed record when it pushes, like a corrupt copy.
+            Pulled::Untrusted { why } => {
+                self.events.write("remote_untrusted", json!({"stage": label, "key": key, "why": why}))?;
+                self.ui.say(format!("  warning  {label}: the remote cache's record is not trusted ({why}); not used, recomputing"));
                 self.corrupt_remote.insert(*key);
                 Ok(None)
             }

@@ -28,6 +28,8 @@
 //! A remote is read-only unless made with `push`: pull requests and laptops read, trusted CI
 //! writes.
 
+pub mod signing;
+
 use std::cell::RefCell;
 use std::path::Path;
 use std::sync::Arc;
@@ -37,6 +39,7 @@ use anyhow::{Context as _, bail};
 use object_store::path::Path as Key;
 use object_store::{ClientOptions, ObjectStore, ObjectStoreExt, PutPayload, RetryConfig};
 use rlmflow_cache::{ActionRecord, Digest, Store, hash_tree};
+use signing::{SigningKey, Trust, TrustedKeys};
 
 /// A remote cache at one URL.
 pub struct Remote {
@@ -50,6 +53,10 @@ pub struct Remote {
     down: RefCell<Option<String>>,
     /// Whether [`Remote::newly_down`] has told it.
     told: std::cell::Cell<bool>,
+    /// The keys whose signatures make a record usable (none: every record is, unverified).
+    trusted: TrustedKeys,
+    /// The key this client signs the records it uploads with.
+    signer: Option<SigningKey>,
 }
 
 /// Whether [`Remote::fetch_object`] found an artifact.
@@ -74,6 +81,11 @@ pub enum Pulled {
     Miss,
     /// The remote's artifact is not the one its record names (`why`); nothing entered the store.
     Corrupt {
+        why: String,
+    },
+    /// The record is not signed by a trusted key (`why`: unsigned, untrusted signers, forged);
+    /// nothing entered the store.
+    Untrusted {
         why: String,
     },
 }
@@ -161,7 +173,39 @@ impl Remote {
         } else {
             bail!("remote `{url}`: unknown scheme; valid: s3://bucket/prefix, https://host/path (WebDAV), file:///path");
         };
-        Ok(Remote { url: url.to_owned(), objects, runtime, timeout, push, down: RefCell::new(None), told: Default::default() })
+        Ok(Remote {
+            url: url.to_owned(),
+            objects,
+            runtime,
+            timeout,
+            push,
+            down: RefCell::new(None),
+            told: Default::default(),
+            trusted: TrustedKeys::default(),
+            signer: None,
+        })
+    }
+
+    /// This client with trusted keys (a record is used only if one of them signed it) and the
+    /// key it signs its uploads with.
+    pub fn with_trust(mut self, trusted: TrustedKeys, signer: Option<SigningKey>) -> Remote {
+        self.trusted = trusted;
+        self.signer = signer;
+        self
+    }
+
+    /// Whether records are checked against trusted keys; without, every record is used unverified.
+    pub fn verified(&self) -> bool {
+        !self.trusted.is_empty()
+    }
+
+    /// Whether a record may be used here: `Err(why)` when trusted keys are set and none signed it.
+    fn trusts(&self, record: &ActionRecord) -> Result<(), String> {
+        match self.trusted.check(record) {
+            _ if self.trusted.is_empty() => Ok(()),
+            Trust::Signed(_) => Ok(()),
+            other => Err(format!("its record is {other}")),
+        }
     }
 
     pub fn url(&self) -> &str {
@@ -237,7 +281,7 @@ impl Remote {
     pub fn holds(&self, key: &Digest) -> bool {
         let Some(bytes) = self.get("reading a record", &Self::record_key(key), &mut |_, _| {}) else { return false };
         let Ok(record) = serde_json::from_slice::<ActionRecord>(&bytes) else { return false };
-        matches!(self.call("checking an object", self.objects.head(&Self::object_key(&record.output))), Ok(Some(_)))
+        self.trusts(&record).is_ok() && matches!(self.call("checking an object", self.objects.head(&Self::object_key(&record.output))), Ok(Some(_)))
     }
 
     /// Fetches `key`'s record and artifact into `store`, verified; a miss when the remote lacks
@@ -249,6 +293,9 @@ impl Remote {
             Ok(r) if r.key == *key && r.preimage.key() == *key => r,
             _ => return Ok(Pulled::Corrupt { why: format!("the record of {} is not that key's", key.short()) }),
         };
+        if let Err(why) = self.trusts(&record) {
+            return Ok(Pulled::Untrusted { why });
+        }
         let bytes = match self.fetch_object(store, &record.output, progress)? {
             Fetched::Present => 0,
             Fetched::Downloaded(bytes) => bytes,
@@ -291,7 +338,8 @@ impl Remote {
         let key = Self::record_key(&record.key);
         let Ok(present) = self.call("checking a record", self.objects.head(&key)) else { return Ok(None) };
         if present.is_none() || replace {
-            let bytes = serde_json::to_vec_pretty(record)?;
+            let signed = self.signer.as_ref().map(|key| key.sign(record));
+            let bytes = serde_json::to_vec_pretty(signed.as_ref().unwrap_or(record))?;
             sent += bytes.len() as u64;
             if self.call("uploading a record", self.objects.put(&key, PutPayload::from(bytes))).is_err() {
                 return Ok(None);

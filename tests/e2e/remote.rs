@@ -357,6 +357,14 @@ fn a_bad_remote_setting_is_a_config_error_naming_its_key() {
     assert!(err.contains("pipeline.remote_timeout_s: must be a number of seconds in 0.1..=3600, not 0.0"), "{err}");
     assert!(!s.store().join("objects").exists(), "nothing ran");
 
+    // A trusted key that is not one.
+    s.pipeline(&CHAIN.replace("seed = 7", "seed = 7\nremote_trusted_keys = [\"ci:AAAA\", 3]"));
+    let err = text(&s.cli(&["run", "p.toml"]).stderr);
+    assert!(err.contains("p.toml:5: pipeline.remote_trusted_keys: must be a list of public keys (strings)"), "{err}");
+    s.pipeline(&CHAIN.replace("seed = 7", "seed = 7\nremote_trusted_keys = [\"ci:AAAA\"]"));
+    let err = text(&s.cli(&["run", "p.toml"]).stderr);
+    assert!(err.contains("p.toml:5: pipeline.remote_trusted_keys: the public key `ci` has 3 bytes; an ed25519 public key has 32"), "{err}");
+
     // A URL that names nothing, in the file or on the command line: exit 2, the setting named.
     for (url, problem) in
         [("file://", "`file://` names no directory"), ("s3://", "`s3://` names no bucket"), ("s3:///ci", "`s3:///ci` names no bucket")]
@@ -387,4 +395,104 @@ fn a_bad_remote_setting_is_a_config_error_naming_its_key() {
             );
         }
     }
+}
+
+/// Runs `p.toml` with `--json` and `extra`, signing pushes with `key` if given; the events.
+fn run_signing(s: &Scratch, extra: &[&str], key: Option<&Path>) -> crate::harness::Events {
+    let mut args = vec!["run", "p.toml", "--json"];
+    args.extend_from_slice(extra);
+    let mut cmd = s.command(&args);
+    if let Some(key) = key {
+        cmd.env("RLMFLOW_SIGNING_KEY", key);
+    }
+    let out = cmd.output().unwrap();
+    assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
+    crate::harness::Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect())
+}
+
+#[test]
+fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
+    let keys = Scratch::new("remote-keys");
+    for name in ["ci", "laptop"] {
+        let out = keys.cli(&["key", "generate", name]);
+        assert!(out.status.success() && text(&out.stdout).contains("remote_trusted_keys = ["), "{}", text(&out.stderr));
+    }
+    assert_eq!(keys.cli(&["key", "generate", "ci"]).status.code(), Some(1), "a key is never overwritten");
+    let public = |name: &str| fs::read_to_string(keys.dir.join(format!("{name}.public"))).unwrap().trim().to_owned();
+    let trusting = CHAIN.replace("seed = 7", &format!("seed = 7\nremote_trusted_keys = [\"{}\"]", public("ci")));
+    let ci = keys.dir.join("ci.secret");
+
+    // Signed by `ci`: a reader that trusts `ci` pulls everything, and verify finds it whole.
+    let pusher = Scratch::new("remote-signed-pusher");
+    let remote = pusher.dir.join("remote");
+    let url = file_url(&remote);
+    pusher.pipeline(CHAIN);
+    let computed = run_signing(&pusher, &["--remote", &url, "--push"], Some(&ci));
+    let reader = Scratch::new("remote-signed-reader");
+    reader.pipeline(&trusting);
+    let pulled = run_signing(&reader, &["--remote", &url], None);
+    assert_eq!(pulled.with_status("pulled").len(), 5, "{:?}", pulled.finished());
+    assert_eq!(outputs(&pulled), outputs(&computed));
+    let verify = reader.cli(&["verify", "p.toml"]);
+    assert!(verify.status.success(), "{}", text(&verify.stdout));
+
+    // A forged record: another valid object under a key, the signature kept. Not used, named;
+    // the run computes it, and its outputs are a local run's.
+    let (records, _) = held(&remote);
+    let read =
+        |key: &str| -> serde_json::Value { serde_json::from_slice(&fs::read(remote.join("ac").join(format!("{key}.json"))).unwrap()).unwrap() };
+    let (mut forged, other) = (read(&records[0]), read(&records[1]));
+    for field in ["output", "files", "bytes"] {
+        forged[field] = other[field].clone();
+    }
+    fs::write(remote.join("ac").join(format!("{}.json", records[0])), serde_json::to_vec_pretty(&forged).unwrap()).unwrap();
+    let victim = Scratch::new("remote-forged-reader");
+    victim.pipeline(&trusting);
+    let events = run_signing(&victim, &["--remote", &url], None);
+    let untrusted = events.of("remote_untrusted");
+    assert_eq!(untrusted.len(), 1, "{:?}", events.0);
+    assert!(untrusted[0]["why"].as_str().unwrap().contains("its signature by `ci` does not match it (forged or altered)"), "{:?}", untrusted);
+    assert_eq!(outputs(&events), outputs(&computed), "the outputs of a local run");
+
+    // Unsigned, or signed by a key the reader does not trust: never used.
+    for (name, signer, why) in [
+        ("unsigned", None, "its record is unsigned"),
+        ("laptop", Some(keys.dir.join("laptop.secret")), "signed only by keys not trusted here (laptop)"),
+    ] {
+        let other = Scratch::new(&format!("remote-{name}-pusher"));
+        other.pipeline(CHAIN);
+        let other_url = file_url(&other.dir.join("remote"));
+        run_signing(&other, &["--remote", &other_url, "--push"], signer.as_deref());
+        let reader = Scratch::new(&format!("remote-{name}-reader"));
+        reader.pipeline(&trusting);
+        let events = run_signing(&reader, &["--remote", &other_url], None);
+        assert_eq!(events.with_status("pulled").len(), 0, "{name}");
+        assert_eq!(events.of("remote_untrusted").len(), 5, "{name}: {:?}", events.0);
+        assert!(events.of("remote_untrusted").iter().all(|e| e["why"].as_str().unwrap().contains(why)), "{name}");
+    }
+
+    // A signed record changed by hand in a local store: verify names and quarantines it.
+    let actions = reader.store().join("actions");
+    let mut files: Vec<PathBuf> = Vec::new();
+    for shard in fs::read_dir(&actions).unwrap().flatten() {
+        files.extend(fs::read_dir(shard.path()).unwrap().flatten().map(|e| e.path()));
+    }
+    files.sort();
+    let mut record: serde_json::Value = serde_json::from_slice(&fs::read(&files[0]).unwrap()).unwrap();
+    let donor: serde_json::Value = serde_json::from_slice(&fs::read(&files[1]).unwrap()).unwrap();
+    for field in ["output", "files", "bytes"] {
+        record[field] = donor[field].clone();
+    }
+    fs::write(&files[0], serde_json::to_vec_pretty(&record).unwrap()).unwrap();
+    let verify = reader.cli(&["verify", "p.toml"]);
+    assert_eq!(verify.status.code(), Some(1));
+    assert!(text(&verify.stdout).contains("does not match it (forged or altered): quarantined"), "{}", text(&verify.stdout));
+
+    // Without trusted keys the records are used, and the run and status say they are unverified.
+    let plain = Scratch::new("remote-unverified");
+    plain.pipeline(CHAIN);
+    let out = plain.cli(&["run", "p.toml", "--remote", &url]);
+    assert!(format!("{}{}", text(&out.stdout), text(&out.stderr)).contains("its records are used unverified (no `remote_trusted_keys`)"));
+    let status = plain.cli(&["status", "p.toml", "--remote", &url]);
+    assert!(text(&status.stdout).contains("its records are used unverified"), "{}", text(&status.stdout));
 }

@@ -354,7 +354,7 @@ impl OwnTask {
     /// Pushes the action's inputs to the remote cache, where the workers fetch them; an exit
     /// when that cannot be done.
     fn prepare(own: &OwnStores, launch: &Launch) -> anyhow::Result<Result<OwnTask, Exit>> {
-        let remote = own.remote.open()?;
+        let remote = own.remote.open_transport()?;
         let engine =
             rlmflow_cache::Store::open_existing(&launch.store)?.with_context(|| format!("no rlmflow store at {}", launch.store.display()))?;
         let request = engine.request(&launch.key)?.with_context(|| format!("the store has no request for action {}", launch.key))?;
@@ -418,7 +418,7 @@ impl OwnTask {
             let why = match self.remote.pull(&self.engine, &self.key, &mut |_, _| {})? {
                 rlmflow_remote::Pulled::Hit { .. } => None,
                 rlmflow_remote::Pulled::Miss => Some(self.remote.down().unwrap_or_else(|| "the remote cache does not have it".into())),
-                rlmflow_remote::Pulled::Corrupt { why } => Some(why),
+                rlmflow_remote::Pulled::Corrupt { why } | rlmflow_remote::Pulled::Untrusted { why } => Some(why),
             };
             if let Some(why) = why {
                 let message = format!("the task finished, but its result could not be fetched from the remote cache: {why}");

@@ -1,0 +1,175 @@
+//! Signed records and trusted keys, as Nix's binary caches sign `narinfo`s: a pusher signs each
+//! action record it uploads with its ed25519 secret key; a reader configured with trusted public
+//! keys uses a record only if one of them signed it. Anyone who can write to the bucket can then
+//! still delete or damage records, but not make a key name an output no trusted pusher computed.
+//!
+//! Keys are text, `NAME:BASE64`: a secret key's base64 is its PKCS#8 document, a public key's its
+//! 32 bytes. `rlmflow key generate NAME` makes a pair.
+
+use anyhow::{Context as _, bail};
+use base64::Engine as _;
+use base64::engine::general_purpose::STANDARD as BASE64;
+use ring::signature::{ED25519, Ed25519KeyPair, KeyPair as _, UnparsedPublicKey};
+use rlmflow_cache::{ActionRecord, RecordSignature};
+
+/// A pusher's secret key.
+pub struct SigningKey {
+    name: String,
+    pair: Ed25519KeyPair,
+}
+
+/// A new key pair named `name`: (the secret key's text, the public key's text).
+pub fn generate(name: &str) -> anyhow::Result<(String, String)> {
+    check_name(name)?;
+    let document = Ed25519KeyPair::generate_pkcs8(&ring::rand::SystemRandom::new()).map_err(|_| anyhow::anyhow!("generating an ed25519 key"))?;
+    let pair = Ed25519KeyPair::from_pkcs8(document.as_ref()).map_err(|e| anyhow::anyhow!("reading the generated key: {e}"))?;
+    Ok((format!("{name}:{}", BASE64.encode(document.as_ref())), format!("{name}:{}", BASE64.encode(pair.public_key().as_ref()))))
+}
+
+fn check_name(name: &str) -> anyhow::Result<()> {
+    if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c)) {
+        bail!("key name `{name}`: use letters, digits, `-`, `_` and `.`");
+    }
+    Ok(())
+}
+
+/// `NAME:BASE64` split, the name checked and the base64 decoded.
+fn split(text: &str, what: &str) -> anyhow::Result<(String, Vec<u8>)> {
+    let (name, data) = text.trim().split_once(':').with_context(|| format!("a {what} is NAME:BASE64"))?;
+    check_name(name)?;
+    let bytes = BASE64.decode(data).with_context(|| format!("the {what} `{name}` is not base64"))?;
+    Ok((name.to_owned(), bytes))
+}
+
+impl SigningKey {
+    /// A secret key from its text (`rlmflow key generate`'s `NAME.secret`).
+    pub fn parse(text: &str) -> anyhow::Result<SigningKey> {
+        let (name, document) = split(text, "secret key")?;
+        let pair = Ed25519KeyPair::from_pkcs8(&document).map_err(|e| anyhow::anyhow!("the secret key `{name}` is not an ed25519 key ({e})"))?;
+        Ok(SigningKey { name, pair })
+    }
+
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// `record` with this key's signature (replacing an earlier one of the same name).
+    pub fn sign(&self, record: &ActionRecord) -> ActionRecord {
+        let signature = BASE64.encode(self.pair.sign(&record.signed_message()).as_ref());
+        let mut signed = record.clone();
+        signed.signatures.retain(|s| s.key != self.name);
+        signed.signatures.push(RecordSignature { key: self.name.clone(), signature });
+        signed
+    }
+}
+
+/// The public keys whose signatures a reader accepts.
+#[derive(Clone, Debug, Default)]
+pub struct TrustedKeys(Vec<(String, Vec<u8>)>);
+
+/// Whether a record may be used, by the trusted keys.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Trust {
+    /// A trusted key signed it (its name).
+    Signed(String),
+    /// No signature at all.
+    Unsigned,
+    /// Signed only by keys not trusted here (their names).
+    Untrusted(Vec<String>),
+    /// A trusted key's name with a signature that does not match the record: forged or altered.
+    Forged(String),
+}
+
+impl TrustedKeys {
+    /// `NAME:BASE64` public keys; an error names the first that is not one.
+    pub fn parse(keys: &[String]) -> anyhow::Result<TrustedKeys> {
+        let mut trusted = Vec::new();
+        for text in keys {
+            let (name, bytes) = split(text, "public key")?;
+            if bytes.len() != 32 {
+                bail!("the public key `{name}` has {} bytes; an ed25519 public key has 32", bytes.len());
+            }
+            trusted.push((name, bytes));
+        }
+        Ok(TrustedKeys(trusted))
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+
+    /// Whether `record` carries a valid signature by a trusted key.
+    pub fn check(&self, record: &ActionRecord) -> Trust {
+        if record.signatures.is_empty() {
+            return Trust::Unsigned;
+        }
+        let message = record.signed_message();
+        let mut forged = None;
+        for s in &record.signatures {
+            let Some((name, key)) = self.0.iter().find(|(name, _)| *name == s.key) else { continue };
+            match BASE64.decode(&s.signature) {
+                Ok(sig) if UnparsedPublicKey::new(&ED25519, key).verify(&message, &sig).is_ok() => return Trust::Signed(name.clone()),
+                _ => forged = Some(name.clone()),
+            }
+        }
+        match forged {
+            Some(name) => Trust::Forged(name),
+            None => Trust::Untrusted(record.signatures.iter().map(|s| s.key.clone()).collect()),
+        }
+    }
+}
+
+impl std::fmt::Display for Trust {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Trust::Signed(name) => write!(f, "signed by `{name}`"),
+            Trust::Unsigned => f.write_str("unsigned"),
+            Trust::Untrusted(names) => write!(f, "signed only by keys not trusted here ({})", names.join(", ")),
+            Trust::Forged(name) => write!(f, "its signature by `{name}` does not match it (forged or altered)"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rlmflow_cache::{Digest, Preimage};
+
+    fn record(output: &[u8]) -> ActionRecord {
+        let preimage =
+            Preimage { operator: "clip".into(), operator_version: 3, config: serde_json::json!({}), seed: 1, inputs: vec![], platform: None };
+        ActionRecord {
+            key: preimage.key(),
+            preimage,
+            output: Digest::of(output),
+            files: 1,
+            bytes: 10,
+            started: String::new(),
+            duration_s: 0.0,
+            metrics: serde_json::Value::Null,
+            summary: String::new(),
+            platform: None,
+            signatures: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn only_a_trusted_keys_signature_of_this_very_record_is_trusted() {
+        let (ci_secret, ci_public) = generate("ci").unwrap();
+        let (other_secret, _) = generate("laptop").unwrap();
+        let ci = SigningKey::parse(&ci_secret).unwrap();
+        let trusted = TrustedKeys::parse(&[ci_public]).unwrap();
+        let good = ci.sign(&record(b"trained"));
+        assert_eq!(trusted.check(&good), Trust::Signed("ci".into()));
+        assert_eq!(trusted.check(&record(b"trained")), Trust::Unsigned);
+        assert_eq!(trusted.check(&SigningKey::parse(&other_secret).unwrap().sign(&record(b"trained"))), Trust::Untrusted(vec!["laptop".into()]));
+        // The same signature on a record naming another output: forged.
+        let mut forged = record(b"random init");
+        forged.signatures = good.signatures.clone();
+        assert_eq!(trusted.check(&forged), Trust::Forged("ci".into()));
+        // Signing again replaces the signer's own signature.
+        assert_eq!(ci.sign(&good).signatures.len(), 1);
+        assert!(TrustedKeys::parse(&["ci:AAAA".into()]).unwrap_err().to_string().contains("has 3 bytes"));
+        assert!(SigningKey::parse("no colon").is_err());
+    }
+}
