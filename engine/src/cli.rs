@@ -152,6 +152,16 @@ enum Command {
     /// Re-hash every object; quarantine and report the damaged ones.
     Verify {
         pipeline: Option<PathBuf>,
+        /// Also recompute cached actions in fresh processes and compare their outputs with their
+        /// records' (needs the pipeline): an audit of a cache this store pulled from.
+        #[arg(long)]
+        recompute: bool,
+        /// With --recompute: only these stages (repeatable).
+        #[arg(long, value_name = "STAGE")]
+        only: Vec<String>,
+        /// With --recompute: at most N actions, chosen by key.
+        #[arg(long, value_name = "N")]
+        sample: Option<usize>,
         #[command(flatten)]
         store: StoreArg,
     },
@@ -398,7 +408,10 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 if let Some(why) = remote.down() {
                     bail!("remote cache {}: {why}", remote.url());
                 }
-                let sent = sent.unwrap_or(0);
+                if let Some(why) = sent.as_ref().and_then(|p| p.disagrees.as_ref()) {
+                    println!("  WARNING  {}: {why}", plan.instances[i].label);
+                }
+                let sent = sent.map_or(0, |p| p.bytes);
                 println!("  {}  {}  {:.1} MB", if sent > 0 { "pushed" } else { "held  " }, plan.instances[i].label, sent as f64 / 1e6);
                 pushed += usize::from(sent > 0);
                 bytes += sent;
@@ -440,7 +453,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             print_warnings(Some(&store));
             Ok(ExitCode::SUCCESS)
         }
-        Command::Verify { pipeline, store } => {
+        Command::Verify { pipeline, recompute, only, sample, store } => {
             let store = existing_store(registry, pipeline.as_deref(), &store)?;
             let mut n = 0;
             let report = store.verify(|_| n += 1)?;
@@ -462,7 +475,20 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 report.objects.len(),
                 report.files.len()
             );
-            Ok(if report.is_clean() && forged == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+            let disagree = match (recompute, pipeline.as_deref()) {
+                (false, _) => 0,
+                (true, None) => anyhow::bail!("--recompute needs the pipeline file"),
+                (true, Some(file)) => {
+                    let p = config::load(file, registry)?;
+                    let plan = planned(&p, Some(&store), Device::Cpu)?;
+                    let jobs = std::thread::available_parallelism().map_or(1, |n| n.get());
+                    let opts = RunOptions { jobs, json: false, device: Device::Cpu, verify_inputs: false, remote: None };
+                    let disagree = crate::determinism::recompute(&plan, registry, &store, &only, sample, &opts)?;
+                    println!("verify --recompute: {disagree} disagree");
+                    disagree
+                }
+            };
+            Ok(if report.is_clean() && forged == 0 && disagree == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
         }
         Command::Pin { pipeline, name, store } => {
             config::check_name(&name).map_err(|problem| anyhow::anyhow!("the pin name {problem}"))?;

@@ -97,6 +97,67 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
     Ok(all_same)
 }
 
+/// `rlmflow verify PIPELINE --recompute`: recomputes cached actions (of `stages`, or all) in
+/// fresh processes and compares each output with the one its record names, so a team can audit
+/// a cache it pulled from (a forged or foreign record shows as a disagreement). `sample` keeps
+/// that many, chosen by key (a fixed, unbiased choice). Returns how many disagree.
+pub fn recompute(
+    plan: &Plan,
+    registry: &Registry,
+    store: &Store,
+    stages: &[String],
+    sample: Option<usize>,
+    opts: &RunOptions,
+) -> anyhow::Result<usize> {
+    let wanted = plan.select(stages)?;
+    let states = assess(plan, registry, Some(store))?;
+    let mut cached: Vec<(usize, rlmflow_cache::ActionRecord)> = states
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| wanted[*i] && (stages.is_empty() || stages.iter().any(|s| plan.pipeline.stages[plan.instances[*i].stage].name == *s)))
+        .filter_map(|(i, state)| match state {
+            Freshness::Cached(record) => Some((i, (**record).clone())),
+            _ => None,
+        })
+        .collect();
+    if let Some(n) = sample {
+        cached.sort_by_key(|(_, r)| r.key);
+        cached.truncate(n);
+        cached.sort_by_key(|(i, _)| *i);
+    }
+    let mut disagree = 0;
+    for (i, record) in cached {
+        let inst = &plan.instances[i];
+        store.write_request(&plan.request(i, record.key, record.preimage.clone()))?;
+        plan.snapshot_tracked(i, store)?;
+        let exe = crate::exec::executable(registry.get(&inst.operator).expect("validated operator"))?;
+        let scratch = store.root().join("tmp").join(format!("recompute-{}-{}", record.key.hex(), std::process::id()));
+        let _ = std::fs::remove_dir_all(&scratch);
+        std::fs::create_dir_all(&scratch)?;
+        let digest = attempt_in_fresh_process(&exe, store, &record.key, opts.jobs, &[], opts, &scratch)
+            .with_context(|| format!("recomputing {}", inst.label))?;
+        if digest == record.output {
+            println!("  agrees     {}  {}", inst.label, digest.short());
+            std::fs::remove_dir_all(&scratch)?;
+            continue;
+        }
+        disagree += 1;
+        let signers = if record.signatures.is_empty() {
+            "unsigned".to_owned()
+        } else {
+            record.signatures.iter().map(|s| s.key.as_str()).collect::<Vec<_>>().join(", ")
+        };
+        println!(
+            "  DISAGREES  {}  its record names {} ({signers}), recomputed {}; the recomputed output is kept in {}",
+            inst.label,
+            record.output.short(),
+            digest.short(),
+            scratch.join("out").display()
+        );
+    }
+    Ok(disagree)
+}
+
 /// Runs `rlmflow exec KEY --scratch DIR` with `env` added to its environment and waits for its
 /// output digest.
 fn attempt_in_fresh_process(

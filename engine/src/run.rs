@@ -532,8 +532,13 @@ impl Executor<'_> {
         if let Some(why) = remote.newly_down() {
             return self.warn_remote_down(&why);
         }
-        if let Some(bytes) = pushed {
-            self.events.write("pushed", json!({"stage": label, "key": record.key, "bytes": bytes, "seconds": clock.elapsed().as_secs_f64()}))?;
+        if let Some(pushed) = pushed {
+            if let Some(why) = &pushed.disagrees {
+                self.events.write("remote_disagrees", json!({"stage": label, "key": record.key, "output": record.output, "why": why}))?;
+                self.ui.say(format!("  WARNING  {label}: {why}"));
+            }
+            self.events
+                .write("pushed", json!({"stage": label, "key": record.key, "bytes": pushed.bytes, "seconds": clock.elapsed().as_secs_f64()}))?;
         }
         Ok(())
     }

@@ -70,6 +70,15 @@ pub enum Fetched {
     Corrupt(String),
 }
 
+/// What a push did.
+pub struct Pushed {
+    /// Bytes uploaded (0: the remote had both).
+    pub bytes: u64,
+    /// The remote already held a record of this key naming another output: what it says (left
+    /// as it was: a disagreement is an alarm for a person, not something to overwrite).
+    pub disagrees: Option<String>,
+}
+
 /// What a pull found.
 pub enum Pulled {
     /// The record and its artifact, now in the local store.
@@ -331,21 +340,45 @@ impl Remote {
     }
 
     /// Uploads `record` and its artifact from `store`: the object unless the remote has it (or
-    /// `replace`: it is known corrupt), then the record. Returns the bytes uploaded; `Ok(None)`
-    /// when the remote is down or this client does not push.
-    pub fn push(&self, store: &Store, record: &ActionRecord, replace: bool) -> anyhow::Result<Option<u64>> {
-        let Some(mut sent) = self.push_object(store, &record.output, replace)? else { return Ok(None) };
+    /// `replace`: it is known corrupt or untrusted), then the record unless the remote has one.
+    /// A record already there that names another output is reported, not overwritten; one that
+    /// agrees but lacks this client's signature gets it. `Ok(None)` when the remote is down or
+    /// this client does not push.
+    pub fn push(&self, store: &Store, record: &ActionRecord, replace: bool) -> anyhow::Result<Option<Pushed>> {
+        let Some(mut bytes) = self.push_object(store, &record.output, replace)? else { return Ok(None) };
         let key = Self::record_key(&record.key);
         let Ok(present) = self.call("checking a record", self.objects.head(&key)) else { return Ok(None) };
-        if present.is_none() || replace {
+        let mut write = present.is_none() || replace;
+        let mut disagrees = None;
+        if !write {
+            let theirs = self.get("reading a record", &key, &mut |_, _| {}).and_then(|b| serde_json::from_slice::<ActionRecord>(&b).ok());
+            match theirs {
+                Some(theirs) if theirs.output != record.output => {
+                    let signers = if theirs.signatures.is_empty() {
+                        "unsigned".to_owned()
+                    } else {
+                        format!("signed by {}", theirs.signatures.iter().map(|s| s.key.as_str()).collect::<Vec<_>>().join(", "))
+                    };
+                    disagrees = Some(format!(
+                        "the remote's record of {} names output {} ({signers}), but this run computed {}; the remote's is left as it was",
+                        record.key.short(),
+                        theirs.output.short(),
+                        record.output.short()
+                    ));
+                }
+                Some(theirs) => write = self.signer.as_ref().is_some_and(|s| !theirs.signatures.iter().any(|t| t.key == s.name())),
+                None => {}
+            }
+        }
+        if write {
             let signed = self.signer.as_ref().map(|key| key.sign(record));
-            let bytes = serde_json::to_vec_pretty(signed.as_ref().unwrap_or(record))?;
-            sent += bytes.len() as u64;
-            if self.call("uploading a record", self.objects.put(&key, PutPayload::from(bytes))).is_err() {
+            let body = serde_json::to_vec_pretty(signed.as_ref().unwrap_or(record))?;
+            bytes += body.len() as u64;
+            if self.call("uploading a record", self.objects.put(&key, PutPayload::from(body))).is_err() {
                 return Ok(None);
             }
         }
-        Ok(Some(sent))
+        Ok(Some(Pushed { bytes, disagrees }))
     }
 
     /// Uploads the artifact `digest` from `store` unless the remote has it (or `replace`): what

@@ -496,3 +496,62 @@ fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
     let status = plain.cli(&["status", "p.toml", "--remote", &url]);
     assert!(text(&status.stdout).contains("its records are used unverified"), "{}", text(&status.stdout));
 }
+
+/// The record file of the action whose operator is `operator`, in a store or a remote.
+fn record_of(files: &[PathBuf], operator: &str) -> PathBuf {
+    files
+        .iter()
+        .find(|f| serde_json::from_slice::<serde_json::Value>(&fs::read(f).unwrap()).unwrap()["preimage"]["operator"] == operator)
+        .unwrap_or_else(|| panic!("no `{operator}` record in {files:?}"))
+        .clone()
+}
+
+#[test]
+fn a_pusher_reports_a_remote_record_that_disagrees_and_verify_recompute_audits_a_store() {
+    let first = Scratch::new("remote-disagree-first");
+    let remote = first.dir.join("remote");
+    let url = file_url(&remote);
+    first.pipeline(CHAIN);
+    let computed = first.run_expecting(0, &["--remote", &url, "--push"]);
+
+    // The remote's `map` record names an output nobody computed (its object absent, so a pull
+    // misses): the next pusher computes it, says so, and leaves the record for a person.
+    let ac: Vec<PathBuf> = fs::read_dir(remote.join("ac")).unwrap().flatten().map(|e| e.path()).collect();
+    let map = record_of(&ac, "shout");
+    let mut record: serde_json::Value = serde_json::from_slice(&fs::read(&map).unwrap()).unwrap();
+    record["output"] = serde_json::json!("0".repeat(64));
+    fs::write(&map, serde_json::to_vec_pretty(&record).unwrap()).unwrap();
+    let second = Scratch::new("remote-disagree-second");
+    second.pipeline(CHAIN);
+    let events = second.run_expecting(0, &["--remote", &url, "--push"]);
+    let disagrees = events.of("remote_disagrees");
+    assert_eq!(disagrees.len(), 1, "{:?}", events.0);
+    assert!(
+        disagrees[0]["why"].as_str().unwrap().contains(&format!("names output {} (unsigned), but this run computed", &"0".repeat(12))),
+        "{disagrees:?}"
+    );
+    let kept: serde_json::Value = serde_json::from_slice(&fs::read(&map).unwrap()).unwrap();
+    assert_eq!(kept["output"], record["output"], "not overwritten");
+    assert_eq!(outputs(&events), outputs(&computed));
+
+    // Recomputed in fresh processes, the first store's records agree...
+    let out = first.cli(&["verify", "p.toml", "--recompute"]);
+    assert!(out.status.success() && text(&out.stdout).contains("verify --recompute: 0 disagree"), "{}", text(&out.stdout));
+    assert_eq!(text(&out.stdout).matches("  agrees ").count(), 5, "{}", text(&out.stdout));
+    // ...and a record pointed at another output by hand disagrees.
+    let mut actions: Vec<PathBuf> = Vec::new();
+    for shard in fs::read_dir(first.store().join("actions")).unwrap().flatten() {
+        actions.extend(fs::read_dir(shard.path()).unwrap().flatten().map(|e| e.path()));
+    }
+    let (map, other) = (record_of(&actions, "shout"), record_of(&actions, "count"));
+    let mut record: serde_json::Value = serde_json::from_slice(&fs::read(&map).unwrap()).unwrap();
+    let donor: serde_json::Value = serde_json::from_slice(&fs::read(&other).unwrap()).unwrap();
+    for field in ["output", "files", "bytes"] {
+        record[field] = donor[field].clone();
+    }
+    fs::write(&map, serde_json::to_vec_pretty(&record).unwrap()).unwrap();
+    let out = first.cli(&["verify", "p.toml", "--recompute", "--only", "map", "--sample", "1"]);
+    let stdout = text(&out.stdout);
+    assert_eq!(out.status.code(), Some(1), "{stdout}");
+    assert!(stdout.contains("DISAGREES  map  its record names") && stdout.contains("(unsigned), recomputed"), "{stdout}");
+}
