@@ -45,13 +45,30 @@ fn outputs(events: &crate::harness::Events) -> Vec<(String, String)> {
     v
 }
 
-#[test]
-fn a_fresh_store_pulls_everything_a_pusher_computed_and_a_reader_writes_nothing() {
-    let pusher = Scratch::new("remote-pusher");
+/// A scratch directory whose CHAIN ran and pushed to a directory remote inside it: the scratch,
+/// the remote's directory and URL, and the run's events.
+fn pushed_chain(name: &str) -> (Scratch, PathBuf, String, crate::harness::Events) {
+    let pusher = Scratch::new(name);
     let remote = pusher.dir.join("remote");
     let url = file_url(&remote);
     pusher.pipeline(CHAIN);
     let computed = pusher.run_expecting(0, &["--remote", &url, "--push"]);
+    (pusher, remote, url, computed)
+}
+
+/// Every action record file of the store at `store`.
+fn record_files(store: &Path) -> Vec<PathBuf> {
+    let mut files: Vec<PathBuf> = Vec::new();
+    for shard in fs::read_dir(store.join("actions")).unwrap().flatten() {
+        files.extend(fs::read_dir(shard.path()).unwrap().flatten().map(|e| e.path()));
+    }
+    files.sort();
+    files
+}
+
+#[test]
+fn a_fresh_store_pulls_everything_a_pusher_computed_and_a_reader_writes_nothing() {
+    let (_pusher, remote, url, computed) = pushed_chain("remote-pusher");
     assert_eq!(computed.with_status("ran").len(), 5);
     assert_eq!(computed.of("pushed").len(), 5, "every result uploaded");
     records_have_objects(&remote);
@@ -472,12 +489,7 @@ fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
     }
 
     // A signed record changed by hand in a local store: verify names and quarantines it.
-    let actions = reader.store().join("actions");
-    let mut files: Vec<PathBuf> = Vec::new();
-    for shard in fs::read_dir(&actions).unwrap().flatten() {
-        files.extend(fs::read_dir(shard.path()).unwrap().flatten().map(|e| e.path()));
-    }
-    files.sort();
+    let files = record_files(&reader.store());
     let mut record: serde_json::Value = serde_json::from_slice(&fs::read(&files[0]).unwrap()).unwrap();
     let donor: serde_json::Value = serde_json::from_slice(&fs::read(&files[1]).unwrap()).unwrap();
     for field in ["output", "files", "bytes"] {
@@ -508,11 +520,7 @@ fn record_of(files: &[PathBuf], operator: &str) -> PathBuf {
 
 #[test]
 fn a_pusher_reports_a_remote_record_that_disagrees_and_verify_recompute_audits_a_store() {
-    let first = Scratch::new("remote-disagree-first");
-    let remote = first.dir.join("remote");
-    let url = file_url(&remote);
-    first.pipeline(CHAIN);
-    let computed = first.run_expecting(0, &["--remote", &url, "--push"]);
+    let (first, remote, url, computed) = pushed_chain("remote-disagree-first");
 
     // The remote's `map` record names an output nobody computed (its object absent, so a pull
     // misses): the next pusher computes it, says so, and leaves the record for a person.
@@ -539,10 +547,7 @@ fn a_pusher_reports_a_remote_record_that_disagrees_and_verify_recompute_audits_a
     assert!(out.status.success() && text(&out.stdout).contains("verify --recompute: 0 disagree"), "{}", text(&out.stdout));
     assert_eq!(text(&out.stdout).matches("  agrees ").count(), 5, "{}", text(&out.stdout));
     // ...and a record pointed at another output by hand disagrees.
-    let mut actions: Vec<PathBuf> = Vec::new();
-    for shard in fs::read_dir(first.store().join("actions")).unwrap().flatten() {
-        actions.extend(fs::read_dir(shard.path()).unwrap().flatten().map(|e| e.path()));
-    }
+    let actions = record_files(&first.store());
     let (map, other) = (record_of(&actions, "shout"), record_of(&actions, "count"));
     let mut record: serde_json::Value = serde_json::from_slice(&fs::read(&map).unwrap()).unwrap();
     let donor: serde_json::Value = serde_json::from_slice(&fs::read(&other).unwrap()).unwrap();
