@@ -302,7 +302,8 @@ fn pull(
         if !selected[i] {
             continue;
         }
-        match remote.pull(store, &key, &mut |_, _| {})? {
+        let produces = plan.pipeline.stages[inst.stage].kind.produces;
+        match remote.pull(store, &key, &|dir| registry.catalog.check_artifact(produces, dir), &mut |_, _| {})? {
             rlmflow_remote::Pulled::Hit { record, bytes: b, .. } => {
                 println!("  pulled   {}  {:.1} MB", inst.label, b as f64 / 1e6);
                 outputs[i] = Some(record.output);

@@ -488,7 +488,7 @@ mod tests {
     ];
 
     fn registry() -> Registry {
-        let mut r = Registry::new(Catalog { kinds: KINDS.to_vec() });
+        let mut r = Registry::new(Catalog { kinds: KINDS.to_vec(), markers: Vec::new() });
         r.add(Op("oa", "a")).add(Op("ob", "b")).add(Op("oc", "c")).add(Op("od", "d")).add(ShardedOp).add(Op("oj", "join"));
         r.add(SharedInputOp).add(Op("ojc", "joinc"));
         r

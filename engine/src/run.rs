@@ -482,7 +482,8 @@ impl Executor<'_> {
             });
             bar.set_position(done);
         };
-        let pulled = remote.pull(self.store, key, &mut progress)?;
+        let (catalog, produces) = (&self.registry.catalog, self.plan.pipeline.stages[self.plan.instances[i].stage].kind.produces);
+        let pulled = remote.pull(self.store, key, &|dir| catalog.check_artifact(produces, dir), &mut progress)?;
         if let Some(bar) = bar {
             bar.finish_and_clear();
         }

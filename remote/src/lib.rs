@@ -293,9 +293,16 @@ impl Remote {
         self.trusts(&record).is_ok() && matches!(self.call("checking an object", self.objects.head(&Self::object_key(&record.output))), Ok(Some(_)))
     }
 
-    /// Fetches `key`'s record and artifact into `store`, verified; a miss when the remote lacks
-    /// either or is down. `progress` hears the artifact's bytes as they arrive.
-    pub fn pull(&self, store: &Store, key: &Digest, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Pulled> {
+    /// Fetches `key`'s record and artifact into `store`, verified, the artifact also by
+    /// `accept` (its type, before it is committed); a miss when the remote lacks either or is
+    /// down. `progress` hears the artifact's bytes as they arrive.
+    pub fn pull(
+        &self,
+        store: &Store,
+        key: &Digest,
+        accept: &dyn Fn(&Path) -> Result<(), String>,
+        progress: &mut dyn FnMut(u64, u64),
+    ) -> anyhow::Result<Pulled> {
         let clock = Instant::now();
         let Some(bytes) = self.get("reading a record", &Self::record_key(key), &mut |_, _| {}) else { return Ok(Pulled::Miss) };
         let record = match serde_json::from_slice::<ActionRecord>(&bytes) {
@@ -305,7 +312,8 @@ impl Remote {
         if let Err(why) = self.trusts(&record) {
             return Ok(Pulled::Untrusted { why });
         }
-        let bytes = match self.fetch_object(store, &record.output, progress)? {
+        let bytes = match self.fetch_accepted(store, &record.output, accept, progress)? {
+            Fetched::Present if let Err(why) = accept(&store.object_dir(&record.output)) => return Ok(Pulled::Corrupt { why }),
             Fetched::Present => 0,
             Fetched::Downloaded(bytes) => bytes,
             Fetched::Missing => return Ok(Pulled::Miss),
@@ -318,6 +326,18 @@ impl Remote {
     /// Fetches the artifact `digest` into `store`, verified, unless the store has it: what a
     /// cluster task does for each input it lacks.
     pub fn fetch_object(&self, store: &Store, digest: &Digest, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Fetched> {
+        self.fetch_accepted(store, digest, &|_| Ok(()), progress)
+    }
+
+    /// [`Remote::fetch_object`], the unpacked artifact also checked by `accept` before it is
+    /// committed.
+    fn fetch_accepted(
+        &self,
+        store: &Store,
+        digest: &Digest,
+        accept: &dyn Fn(&Path) -> Result<(), String>,
+        progress: &mut dyn FnMut(u64, u64),
+    ) -> anyhow::Result<Fetched> {
         if store.has_object(digest) {
             return Ok(Fetched::Present);
         }
@@ -325,6 +345,13 @@ impl Remote {
         let dir = store.work_dir(digest)?;
         let unpacked = tar::Archive::new(&tar[..]).unpack(&dir);
         match unpacked.map_err(anyhow::Error::from).and_then(|()| Ok(hash_tree(&dir)?.digest)) {
+            Ok(found)
+                if found == *digest
+                    && let Err(why) = accept(&dir) =>
+            {
+                remove_dir(&dir);
+                Ok(Fetched::Corrupt(why))
+            }
             Ok(found) if found == *digest => {
                 store.commit_tree(&dir)?;
                 Ok(Fetched::Downloaded(tar.len() as u64))

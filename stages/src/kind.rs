@@ -59,10 +59,13 @@ impl StageKind {
     }
 }
 
-/// The set of stage kinds a registry knows.
+/// The set of stage kinds a registry knows, and the file that marks each artifact type.
 #[derive(Clone, Debug, Default)]
 pub struct Catalog {
     pub kinds: Vec<StageKind>,
+    /// An artifact type and a file every artifact of it holds: what tells an artifact's type
+    /// from its files (a pulled record naming another type's artifact is refused by it).
+    pub markers: Vec<(&'static str, &'static str)>,
 }
 
 impl Catalog {
@@ -72,9 +75,29 @@ impl Catalog {
 
     /// The stage kinds of the paper's pipeline (the README's "What a stage produces" describes each).
     pub fn paper() -> Catalog {
-        Catalog { kinds: PAPER_KINDS.to_vec() }
+        Catalog { kinds: PAPER_KINDS.to_vec(), markers: PAPER_MARKERS.to_vec() }
+    }
+
+    /// `Ok` when the artifact in `dir` is of type `artifact` as far as its files tell (a type
+    /// without a marker passes); else what is wrong.
+    pub fn check_artifact(&self, artifact: &str, dir: &std::path::Path) -> Result<(), String> {
+        match self.markers.iter().find(|(t, _)| *t == artifact) {
+            Some((_, marker)) if !dir.join(marker).is_file() => Err(format!("its artifact holds no `{marker}`: it is not a {artifact} artifact")),
+            _ => Ok(()),
+        }
     }
 }
+
+const PAPER_MARKERS: &[(&str, &str)] = &[
+    (SCENES, crate::scenes::SUMMARY),
+    (LABELS, crate::labels::SUMMARY),
+    (CAPTIONS, crate::captions::SUMMARY),
+    (TOKENS, crate::tokens::SUMMARY),
+    (ENCODER, crate::encoder::SUMMARY),
+    ("ProbeReport", crate::probe::SUMMARY),
+    ("SegReport", crate::segment::SUMMARY),
+    ("Report", "metrics.json"),
+];
 
 const SCENES: &str = "Scenes";
 const LABELS: &str = "Labels";

@@ -560,3 +560,31 @@ fn a_pusher_reports_a_remote_record_that_disagrees_and_verify_recompute_audits_a
     assert_eq!(out.status.code(), Some(1), "{stdout}");
     assert!(stdout.contains("DISAGREES  map  its record names") && stdout.contains("(unsigned), recomputed"), "{stdout}");
 }
+
+#[test]
+fn a_record_naming_an_artifact_of_another_type_is_never_used() {
+    let (_pusher, remote, url, computed) = pushed_chain("remote-type-pusher");
+    // `map`'s record (a Mapped artifact) pointed at `source`'s object (a Text artifact, whole and
+    // on the remote): the digest checks out, the type does not.
+    let ac: Vec<PathBuf> = fs::read_dir(remote.join("ac")).unwrap().flatten().map(|e| e.path()).collect();
+    let (map, source) = (record_of(&ac, "shout"), record_of(&ac, "write-text"));
+    let mut record: serde_json::Value = serde_json::from_slice(&fs::read(&map).unwrap()).unwrap();
+    let donor: serde_json::Value = serde_json::from_slice(&fs::read(&source).unwrap()).unwrap();
+    for field in ["output", "files", "bytes"] {
+        record[field] = donor[field].clone();
+    }
+    fs::write(&map, serde_json::to_vec_pretty(&record).unwrap()).unwrap();
+    let reader = Scratch::new("remote-type-reader");
+    reader.pipeline(CHAIN);
+    let events = reader.run_expecting(0, &["--remote", &url]);
+    let corrupt = events.of("remote_corrupt");
+    assert_eq!(corrupt.len(), 1, "{:?}", events.0);
+    assert!(corrupt[0]["why"].as_str().unwrap().contains("holds no `mapped.txt`: it is not a Mapped artifact"), "{corrupt:?}");
+    assert_eq!(events.status_of("map"), "ran");
+    assert_eq!(outputs(&events), outputs(&computed));
+    // `pull` says the same and takes nothing for that stage.
+    let other = Scratch::new("remote-type-pull");
+    other.pipeline(CHAIN);
+    let out = other.cli(&["pull", "p.toml", "--remote", &url]);
+    assert!(text(&out.stdout).contains("corrupt  map  the remote's copy is not used: its artifact holds no `mapped.txt`"), "{}", text(&out.stdout));
+}

@@ -18,7 +18,8 @@ use rlmflow_stages::{
 use serde::{Deserialize, Serialize};
 
 pub fn registry() -> Registry {
-    let mut r = Registry::new(Catalog { kinds: TEST_KINDS.to_vec() });
+    let markers = vec![("Text", "text.txt"), ("Mapped", "mapped.txt"), ("Measure", "count.txt"), ("Collection", "listing.txt")];
+    let mut r = Registry::new(Catalog { kinds: TEST_KINDS.to_vec(), markers });
     r.add(WriteText).add(Shout).add(Count).add(Sample).add(Collect).add(Echo).add(JoinText);
     r
 }

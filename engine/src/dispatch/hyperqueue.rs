@@ -415,7 +415,8 @@ impl OwnTask {
             }
         }
         if outcome == Some(true) && exit == Exit::Code(0) {
-            let why = match self.remote.pull(&self.engine, &self.key, &mut |_, _| {})? {
+            // The engine's own task's result: its type is the operator's own business here.
+            let why = match self.remote.pull(&self.engine, &self.key, &|_| Ok(()), &mut |_, _| {})? {
                 rlmflow_remote::Pulled::Hit { .. } => None,
                 rlmflow_remote::Pulled::Miss => Some(self.remote.down().unwrap_or_else(|| "the remote cache does not have it".into())),
                 rlmflow_remote::Pulled::Corrupt { why } | rlmflow_remote::Pulled::Untrusted { why } => Some(why),
