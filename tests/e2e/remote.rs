@@ -456,13 +456,8 @@ fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
     // A forged record: another valid object under a key, the signature kept. Not used, named;
     // the run computes it, and its outputs are a local run's.
     let (records, _) = held(&remote);
-    let read =
-        |key: &str| -> serde_json::Value { serde_json::from_slice(&fs::read(remote.join("ac").join(format!("{key}.json"))).unwrap()).unwrap() };
-    let (mut forged, other) = (read(&records[0]), read(&records[1]));
-    for field in ["output", "files", "bytes"] {
-        forged[field] = other[field].clone();
-    }
-    fs::write(remote.join("ac").join(format!("{}.json", records[0])), serde_json::to_vec_pretty(&forged).unwrap()).unwrap();
+    let ac = |key: &str| remote.join("ac").join(format!("{key}.json"));
+    repoint(&ac(&records[0]), &ac(&records[1]));
     let victim = Scratch::new("remote-forged-reader");
     victim.pipeline(&trusting);
     let events = run_signing(&victim, &["--remote", &url], None);
@@ -490,12 +485,7 @@ fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
 
     // A signed record changed by hand in a local store: verify names and quarantines it.
     let files = record_files(&reader.store());
-    let mut record: serde_json::Value = serde_json::from_slice(&fs::read(&files[0]).unwrap()).unwrap();
-    let donor: serde_json::Value = serde_json::from_slice(&fs::read(&files[1]).unwrap()).unwrap();
-    for field in ["output", "files", "bytes"] {
-        record[field] = donor[field].clone();
-    }
-    fs::write(&files[0], serde_json::to_vec_pretty(&record).unwrap()).unwrap();
+    repoint(&files[0], &files[1]);
     let verify = reader.cli(&["verify", "p.toml"]);
     assert_eq!(verify.status.code(), Some(1));
     assert!(text(&verify.stdout).contains("does not match it (forged or altered): quarantined"), "{}", text(&verify.stdout));
@@ -507,6 +497,17 @@ fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
     assert!(format!("{}{}", text(&out.stdout), text(&out.stderr)).contains("its records are used unverified (no `remote_trusted_keys`)"));
     let status = plain.cli(&["status", "p.toml", "--remote", &url]);
     assert!(text(&status.stdout).contains("its records are used unverified"), "{}", text(&status.stdout));
+}
+
+/// Points the record in `file` at the output of the record in `donor` (digest, files, bytes),
+/// keeping everything else, its signatures included: a forgery of a whole, existing output.
+fn repoint(file: &Path, donor: &Path) {
+    let mut record: serde_json::Value = serde_json::from_slice(&fs::read(file).unwrap()).unwrap();
+    let donor: serde_json::Value = serde_json::from_slice(&fs::read(donor).unwrap()).unwrap();
+    for field in ["output", "files", "bytes"] {
+        record[field] = donor[field].clone();
+    }
+    fs::write(file, serde_json::to_vec_pretty(&record).unwrap()).unwrap();
 }
 
 /// The record file of the action whose operator is `operator`, in a store or a remote.
@@ -548,13 +549,7 @@ fn a_pusher_reports_a_remote_record_that_disagrees_and_verify_recompute_audits_a
     assert_eq!(text(&out.stdout).matches("  agrees ").count(), 5, "{}", text(&out.stdout));
     // ...and a record pointed at another output by hand disagrees.
     let actions = record_files(&first.store());
-    let (map, other) = (record_of(&actions, "shout"), record_of(&actions, "count"));
-    let mut record: serde_json::Value = serde_json::from_slice(&fs::read(&map).unwrap()).unwrap();
-    let donor: serde_json::Value = serde_json::from_slice(&fs::read(&other).unwrap()).unwrap();
-    for field in ["output", "files", "bytes"] {
-        record[field] = donor[field].clone();
-    }
-    fs::write(&map, serde_json::to_vec_pretty(&record).unwrap()).unwrap();
+    repoint(&record_of(&actions, "shout"), &record_of(&actions, "count"));
     let out = first.cli(&["verify", "p.toml", "--recompute", "--only", "map", "--sample", "1"]);
     let stdout = text(&out.stdout);
     assert_eq!(out.status.code(), Some(1), "{stdout}");
@@ -567,13 +562,7 @@ fn a_record_naming_an_artifact_of_another_type_is_never_used() {
     // `map`'s record (a Mapped artifact) pointed at `source`'s object (a Text artifact, whole and
     // on the remote): the digest checks out, the type does not.
     let ac: Vec<PathBuf> = fs::read_dir(remote.join("ac")).unwrap().flatten().map(|e| e.path()).collect();
-    let (map, source) = (record_of(&ac, "shout"), record_of(&ac, "write-text"));
-    let mut record: serde_json::Value = serde_json::from_slice(&fs::read(&map).unwrap()).unwrap();
-    let donor: serde_json::Value = serde_json::from_slice(&fs::read(&source).unwrap()).unwrap();
-    for field in ["output", "files", "bytes"] {
-        record[field] = donor[field].clone();
-    }
-    fs::write(&map, serde_json::to_vec_pretty(&record).unwrap()).unwrap();
+    repoint(&record_of(&ac, "shout"), &record_of(&ac, "write-text"));
     let reader = Scratch::new("remote-type-reader");
     reader.pipeline(CHAIN);
     let events = reader.run_expecting(0, &["--remote", &url]);
