@@ -92,11 +92,20 @@ fn the_paper_pipeline_names_its_checkpoints_and_shows_what_each_stage_costs() {
         let line = operators.lines().find(|l| l.contains(&format!("\"name\":\"{name}\""))).unwrap();
         assert!(line.contains("\"tracked\":[\"init\"]"), "{line}");
     }
-    // A stage that names another device is set against that device's memory.
+    // A stage that names another device is set against that device's memory: an `nvidia-smi`
+    // that knows two GPUs of different sizes answers for each.
     let text = std::fs::read_to_string(dir.join("p.toml")).unwrap().replacen("device = \"cuda\"", "device = \"cuda:1\"", 1);
     std::fs::write(dir.join("p.toml"), text).unwrap();
-    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--dry-run"]);
-    assert!(ok && out.matches("peak ~ 17.4 GiB (CUDA device 1:").count() == 4, "{out}");
+    let bin = dir.join("fake-bin");
+    std::fs::create_dir_all(&bin).unwrap();
+    let smi = bin.join("nvidia-smi");
+    std::fs::write(&smi, "#!/bin/sh\nfor a in \"$@\"; do case $a in --id=0) echo 40960;; --id=1) echo 81559;; esac; done\n").unwrap();
+    std::fs::set_permissions(&smi, std::os::unix::fs::PermissionsExt::from_mode(0o755)).unwrap();
+    let path = format!("{}:{}", bin.display(), std::env::var("PATH").unwrap());
+    let out = Command::new(env!("CARGO_BIN_EXE_rlmflow")).current_dir(&dir).args(["run", "p.toml", "--dry-run"]).env("PATH", path).output().unwrap();
+    let out = String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.matches("peak ~ 17.4 GiB (CUDA device 1: 79.6 GiB)").count(), 4, "{out}");
+    assert!(out.contains("(CUDA device 0: 40.0 GiB)"), "the other stages, on GPU 0: {out}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

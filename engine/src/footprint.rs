@@ -91,13 +91,7 @@ fn ram() -> Option<u64> {
 
 /// CUDA device `index`'s memory, from `nvidia-smi`.
 fn cuda_memory(index: usize) -> Option<u64> {
-    let out = std::process::Command::new("nvidia-smi")
-        .args(["--query-gpu=memory.total", "--format=csv,noheader,nounits", &format!("--id={index}")])
-        .stderr(std::process::Stdio::null())
-        .output()
-        .ok()
-        .filter(|o| o.status.success())?;
-    let mib: u64 = String::from_utf8_lossy(&out.stdout).lines().next()?.trim().parse().ok()?;
+    let mib: u64 = rlmflow_stages::numerics::query_gpu(index, "memory.total")?.parse().ok()?;
     Some(mib << 20)
 }
 

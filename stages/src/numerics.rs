@@ -200,16 +200,22 @@ pub struct Gpu {
 impl Gpu {
     /// CUDA device `index` through `nvidia-smi`; `None` where it cannot tell.
     pub fn detect(index: usize) -> Option<Gpu> {
-        let out = std::process::Command::new("nvidia-smi")
-            .args(["--query-gpu=name,compute_cap,driver_version", "--format=csv,noheader", &format!("--id={index}")])
-            .stderr(std::process::Stdio::null())
-            .output()
-            .ok()
-            .filter(|o| o.status.success())?;
-        let text = String::from_utf8_lossy(&out.stdout);
-        let mut fields = text.lines().next()?.split(',').map(|f| f.trim().to_owned());
+        let line = query_gpu(index, "name,compute_cap,driver_version")?;
+        let mut fields = line.split(',').map(|f| f.trim().to_owned());
         Some(Gpu { name: fields.next()?, compute_capability: fields.next()?, driver: fields.next()? })
     }
+}
+
+/// `nvidia-smi`'s line of `fields` (comma-separated query names, units left out) for CUDA
+/// device `index`; `None` where there is no such device or no `nvidia-smi`.
+pub fn query_gpu(index: usize, fields: &str) -> Option<String> {
+    let out = std::process::Command::new("nvidia-smi")
+        .args([format!("--query-gpu={fields}"), "--format=csv,noheader,nounits".into(), format!("--id={index}")])
+        .stderr(std::process::Stdio::null())
+        .output()
+        .ok()
+        .filter(|o| o.status.success())?;
+    Some(String::from_utf8_lossy(&out.stdout).lines().next()?.trim().to_owned())
 }
 
 /// The class of machines that compute the same bytes for a platform-dependent action: a line of
