@@ -146,7 +146,10 @@ impl Remote {
         check_url(url).map_err(|problem| anyhow::anyhow!("remote {problem}"))?;
         // TLS on ring; an error only says a provider is installed already.
         let _ = rustls::crypto::ring::default_provider().install_default();
-        let client = ClientOptions::new().with_timeout(timeout).with_connect_timeout(timeout).with_allow_http(true);
+        // No whole-request timeout: it would cut off a large download that is still arriving.
+        // The wait for the connection and for each read is bounded instead (and each await of a
+        // request or a chunk by `call`).
+        let client = ClientOptions::new().with_timeout_disabled().with_read_timeout(timeout).with_connect_timeout(timeout).with_allow_http(true);
         let retry = RetryConfig { max_retries: 1, retry_timeout: timeout, ..RetryConfig::default() };
         let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
         let objects: Arc<dyn ObjectStore> = if let Some(rest) = url.strip_prefix("s3://") {

@@ -577,3 +577,72 @@ fn a_record_naming_an_artifact_of_another_type_is_never_used() {
     let out = other.cli(&["pull", "p.toml", "--remote", &url]);
     assert!(text(&out.stdout).contains("corrupt  map  the remote's copy is not used: its artifact holds no `mapped.txt`"), "{}", text(&out.stdout));
 }
+
+/// A plain HTTP server on loopback serving the files below `root` (GET and HEAD), each body in
+/// chunks of `chunk` bytes every `pause`: a slow link that never stalls longer than `pause`.
+fn slow_server(root: PathBuf, chunk: usize, pause: Duration) -> u16 {
+    use std::io::{BufRead, BufReader, Write};
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    std::thread::spawn(move || {
+        for stream in listener.incoming().flatten() {
+            let root = root.clone();
+            std::thread::spawn(move || {
+                let mut reader = BufReader::new(stream.try_clone().unwrap());
+                let mut request = String::new();
+                if reader.read_line(&mut request).is_err() {
+                    return;
+                }
+                let mut line = String::new();
+                while reader.read_line(&mut line).is_ok_and(|n| n > 2) {
+                    line.clear();
+                }
+                let mut parts = request.split_whitespace();
+                let (method, path) = (parts.next().unwrap_or(""), parts.next().unwrap_or("/"));
+                let mut stream = stream;
+                let Ok(body) = fs::read(root.join(path.trim_start_matches('/'))) else {
+                    let _ = stream.write_all(b"HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\nConnection: close\r\n\r\n");
+                    return;
+                };
+                let head = format!("HTTP/1.1 200 OK\r\nContent-Length: {}\r\nConnection: close\r\n\r\n", body.len());
+                if stream.write_all(head.as_bytes()).is_err() || method == "HEAD" {
+                    return;
+                }
+                for part in body.chunks(chunk) {
+                    if stream.write_all(part).and_then(|()| stream.flush()).is_err() {
+                        return;
+                    }
+                    std::thread::sleep(pause);
+                }
+            });
+        }
+    });
+    port
+}
+
+#[test]
+fn a_download_longer_than_the_timeout_completes_while_its_bytes_keep_coming() {
+    // A 3 MB artifact, served 256 kB every 0.3 s (about 3.6 s in all) to a client whose
+    // timeout is 1 s: the timeout bounds each wait, not the whole download.
+    let big = CHAIN.replace("text = \"radar\"", &format!("text = \"{}\"", "r".repeat(3_000_000)));
+    let pusher = Scratch::new("remote-slow-pusher");
+    let remote = pusher.dir.join("remote");
+    pusher.pipeline(&big);
+    pusher.run_expecting(0, &["--remote", &file_url(&remote), "--push"]);
+    let port = slow_server(remote, 256 * 1024, Duration::from_millis(300));
+    let reader = Scratch::new("remote-slow-reader");
+    reader.pipeline(&big.replace("seed = 7", "seed = 7\nremote_timeout_s = 1.0"));
+    let t0 = Instant::now();
+    let events = reader.run_expecting(0, &["--remote", &format!("http://127.0.0.1:{port}/")]);
+    assert!(events.of("remote_down").is_empty(), "{:?}", events.0);
+    assert_eq!(events.with_status("pulled").len(), 5, "{:?}", events.finished());
+    assert!(t0.elapsed() > Duration::from_secs(3), "the artifact really took longer than the timeout: {:?}", t0.elapsed());
+
+    // A link that stalls longer than the timeout is cut there: one warning, computed locally.
+    let port = slow_server(pusher.dir.join("remote"), 256 * 1024, Duration::from_millis(2500));
+    let stalled = Scratch::new("remote-stalled-reader");
+    stalled.pipeline(&big.replace("seed = 7", "seed = 7\nremote_timeout_s = 1.0"));
+    let events = stalled.run_expecting(0, &["--remote", &format!("http://127.0.0.1:{port}/")]);
+    assert_eq!(events.of("remote_down").len(), 1, "{:?}", events.0);
+    assert_eq!(events.with_status("ran").len(), 5, "{:?}", events.finished());
+}
