@@ -264,19 +264,39 @@ impl Remote {
     /// hears the bytes received and the total as they arrive; the timeout bounds the wait for
     /// each chunk, so a large artifact on a slow link is not cut off while it flows.
     fn get(&self, what: &str, key: &Key, progress: &mut dyn FnMut(u64, u64)) -> Option<Vec<u8>> {
+        let mut body = Vec::new();
+        let mut sink = |chunk: &[u8]| {
+            body.extend_from_slice(chunk);
+            Ok(())
+        };
+        self.stream(what, key, &mut sink, progress).ok()??;
+        Some(body)
+    }
+
+    /// The body of `key`, chunk by chunk into `sink` as it arrives (so nothing holds all of a
+    /// large artifact); `Ok(None)` when it is absent or the remote is down. The timeout bounds
+    /// the wait for each chunk.
+    fn stream(
+        &self,
+        what: &str,
+        key: &Key,
+        sink: &mut dyn FnMut(&[u8]) -> std::io::Result<()>,
+        progress: &mut dyn FnMut(u64, u64),
+    ) -> std::io::Result<Option<u64>> {
         use futures_util::StreamExt as _;
-        let found = self.call(what, self.objects.get(key)).ok()??;
+        let Ok(Some(found)) = self.call(what, self.objects.get(key)) else { return Ok(None) };
         let total = found.meta.size;
         let mut stream = found.into_stream();
-        let mut body = Vec::with_capacity(total as usize);
+        let mut received = 0u64;
         loop {
-            match self.call(what, async { stream.next().await.transpose() }).ok()? {
-                Some(Some(chunk)) => {
-                    body.extend_from_slice(&chunk);
-                    progress(body.len() as u64, total);
+            match self.call(what, async { stream.next().await.transpose() }) {
+                Ok(Some(Some(chunk))) => {
+                    sink(&chunk)?;
+                    received += chunk.len() as u64;
+                    progress(received, total);
                 }
-                Some(None) => return Some(body),
-                None => return None,
+                Ok(Some(None)) => return Ok(Some(received)),
+                _ => return Ok(None),
             }
         }
     }
@@ -344,9 +364,21 @@ impl Remote {
         if store.has_object(digest) {
             return Ok(Fetched::Present);
         }
-        let Some(tar) = self.get("reading an object", &Self::object_key(digest), progress) else { return Ok(Fetched::Missing) };
+        // Streamed to a file beside the work directory, then unpacked from it.
         let dir = store.work_dir(digest)?;
-        let unpacked = tar::Archive::new(&tar[..]).unpack(&dir);
+        let tar_path = dir.with_extension("tar");
+        let mut file = std::io::BufWriter::new(std::fs::File::create(&tar_path).with_context(|| format!("creating {}", tar_path.display()))?);
+        let received =
+            self.stream("reading an object", &Self::object_key(digest), &mut |chunk| std::io::Write::write_all(&mut file, chunk), progress);
+        let received = received.and_then(|r| std::io::Write::flush(&mut file).map(|()| r));
+        drop(file);
+        let Some(tar_bytes) = received.with_context(|| format!("writing {}", tar_path.display()))? else {
+            let _ = std::fs::remove_file(&tar_path);
+            remove_dir(&dir);
+            return Ok(Fetched::Missing);
+        };
+        let unpacked = std::fs::File::open(&tar_path).and_then(|f| tar::Archive::new(std::io::BufReader::new(f)).unpack(&dir));
+        let _ = std::fs::remove_file(&tar_path);
         match unpacked.map_err(anyhow::Error::from).and_then(|()| Ok(hash_tree(&dir)?.digest)) {
             Ok(found)
                 if found == *digest
@@ -357,7 +389,7 @@ impl Remote {
             }
             Ok(found) if found == *digest => {
                 store.commit_tree(&dir)?;
-                Ok(Fetched::Downloaded(tar.len() as u64))
+                Ok(Fetched::Downloaded(tar_bytes))
             }
             other => {
                 remove_dir(&dir);

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use crate::harness::{CHAIN, Scratch, snapshot, text};
+use crate::harness::{CHAIN, Scratch, output_dir, snapshot, text};
 
 fn file_url(dir: &Path) -> String {
     format!("file://{}", dir.display())
@@ -645,4 +645,40 @@ fn a_download_longer_than_the_timeout_completes_while_its_bytes_keep_coming() {
     let events = stalled.run_expecting(0, &["--remote", &format!("http://127.0.0.1:{port}/")]);
     assert_eq!(events.of("remote_down").len(), 1, "{:?}", events.0);
     assert_eq!(events.with_status("ran").len(), 5, "{:?}", events.finished());
+}
+
+/// Runs `cmd` to its end; its exit status and the most anonymous memory (heap, not the file
+/// pages it maps to hash) it held, sampled from `/proc` every 2 ms.
+fn peak_memory(cmd: &mut Command) -> (std::process::ExitStatus, u64) {
+    let mut child = cmd.stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+    let status_file = format!("/proc/{}/status", child.id());
+    let mut peak = 0u64;
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return (status, peak);
+        }
+        let kb = fs::read_to_string(&status_file)
+            .ok()
+            .and_then(|s| s.lines().find(|l| l.starts_with("RssAnon:")).and_then(|l| l.split_whitespace().nth(1)?.parse::<u64>().ok()));
+        peak = peak.max(kb.unwrap_or(0) * 1024);
+        std::thread::sleep(Duration::from_millis(2));
+    }
+}
+
+#[test]
+fn a_pull_of_a_large_artifact_streams_it_to_disk() {
+    // A 64 MB artifact from a pipeline of a few bytes.
+    let pipeline = "[pipeline]\nname = \"big\"\n[stages.source]\noperator = \"write-text\"\ntext = \"0123456789abcdef\"\nrepeat = 4000000\n";
+    let pusher = Scratch::new("remote-big-pusher");
+    let remote = pusher.dir.join("remote");
+    pusher.pipeline(pipeline);
+    pusher.run_expecting(0, &["--remote", &file_url(&remote), "--push"]);
+    let reader = Scratch::new("remote-big-reader");
+    reader.pipeline(pipeline);
+    let (status, peak) = peak_memory(&mut reader.command(&["pull", "p.toml", "--remote", &file_url(&remote)]));
+    assert!(status.success());
+    assert_eq!(reader.run().with_status("reused"), ["source"], "pulled whole");
+    assert_eq!(fs::metadata(output_dir(&reader.store(), "big", "source").join("text.txt")).unwrap().len(), 64_000_000);
+    assert!(peak < 32_000_000, "peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
+    println!("pull of a 64 MB artifact: peak anonymous memory {:.1} MB", peak as f64 / 1e6);
 }

@@ -72,6 +72,8 @@ pub struct WriteTextSettings {
     pub numerics: Option<Numerics>,
     /// A file (tracked by content) whose text goes before `text`; it must be UTF-8.
     pub from: String,
+    /// Writes `text` this many times over (a large artifact from a small setting).
+    pub repeat: usize,
 }
 
 impl Default for WriteTextSettings {
@@ -89,6 +91,7 @@ impl Default for WriteTextSettings {
             nondeterministic: false,
             numerics: None,
             from: String::new(),
+            repeat: 1,
         }
     }
 }
@@ -160,6 +163,7 @@ impl Operator for WriteText {
         progress.finish();
         ctx.event("wrote", serde_json::json!({"bytes": s.text.len()}));
         let mut text = if s.nondeterministic { format!("{} {}", s.text, std::process::id()) } else { s.text.clone() };
+        text = text.repeat(s.repeat);
         if let Some(from) = ctx.tracked_file("from")? {
             text = fs::read_to_string(from)? + &text;
         }
