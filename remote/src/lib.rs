@@ -57,6 +57,8 @@ pub struct Remote {
     trusted: TrustedKeys,
     /// The key this client signs the records it uploads with.
     signer: Option<SigningKey>,
+    /// Whether the remote takes an upload in parts (S3 and a directory do; WebDAV does not).
+    parts: bool,
 }
 
 /// Whether [`Remote::fetch_object`] found an artifact.
@@ -195,6 +197,7 @@ impl Remote {
             told: Default::default(),
             trusted: TrustedKeys::default(),
             signer: None,
+            parts: !url.starts_with("http"),
         })
     }
 
@@ -364,21 +367,24 @@ impl Remote {
         if store.has_object(digest) {
             return Ok(Fetched::Present);
         }
-        // Streamed to a file beside the work directory, then unpacked from it.
+        // Streamed to a file in one work directory, then unpacked into another; the digest's lock
+        // keeps another process's sweep of `tmp/` off both meanwhile.
+        let _held = store.lock_action(digest)?;
+        let scratch = store.work_dir(digest)?;
         let dir = store.work_dir(digest)?;
-        let tar_path = dir.with_extension("tar");
+        let tar_path = scratch.join("artifact.tar");
         let mut file = std::io::BufWriter::new(std::fs::File::create(&tar_path).with_context(|| format!("creating {}", tar_path.display()))?);
         let received =
             self.stream("reading an object", &Self::object_key(digest), &mut |chunk| std::io::Write::write_all(&mut file, chunk), progress);
         let received = received.and_then(|r| std::io::Write::flush(&mut file).map(|()| r));
         drop(file);
         let Some(tar_bytes) = received.with_context(|| format!("writing {}", tar_path.display()))? else {
-            let _ = std::fs::remove_file(&tar_path);
+            remove_dir(&scratch);
             remove_dir(&dir);
             return Ok(Fetched::Missing);
         };
         let unpacked = std::fs::File::open(&tar_path).and_then(|f| tar::Archive::new(std::io::BufReader::new(f)).unpack(&dir));
-        let _ = std::fs::remove_file(&tar_path);
+        remove_dir(&scratch);
         match unpacked.map_err(anyhow::Error::from).and_then(|()| Ok(hash_tree(&dir)?.digest)) {
             Ok(found)
                 if found == *digest
@@ -455,12 +461,48 @@ impl Remote {
         if present.is_some() && !replace {
             return Ok(Some(0));
         }
-        let tar = pack(&store.object_dir(digest))?;
-        let sent = tar.len() as u64;
-        if self.call("uploading an object", self.objects.put(&object, PutPayload::from(tar))).is_err() {
-            return Ok(None);
+        // Packed into a file in a work directory of the store's `tmp/`, then sent from it; the
+        // digest's lock keeps another process's sweep of `tmp/` off it meanwhile.
+        let _held = store.lock_action(digest)?;
+        let work = store.work_dir(digest)?;
+        let tar_path = work.join("artifact.tar");
+        let sent = pack(&store.object_dir(digest), &tar_path).and_then(|size| Ok((size, self.upload(&object, &tar_path, size)?)));
+        remove_dir(&work);
+        let (size, uploaded) = sent?;
+        Ok(uploaded.then_some(size))
+    }
+
+    /// Sends the file at `path` (`size` bytes) as `key`: in parts of [`PART`] where the remote
+    /// takes parts (S3, a directory) and the file is larger than one, so neither memory nor one
+    /// request holds all of it; each request is bounded by the timeout. `false` when the remote
+    /// went down.
+    fn upload(&self, key: &Key, path: &Path, size: u64) -> anyhow::Result<bool> {
+        use std::io::Read as _;
+        let mut file = std::fs::File::open(path).with_context(|| format!("reading {}", path.display()))?;
+        if !self.parts || size <= PART as u64 {
+            let mut body = Vec::with_capacity(size as usize);
+            file.read_to_end(&mut body)?;
+            return Ok(self.call("uploading an object", self.objects.put(key, PutPayload::from(body))).is_ok());
         }
-        Ok(Some(sent))
+        let Ok(Some(mut upload)) = self.call("starting an upload", self.objects.put_multipart(key)) else { return Ok(false) };
+        let mut part = vec![0u8; PART];
+        loop {
+            let mut filled = 0;
+            while filled < PART {
+                match file.read(&mut part[filled..])? {
+                    0 => break,
+                    n => filled += n,
+                }
+            }
+            if filled == 0 {
+                break;
+            }
+            if self.call("uploading a part", upload.put_part(PutPayload::from(part[..filled].to_vec()))).is_err() {
+                let _ = self.runtime.block_on(async { tokio::time::timeout(self.timeout, upload.abort()).await });
+                return Ok(false);
+            }
+        }
+        Ok(self.call("finishing an upload", upload.complete()).is_ok())
     }
 
     /// Writes a cluster task's transcript (its protocol lines and other output) under
@@ -485,13 +527,21 @@ impl Remote {
     }
 }
 
-/// An artifact directory as a tar: its files with their modes, in sorted order.
-fn pack(dir: &Path) -> anyhow::Result<Vec<u8>> {
-    let mut builder = tar::Builder::new(Vec::new());
+/// The largest piece of an artifact one upload request carries (S3 takes parts of 5 MiB and
+/// more, up to 10,000 of them).
+const PART: usize = 8 << 20;
+
+/// An artifact directory as a tar file at `to` (its files with their modes, in sorted order);
+/// returns its size.
+fn pack(dir: &Path, to: &Path) -> anyhow::Result<u64> {
+    let file = std::io::BufWriter::new(std::fs::File::create(to).with_context(|| format!("creating {}", to.display()))?);
+    let mut builder = tar::Builder::new(file);
     builder.mode(tar::HeaderMode::Deterministic);
     builder.follow_symlinks(false);
     builder.append_dir_all(".", dir).with_context(|| format!("packing {}", dir.display()))?;
-    Ok(builder.into_inner()?)
+    let mut file = builder.into_inner()?;
+    std::io::Write::flush(&mut file)?;
+    Ok(std::fs::metadata(to)?.len())
 }
 
 fn remove_dir(dir: &Path) {

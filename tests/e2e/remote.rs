@@ -321,6 +321,17 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
     let pulled = run(&reader, &["--remote", "s3://rlmflow/ci"]);
     assert_eq!(pulled.with_status("pulled").len(), 5, "{:?}", pulled.finished());
     assert_eq!(outputs(&pulled), outputs(&computed));
+    // A 20 MB artifact goes up in 8 MiB parts (S3's multipart upload) and comes back whole.
+    let big = "[pipeline]\nname = \"big\"\n[stages.source]\noperator = \"write-text\"\ntext = \"0123456789abcdef\"\nrepeat = 1250000\n";
+    let big_pusher = Scratch::new("remote-s3-big-pusher");
+    big_pusher.pipeline(big);
+    let pushed = run(&big_pusher, &["--remote", "s3://rlmflow/big", "--push"]);
+    assert_eq!(pushed.of("pushed").len(), 1, "{:?}", pushed.0);
+    let big_reader = Scratch::new("remote-s3-big-reader");
+    big_reader.pipeline(big);
+    let pulled_big = run(&big_reader, &["--remote", "s3://rlmflow/big"]);
+    assert_eq!(pulled_big.with_status("pulled").len(), 1, "{:?}", pulled_big.finished());
+    assert_eq!(outputs(&pulled_big), outputs(&pushed));
 
     // The server stopped in the middle of a run: it finishes locally, with one warning.
     let slow = CHAIN.replace("text = \"radar\"", "text = \"radar, again\"\nsteps = 10\nstep_ms = 100");
@@ -666,19 +677,24 @@ fn peak_memory(cmd: &mut Command) -> (std::process::ExitStatus, u64) {
 }
 
 #[test]
-fn a_pull_of_a_large_artifact_streams_it_to_disk() {
-    // A 64 MB artifact from a pipeline of a few bytes.
+fn a_push_and_a_pull_of_a_large_artifact_stream_it_through_files() {
+    // A 64 MB artifact from a pipeline of a few bytes, pushed (in 8 MiB parts) by `push`.
     let pipeline = "[pipeline]\nname = \"big\"\n[stages.source]\noperator = \"write-text\"\ntext = \"0123456789abcdef\"\nrepeat = 4000000\n";
     let pusher = Scratch::new("remote-big-pusher");
     let remote = pusher.dir.join("remote");
     pusher.pipeline(pipeline);
-    pusher.run_expecting(0, &["--remote", &file_url(&remote), "--push"]);
+    pusher.run();
+    let (status, peak) = peak_memory(&mut pusher.command(&["push", "p.toml", "--remote", &file_url(&remote)]));
+    assert!(status.success());
+    assert_eq!(fs::metadata(remote.join("cas").join(format!("{}.tar", held(&remote).1[0]))).unwrap().len(), 64_000_000 + 2048, "one tar");
+    assert!(peak < 32_000_000, "push: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
+    println!("push of a 64 MB artifact: peak anonymous memory {:.1} MB", peak as f64 / 1e6);
     let reader = Scratch::new("remote-big-reader");
     reader.pipeline(pipeline);
     let (status, peak) = peak_memory(&mut reader.command(&["pull", "p.toml", "--remote", &file_url(&remote)]));
     assert!(status.success());
     assert_eq!(reader.run().with_status("reused"), ["source"], "pulled whole");
     assert_eq!(fs::metadata(output_dir(&reader.store(), "big", "source").join("text.txt")).unwrap().len(), 64_000_000);
-    assert!(peak < 32_000_000, "peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
+    assert!(peak < 32_000_000, "pull: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
     println!("pull of a 64 MB artifact: peak anonymous memory {:.1} MB", peak as f64 / 1e6);
 }
