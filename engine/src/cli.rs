@@ -467,8 +467,9 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             for (key, output) in &report.records_without_output {
                 println!("  record {} needs object {}, which is gone: its action reruns when needed", key.short(), output.short());
             }
-            let forged = match pipeline.as_deref() {
-                Some(file) => verify_signatures(&store, &config::load(file, registry)?.remote)?,
+            let p = pipeline.as_deref().map(|file| config::load(file, registry)).transpose()?;
+            let forged = match &p {
+                Some(p) => verify_signatures(&store, &p.remote)?,
                 None => 0,
             };
             println!(
@@ -476,12 +477,11 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 report.objects.len(),
                 report.files.len()
             );
-            let disagree = match (recompute, pipeline.as_deref()) {
+            let disagree = match (recompute, &p) {
                 (false, _) => 0,
                 (true, None) => anyhow::bail!("--recompute needs the pipeline file"),
-                (true, Some(file)) => {
-                    let p = config::load(file, registry)?;
-                    let plan = planned(&p, Some(&store), Device::Cpu)?;
+                (true, Some(p)) => {
+                    let plan = planned(p, Some(&store), Device::Cpu)?;
                     let jobs = std::thread::available_parallelism().map_or(1, |n| n.get());
                     let opts = RunOptions { jobs, json: false, device: Device::Cpu, verify_inputs: false, remote: None };
                     let disagree = crate::determinism::recompute(&plan, registry, &store, &only, sample, &opts)?;

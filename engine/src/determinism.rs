@@ -142,11 +142,7 @@ pub fn recompute(
             continue;
         }
         disagree += 1;
-        let signers = if record.signatures.is_empty() {
-            "unsigned".to_owned()
-        } else {
-            record.signatures.iter().map(|s| s.key.as_str()).collect::<Vec<_>>().join(", ")
-        };
+        let signers = rlmflow_remote::signing::signers(&record);
         println!(
             "  DISAGREES  {}  its record names {} ({signers}), recomputed {}; the recomputed output is kept in {}",
             inst.label,

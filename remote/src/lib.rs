@@ -216,8 +216,10 @@ impl Remote {
 
     /// Whether a record may be used here: `Err(why)` when trusted keys are set and none signed it.
     fn trusts(&self, record: &ActionRecord) -> Result<(), String> {
+        if self.trusted.is_empty() {
+            return Ok(());
+        }
         match self.trusted.check(record) {
-            _ if self.trusted.is_empty() => Ok(()),
             Trust::Signed(_) => Ok(()),
             other => Err(format!("its record is {other}")),
         }
@@ -339,7 +341,6 @@ impl Remote {
             return Ok(Pulled::Untrusted { why });
         }
         let bytes = match self.fetch_accepted(store, &record.output, accept, progress)? {
-            Fetched::Present if let Err(why) = accept(&store.object_dir(&record.output)) => return Ok(Pulled::Corrupt { why }),
             Fetched::Present => 0,
             Fetched::Downloaded(bytes) => bytes,
             Fetched::Missing => return Ok(Pulled::Miss),
@@ -365,7 +366,10 @@ impl Remote {
         progress: &mut dyn FnMut(u64, u64),
     ) -> anyhow::Result<Fetched> {
         if store.has_object(digest) {
-            return Ok(Fetched::Present);
+            return Ok(match accept(&store.object_dir(digest)) {
+                Ok(()) => Fetched::Present,
+                Err(why) => Fetched::Corrupt(why),
+            });
         }
         // Streamed to a file in one work directory, then unpacked into another; the digest's lock
         // keeps another process's sweep of `tmp/` off both meanwhile.
@@ -422,11 +426,7 @@ impl Remote {
             let theirs = self.get("reading a record", &key, &mut |_, _| {}).and_then(|b| serde_json::from_slice::<ActionRecord>(&b).ok());
             match theirs {
                 Some(theirs) if theirs.output != record.output => {
-                    let signers = if theirs.signatures.is_empty() {
-                        "unsigned".to_owned()
-                    } else {
-                        format!("signed by {}", theirs.signatures.iter().map(|s| s.key.as_str()).collect::<Vec<_>>().join(", "))
-                    };
+                    let signers = signing::signers(&theirs);
                     disagrees = Some(format!(
                         "the remote's record of {} names output {} ({signers}), but this run computed {}; the remote's is left as it was",
                         record.key.short(),

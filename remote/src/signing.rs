@@ -119,6 +119,14 @@ impl TrustedKeys {
     }
 }
 
+/// Who vouched for `record`, for a person reading a warning: `unsigned` or `signed by ci, laptop`.
+pub fn signers(record: &ActionRecord) -> String {
+    if record.signatures.is_empty() {
+        return "unsigned".to_owned();
+    }
+    format!("signed by {}", record.signatures.iter().map(|s| s.key.as_str()).collect::<Vec<_>>().join(", "))
+}
+
 impl std::fmt::Display for Trust {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
