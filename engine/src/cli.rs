@@ -11,6 +11,7 @@ use rlmflow_stages::{Device, ItemCount, Registry};
 use crate::config::{self, ConfigError, Pipeline};
 use crate::plan::{Freshness, assess, plan};
 use crate::run::{RunOptions, print_status, run};
+use crate::ui::Ui;
 
 #[derive(Parser)]
 #[command(name = "rlmflow", version, about = "Declarative data-and-training pipelines for radar-language research")]
@@ -293,6 +294,7 @@ fn pull(
 ) -> anyhow::Result<(usize, u64)> {
     let mut outputs: Vec<Option<Digest>> = vec![None; plan.instances.len()];
     let (mut pulled, mut bytes) = (0, 0);
+    let ui = Ui::new(false);
     for (i, inst) in plan.instances.iter().enumerate() {
         let Some(key) = plan.preimage(i, registry, &outputs).map(|p| p.key()) else { continue };
         if let Some(record) = store.fresh(&key)? {
@@ -303,7 +305,10 @@ fn pull(
             continue;
         }
         let produces = plan.pipeline.stages[inst.stage].kind.produces;
-        match remote.pull(store, &key, &|dir| registry.catalog.check_artifact(produces, dir), &mut |_, _| {})? {
+        let mut bar = ui.transfer(&inst.label, "pulling");
+        let found = remote.pull(store, &key, &|dir| registry.catalog.check_artifact(produces, dir), &mut |done, total| bar.moved(done, total))?;
+        drop(bar);
+        match found {
             rlmflow_remote::Pulled::Hit { record, bytes: b, .. } => {
                 println!("  pulled   {}  {:.1} MB", inst.label, b as f64 / 1e6);
                 outputs[i] = Some(record.output);
@@ -403,9 +408,12 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let settings = remote.settings(&p)?.context("no remote cache: set `[pipeline] remote` or give --remote")?;
             let remote = open_remote(&config::RemoteSettings { push: true, ..settings })?;
             let (mut pushed, mut bytes) = (0, 0);
+            let ui = Ui::new(false);
             for (i, state) in assess(&plan, registry, Some(&store))?.iter().enumerate().filter(|(i, _)| selected[*i]) {
                 let Freshness::Cached(record) = state else { continue };
-                let sent = remote.push(&store, record, false)?;
+                let mut bar = ui.transfer(&plan.instances[i].label, "pushing");
+                let sent = remote.push(&store, record, false, &mut |done, total| bar.moved(done, total))?;
+                drop(bar);
                 if let Some(why) = remote.down() {
                     bail!("remote cache {}: {why}", remote.url());
                 }

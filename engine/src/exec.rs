@@ -417,7 +417,7 @@ fn run_task(
         return Ok(code);
     }
     let record = store.fresh(&key)?.context("the action finished without a record")?;
-    if cache.push(store, &record, replace)?.is_none() {
+    if cache.push(store, &record, replace, &mut |_, _| {})?.is_none() {
         let why = cache.down().unwrap_or_default();
         transcript
             .send(&Message::Failed { message: format!("computed, but the result could not be pushed to the remote cache ({why})"), setting: None });

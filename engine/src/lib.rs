@@ -16,3 +16,4 @@ pub mod footprint;
 pub mod plan;
 pub mod platform;
 pub mod run;
+mod ui;

@@ -6,11 +6,11 @@ use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::mpsc;
+use std::sync::{Arc, mpsc};
 use std::time::Instant;
 
 use anyhow::Context as _;
-use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
+use indicatif::ProgressBar;
 use rlmflow_cache::{ActionRecord, Digest, PlanEntry, Preimage, RunPlan, Store, file_safe, now_rfc3339, run_id};
 use rlmflow_remote::{Pulled, Remote};
 use rlmflow_stages::{Device, Registry};
@@ -21,6 +21,7 @@ use crate::dispatch::{Dispatch, Exit, Launch, Local, Report};
 use crate::exec::{EXIT_CORRUPT_INPUT, Message};
 use crate::footprint::Fit;
 use crate::plan::{Freshness, Plan, why};
+use crate::ui::Ui;
 
 #[derive(Clone, Debug)]
 pub struct RunOptions {
@@ -88,9 +89,19 @@ pub fn print_status(plan: &Plan, states: &[Freshness], selected: &[bool], fits: 
 enum State {
     Excluded,
     Waiting,
-    Ready { key: Digest },
-    Running { key: Digest },
-    Done { output: Digest },
+    /// Its key is missing locally and a pull from the remote cache is under way.
+    Pulling {
+        key: Digest,
+    },
+    Ready {
+        key: Digest,
+    },
+    Running {
+        key: Digest,
+    },
+    Done {
+        output: Digest,
+    },
     Failed,
     Skipped,
 }
@@ -115,10 +126,17 @@ struct Executor<'a> {
     verified: std::collections::BTreeSet<Digest>,
     dispatch: Box<dyn Dispatch>,
     /// The remote cache, opened on the first local miss (a warm run never contacts it).
-    remote: std::cell::OnceCell<Option<Remote>>,
+    remote: std::cell::OnceCell<Option<Arc<Remote>>>,
+    /// Pulls under way, each on a thread of its own beside the running stages.
+    pulling: usize,
+    /// Instances the remote cache was asked for already this run (a miss is not asked again).
+    asked_remote: Vec<bool>,
     /// Actions whose remote copy was found corrupt: a push replaces their object and record.
     corrupt_remote: std::collections::BTreeSet<Digest>,
 }
+
+/// The most pulls from the remote cache under way at once.
+const MAX_PULLS: usize = 4;
 
 /// Runs the plan; returns its summary.
 pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], opts: &RunOptions) -> anyhow::Result<Summary> {
@@ -147,6 +165,8 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
         verified: Default::default(),
         dispatch,
         remote: Default::default(),
+        pulling: 0,
+        asked_remote: vec![false; n],
         corrupt_remote: Default::default(),
     };
     ex.execute()?;
@@ -241,7 +261,7 @@ impl Executor<'_> {
         let mut started: BTreeMap<usize, (Instant, usize, bool)> = BTreeMap::new();
         let mut outcome: BTreeMap<usize, Message> = BTreeMap::new();
         loop {
-            self.resolve()?;
+            self.resolve(&tx)?;
             self.write_plan_if_dirty()?;
             // Start what fits in the budget, in plan order.
             for i in 0..self.states.len() {
@@ -269,11 +289,15 @@ impl Executor<'_> {
                 bars.insert(i, self.ui.bar(&label));
                 self.start(i, exe, key, threads, wants.gpu, tx.clone())?;
             }
-            if started.is_empty() {
+            if started.is_empty() && self.pulling == 0 {
                 break;
             }
-            let (i, report) = rx.recv().expect("a running child always reports its exit");
+            let (i, report) = rx.recv().expect("a running child always reports its exit, a pull its end");
             match report {
+                Report::Pulled(pulled) => {
+                    self.pulling -= 1;
+                    self.pulled(i, pulled?)?;
+                }
                 Report::Message(Message::Progress { position, length, message }) => {
                     let bar = &bars[&i];
                     if bar.length() != Some(length) {
@@ -386,8 +410,8 @@ impl Executor<'_> {
         }
     }
 
-    /// Moves waiting instances whose inputs are settled to ready, reused or skipped.
-    fn resolve(&mut self) -> anyhow::Result<()> {
+    /// Moves waiting instances whose inputs are settled to ready, reused, pulling or skipped.
+    fn resolve(&mut self, tx: &mpsc::Sender<(usize, Report)>) -> anyhow::Result<()> {
         for i in 0..self.states.len() {
             if !matches!(self.states[i], State::Waiting) {
                 continue;
@@ -424,9 +448,15 @@ impl Executor<'_> {
                 self.ui.say(format!("  reused   {}  ({:.1}s saved)", inst.label, record.duration_s));
                 continue;
             }
-            if let Some(record) = self.pull(i, &key)? {
-                self.states[i] = State::Done { output: record.output };
-                self.results[i] = Some((Outcome::Pulled, record.duration_s));
+            if !self.asked_remote[i]
+                && let Some(remote) = self.remote().cloned()
+            {
+                if self.pulling < MAX_PULLS {
+                    self.asked_remote[i] = true;
+                    self.pulling += 1;
+                    self.states[i] = State::Pulling { key };
+                    self.start_pull(i, key, remote, tx.clone());
+                }
                 continue;
             }
             let inst = &self.plan.instances[i];
@@ -448,14 +478,14 @@ impl Executor<'_> {
 
     /// The remote cache, opened once; `None` when there is none or it cannot be opened (which
     /// warns once).
-    fn remote(&self) -> Option<&Remote> {
+    fn remote(&self) -> Option<&Arc<Remote>> {
         self.remote
             .get_or_init(|| match self.opts.remote.as_ref()?.open() {
                 Ok(remote) => {
                     if !remote.verified() {
                         self.ui.say(format!("  note     remote cache {}: its records are used unverified (no `remote_trusted_keys`)", remote.url()));
                     }
-                    Some(remote)
+                    Some(Arc::new(remote))
                 }
                 Err(e) => {
                     self.ui.say(format!("  warning  remote cache not used: {e:#}"));
@@ -465,32 +495,29 @@ impl Executor<'_> {
             .as_ref()
     }
 
-    /// Asks the remote cache for `key` after a local miss: a hit lands in the local store,
-    /// verified, and finishes the instance as `pulled`.
-    fn pull(&mut self, i: usize, key: &Digest) -> anyhow::Result<Option<ActionRecord>> {
+    /// Asks the remote cache for `key` after a local miss, on a thread of its own (stages that
+    /// are ready meanwhile start); its end arrives as [`Report::Pulled`].
+    fn start_pull(&self, i: usize, key: Digest, remote: Arc<Remote>, tx: mpsc::Sender<(usize, Report)>) {
+        let store = self.store.clone();
+        let catalog = self.registry.catalog.clone();
+        let produces = self.plan.pipeline.stages[self.plan.instances[i].stage].kind.produces;
+        let mut bar = self.ui.transfer(&self.plan.instances[i].label, "pulling");
+        std::thread::spawn(move || {
+            let pulled = remote.pull(&store, &key, &|dir| catalog.check_artifact(produces, dir), &mut |done, total| bar.moved(done, total));
+            drop(bar);
+            let _ = tx.send((i, Report::Pulled(pulled)));
+        });
+    }
+
+    /// A pull has ended: a hit finishes the instance as `pulled` (verified, in the local store);
+    /// anything else sends it back to be computed here.
+    fn pulled(&mut self, i: usize, pulled: Pulled) -> anyhow::Result<()> {
+        let State::Pulling { key } = self.states[i] else { unreachable!("a pull ended for an instance not pulling") };
         let label = self.plan.instances[i].label.clone();
-        let ui = self.ui.clone();
-        let Some(remote) = self.remote() else { return Ok(None) };
-        // A bar once the artifact starts to arrive (a miss shows none).
-        let mut bar: Option<ProgressBar> = None;
-        let mut progress = |done: u64, total: u64| {
-            let bar = bar.get_or_insert_with(|| {
-                let bar = ui.bar(&label);
-                bar.set_length(total);
-                bar.set_style(Ui::bytes_style());
-                bar
-            });
-            bar.set_position(done);
-        };
-        let (catalog, produces) = (&self.registry.catalog, self.plan.pipeline.stages[self.plan.instances[i].stage].kind.produces);
-        let pulled = remote.pull(self.store, key, &|dir| catalog.check_artifact(produces, dir), &mut progress)?;
-        if let Some(bar) = bar {
-            bar.finish_and_clear();
-        }
-        let down = remote.newly_down();
-        if let Some(why) = down {
+        if let Some(why) = self.remote().and_then(|r| r.newly_down()) {
             self.warn_remote_down(&why)?;
         }
+        self.states[i] = State::Waiting;
         match pulled {
             Pulled::Hit { record, bytes, seconds } => {
                 self.events.write(
@@ -498,23 +525,23 @@ impl Executor<'_> {
                     json!({"stage": label, "status": "pulled", "key": key, "output": record.output, "bytes": bytes, "seconds": seconds, "saved_s": record.duration_s}),
                 )?;
                 self.ui.say(format!("  pulled   {label}  {:.1} MB in {seconds:.1}s ({:.1}s saved)", bytes as f64 / 1e6, record.duration_s));
-                Ok(Some(*record))
+                self.states[i] = State::Done { output: record.output };
+                self.results[i] = Some((Outcome::Pulled, record.duration_s));
             }
-            Pulled::Miss => Ok(None),
+            Pulled::Miss => {}
             Pulled::Corrupt { why } => {
                 self.events.write("remote_corrupt", json!({"stage": label, "key": key, "why": why}))?;
                 self.ui.say(format!("  warning  {label}: the remote cache's copy is corrupt ({why}); not used, recomputing"));
-                self.corrupt_remote.insert(*key);
-                Ok(None)
+                self.corrupt_remote.insert(key);
             }
             // Replaced by this run's own signed record when it pushes, like a corrupt copy.
             Pulled::Untrusted { why } => {
                 self.events.write("remote_untrusted", json!({"stage": label, "key": key, "why": why}))?;
                 self.ui.say(format!("  warning  {label}: the remote cache's record is not trusted ({why}); not used, recomputing"));
-                self.corrupt_remote.insert(*key);
-                Ok(None)
+                self.corrupt_remote.insert(key);
             }
         }
+        Ok(())
     }
 
     fn warn_remote_down(&mut self, why: &str) -> anyhow::Result<()> {
@@ -529,7 +556,9 @@ impl Executor<'_> {
         let Some(remote) = self.remote().filter(|r| r.push) else { return Ok(()) };
         let replace = self.corrupt_remote.contains(&record.key);
         let clock = Instant::now();
-        let pushed = remote.push(self.store, record, replace)?;
+        let mut bar = self.ui.transfer(label, "pushing");
+        let pushed = remote.push(self.store, record, replace, &mut |done, total| bar.moved(done, total))?;
+        drop(bar);
         if let Some(why) = remote.newly_down() {
             return self.warn_remote_down(&why);
         }
@@ -702,51 +731,5 @@ impl EventLog {
             println!("{line}");
         }
         Ok(())
-    }
-}
-
-/// Progress bars on a terminal; plain lines otherwise.
-#[derive(Clone)]
-struct Ui {
-    multi: MultiProgress,
-    quiet: bool,
-}
-
-impl Ui {
-    fn new(json: bool) -> Ui {
-        let multi = MultiProgress::new();
-        if json {
-            multi.set_draw_target(ProgressDrawTarget::hidden());
-        }
-        Ui { multi, quiet: json }
-    }
-
-    fn say(&self, line: String) {
-        if self.quiet {
-            return;
-        }
-        if self.multi.is_hidden() {
-            println!("{line}");
-        } else {
-            let _ = self.multi.println(line);
-        }
-    }
-
-    fn bar(&self, label: &str) -> ProgressBar {
-        let bar = self.multi.add(ProgressBar::new_spinner());
-        bar.set_style(ProgressStyle::with_template("  {spinner} {prefix} {elapsed} {msg}").unwrap());
-        bar.set_prefix(label.to_owned());
-        bar.enable_steady_tick(std::time::Duration::from_millis(120));
-        bar
-    }
-
-    fn bytes_style() -> ProgressStyle {
-        ProgressStyle::with_template("  {prefix} pulling [{bar:30}] {bytes}/{total_bytes} ({bytes_per_sec}, eta {eta})")
-            .unwrap()
-            .progress_chars("=> ")
-    }
-
-    fn bar_style() -> ProgressStyle {
-        ProgressStyle::with_template("  {prefix} [{bar:30}] {pos}/{len} {msg} ({elapsed}, eta {eta})").unwrap().progress_chars("=> ")
     }
 }

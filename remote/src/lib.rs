@@ -28,20 +28,22 @@
 //! A remote is read-only unless made with `push`: pull requests and laptops read, trusted CI
 //! writes.
 
+mod link;
 pub mod signing;
 
-use std::cell::RefCell;
 use std::path::Path;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context as _, bail};
+use link::{Watch, WatchedConnector};
 use object_store::path::Path as Key;
 use object_store::{ClientOptions, ObjectStore, ObjectStoreExt, PutPayload, RetryConfig};
 use rlmflow_cache::{ActionRecord, Digest, Store, hash_tree};
 use signing::{SigningKey, Trust, TrustedKeys};
 
-/// A remote cache at one URL.
+/// A remote cache at one URL. Shared by threads: pulls run beside the stages that compute.
 pub struct Remote {
     url: String,
     objects: Arc<dyn ObjectStore>,
@@ -50,9 +52,9 @@ pub struct Remote {
     /// Whether this client uploads.
     pub push: bool,
     /// Why the remote stopped being used, once a request failed.
-    down: RefCell<Option<String>>,
+    down: Mutex<Option<String>>,
     /// Whether [`Remote::newly_down`] has told it.
-    told: std::cell::Cell<bool>,
+    told: AtomicBool,
     /// The keys whose signatures make a record usable (none: every record is, unverified).
     trusted: TrustedKeys,
     /// The key this client signs the records it uploads with.
@@ -148,10 +150,10 @@ impl Remote {
         check_url(url).map_err(|problem| anyhow::anyhow!("remote {problem}"))?;
         // TLS on ring; an error only says a provider is installed already.
         let _ = rustls::crypto::ring::default_provider().install_default();
-        // No whole-request timeout: it would cut off a large download that is still arriving.
-        // The wait for the connection and for each read is bounded instead (and each await of a
-        // request or a chunk by `call`).
-        let client = ClientOptions::new().with_timeout_disabled().with_read_timeout(timeout).with_connect_timeout(timeout).with_allow_http(true);
+        // No whole-request timeout: it would cut off a large transfer that is still moving. The
+        // link bounds the wait for the connection and for each read, and `call` the wait for
+        // the next bytes either way.
+        let client = ClientOptions::new().with_timeout_disabled().with_allow_http(true);
         let retry = RetryConfig { max_retries: 1, retry_timeout: timeout, ..RetryConfig::default() };
         let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
         let objects: Arc<dyn ObjectStore> = if let Some(rest) = url.strip_prefix("s3://") {
@@ -159,13 +161,14 @@ impl Remote {
             let store = object_store::aws::AmazonS3Builder::from_env()
                 .with_bucket_name(bucket)
                 .with_client_options(client)
+                .with_http_connector(WatchedConnector { timeout })
                 .with_retry(retry)
                 .build()
                 .with_context(|| format!("remote `{url}`"))?;
             // A bucket that does not exist would read as an empty cache: asked once here. A
             // server that does not answer is not an error yet (the first request marks it down).
-            let listed = runtime.block_on(async { tokio::time::timeout(timeout, store.list_with_delimiter(None)).await });
-            if let Ok(Err(e)) = listed
+            let listed = runtime.block_on(link::bounded(&Watch::new(), timeout, store.list_with_delimiter(None), &mut |_| {}));
+            if let Some(Err(e)) = listed
                 && (matches!(e, object_store::Error::NotFound { .. }) || e.to_string().contains("NoSuchBucket"))
             {
                 let endpoint = std::env::var("AWS_ENDPOINT_URL").or_else(|_| std::env::var("AWS_ENDPOINT")).unwrap_or_else(|_| "AWS".into());
@@ -177,6 +180,7 @@ impl Remote {
                 object_store::http::HttpBuilder::new()
                     .with_url(url)
                     .with_client_options(client)
+                    .with_http_connector(WatchedConnector { timeout })
                     .with_retry(retry)
                     .build()
                     .with_context(|| format!("remote `{url}`"))?,
@@ -193,7 +197,7 @@ impl Remote {
             runtime,
             timeout,
             push,
-            down: RefCell::new(None),
+            down: Mutex::new(None),
             told: Default::default(),
             trusted: TrustedKeys::default(),
             signer: None,
@@ -229,40 +233,47 @@ impl Remote {
         &self.url
     }
 
-    /// The most one request may take.
+    /// The longest a transfer may wait for its next bytes.
     pub fn timeout(&self) -> Duration {
         self.timeout
     }
 
     /// Why the remote is no longer asked, if a request failed.
     pub fn down(&self) -> Option<String> {
-        self.down.borrow().clone()
+        self.down.lock().unwrap().clone()
     }
 
     /// Why the remote went down, the first time it is asked after it did: a caller warns once.
     pub fn newly_down(&self) -> Option<String> {
-        let why = self.down().filter(|_| !self.told.get());
-        self.told.set(why.is_some() || self.told.get());
-        why
+        self.down().filter(|_| !self.told.swap(true, Ordering::Relaxed))
     }
 
-    /// Runs one request within the timeout; the first failure marks the remote down.
+    /// Runs one request until it ends or waits for its next bytes longer than the timeout; the
+    /// first failure marks the remote down.
     fn call<T>(&self, what: &str, request: impl Future<Output = object_store::Result<T>>) -> Result<Option<T>, ()> {
-        if self.down.borrow().is_some() {
+        self.watched(what, &Watch::new(), request, &mut |_| {})
+    }
+
+    /// [`Remote::call`] as one step of the transfer `watch` follows; `tick` hears it every
+    /// fraction of a second while the request runs.
+    fn watched<T>(
+        &self,
+        what: &str,
+        watch: &Arc<Watch>,
+        request: impl Future<Output = object_store::Result<T>>,
+        tick: &mut dyn FnMut(&Watch),
+    ) -> Result<Option<T>, ()> {
+        if self.down().is_some() {
             return Err(());
         }
-        match self.runtime.block_on(async { tokio::time::timeout(self.timeout, request).await }) {
-            Ok(Ok(value)) => Ok(Some(value)),
-            Ok(Err(object_store::Error::NotFound { .. })) => Ok(None),
-            Ok(Err(e)) => {
-                *self.down.borrow_mut() = Some(format!("{what}: {e}"));
-                Err(())
-            }
-            Err(_) => {
-                *self.down.borrow_mut() = Some(format!("{what}: no answer within {:.0} s", self.timeout.as_secs_f64()));
-                Err(())
-            }
-        }
+        let why = match self.runtime.block_on(link::bounded(watch, self.timeout, request, tick)) {
+            Some(Ok(value)) => return Ok(Some(value)),
+            Some(Err(object_store::Error::NotFound { .. })) => return Ok(None),
+            Some(Err(e)) => format!("{what}: {e}"),
+            None => format!("{what}: nothing arrived or left for {:.0} s", self.timeout.as_secs_f64()),
+        };
+        self.down.lock().unwrap().get_or_insert(why);
+        Err(())
     }
 
     /// The whole body of `key`; `None` when it is absent or the remote is down. `progress`
@@ -289,12 +300,13 @@ impl Remote {
         progress: &mut dyn FnMut(u64, u64),
     ) -> std::io::Result<Option<u64>> {
         use futures_util::StreamExt as _;
-        let Ok(Some(found)) = self.call(what, self.objects.get(key)) else { return Ok(None) };
+        let watch = Watch::new();
+        let Ok(Some(found)) = self.watched(what, &watch, self.objects.get(key), &mut |_| {}) else { return Ok(None) };
         let total = found.meta.size;
         let mut stream = found.into_stream();
         let mut received = 0u64;
         loop {
-            match self.call(what, async { stream.next().await.transpose() }) {
+            match self.watched(what, &watch, async { stream.next().await.transpose() }, &mut |_| {}) {
                 Ok(Some(Some(chunk))) => {
                     sink(&chunk)?;
                     received += chunk.len() as u64;
@@ -415,9 +427,9 @@ impl Remote {
     /// `replace`: it is known corrupt or untrusted), then the record unless the remote has one.
     /// A record already there that names another output is reported, not overwritten; one that
     /// agrees but lacks this client's signature gets it. `Ok(None)` when the remote is down or
-    /// this client does not push.
-    pub fn push(&self, store: &Store, record: &ActionRecord, replace: bool) -> anyhow::Result<Option<Pushed>> {
-        let Some(mut bytes) = self.push_object(store, &record.output, replace)? else { return Ok(None) };
+    /// this client does not push. `progress` hears the artifact's bytes as they leave.
+    pub fn push(&self, store: &Store, record: &ActionRecord, replace: bool, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Option<Pushed>> {
+        let Some(mut bytes) = self.push_object(store, &record.output, replace, progress)? else { return Ok(None) };
         let key = Self::record_key(&record.key);
         let Ok(present) = self.call("checking a record", self.objects.head(&key)) else { return Ok(None) };
         let mut write = present.is_none() || replace;
@@ -451,8 +463,8 @@ impl Remote {
 
     /// Uploads the artifact `digest` from `store` unless the remote has it (or `replace`): what
     /// the engine does for a cluster task's inputs. Returns the bytes uploaded; `Ok(None)` when
-    /// the remote is down or this client does not push.
-    pub fn push_object(&self, store: &Store, digest: &Digest, replace: bool) -> anyhow::Result<Option<u64>> {
+    /// the remote is down or this client does not push. `progress` hears the bytes as they leave.
+    pub fn push_object(&self, store: &Store, digest: &Digest, replace: bool, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Option<u64>> {
         if !self.push {
             return Ok(None);
         }
@@ -466,7 +478,7 @@ impl Remote {
         let _held = store.lock_action(digest)?;
         let work = store.work_dir(digest)?;
         let tar_path = work.join("artifact.tar");
-        let sent = pack(&store.object_dir(digest), &tar_path).and_then(|size| Ok((size, self.upload(&object, &tar_path, size)?)));
+        let sent = pack(&store.object_dir(digest), &tar_path).and_then(|size| Ok((size, self.upload(&object, &tar_path, size, progress)?)));
         remove_dir(&work);
         let (size, uploaded) = sent?;
         Ok(uploaded.then_some(size))
@@ -474,18 +486,24 @@ impl Remote {
 
     /// Sends the file at `path` (`size` bytes) as `key`: in parts of [`PART`] where the remote
     /// takes parts (S3, a directory) and the file is larger than one, so neither memory nor one
-    /// request holds all of it; each request is bounded by the timeout. `false` when the remote
-    /// went down.
-    fn upload(&self, key: &Key, path: &Path, size: u64) -> anyhow::Result<bool> {
+    /// request holds all of it. The timeout bounds the wait for the link to take the next bytes;
+    /// `progress` hears the bytes sent. `false` when the remote went down.
+    fn upload(&self, key: &Key, path: &Path, size: u64, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<bool> {
         use std::io::Read as _;
         let mut file = std::fs::File::open(path).with_context(|| format!("reading {}", path.display()))?;
+        let watch = Watch::new();
+        // Over HTTP the link counts the bytes the connection took; a directory takes a part whole.
         if !self.parts || size <= PART as u64 {
             let mut body = Vec::with_capacity(size as usize);
             file.read_to_end(&mut body)?;
-            return Ok(self.call("uploading an object", self.objects.put(key, PutPayload::from(body))).is_ok());
+            let put = self.objects.put(key, PutPayload::from(body));
+            let sent = self.watched("uploading an object", &watch, put, &mut |w| progress(w.sent().min(size), size)).is_ok();
+            progress(size, size);
+            return Ok(sent);
         }
         let Ok(Some(mut upload)) = self.call("starting an upload", self.objects.put_multipart(key)) else { return Ok(false) };
         let mut part = vec![0u8; PART];
+        let mut parts_done = 0u64;
         loop {
             let mut filled = 0;
             while filled < PART {
@@ -497,10 +515,13 @@ impl Remote {
             if filled == 0 {
                 break;
             }
-            if self.call("uploading a part", upload.put_part(PutPayload::from(part[..filled].to_vec()))).is_err() {
-                let _ = self.runtime.block_on(async { tokio::time::timeout(self.timeout, upload.abort()).await });
+            let put = upload.put_part(PutPayload::from(part[..filled].to_vec()));
+            if self.watched("uploading a part", &watch, put, &mut |w| progress(parts_done.max(w.sent()).min(size), size)).is_err() {
+                let _ = self.runtime.block_on(link::bounded(&Watch::new(), self.timeout, upload.abort(), &mut |_| {}));
                 return Ok(false);
             }
+            parts_done += filled as u64;
+            progress(parts_done, size);
         }
         Ok(self.call("finishing an upload", upload.complete()).is_ok())
     }
@@ -562,7 +583,7 @@ mod tests {
         std::fs::write(dir.join("data.bin"), vec![7u8; 100_000]).unwrap();
         let digest = a.commit_tree(&dir).unwrap().digest;
         let remote = Remote::open(&format!("file://{}", root.join("remote").display()), true, Duration::from_secs(5)).unwrap();
-        assert!(remote.push_object(&a, &digest, false).unwrap().is_some());
+        assert!(remote.push_object(&a, &digest, false, &mut |_, _| {}).unwrap().is_some());
         let mut heard = Vec::new();
         assert!(matches!(remote.fetch_object(&b, &digest, &mut |done, total| heard.push((done, total))).unwrap(), Fetched::Downloaded(_)));
         assert!(heard.len() > 1, "more than one chunk: {heard:?}");

@@ -270,16 +270,13 @@ fn wait_for(port: u16, path: &str, limit: Duration, log: &Path) {
     panic!("127.0.0.1:{port}{path} did not answer within {limit:?}; its log ends:\n{}", &log[log.len().saturating_sub(3000)..]);
 }
 
-#[test]
-fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_one_warning() {
-    let env = servers_env();
-    let base = Scratch::new("remote-servers");
-
-    // SeaweedFS: S3 on loopback, a bucket made with one PUT.
+/// SeaweedFS's S3 gateway on loopback with its data under `base`, and a bucket `rlmflow`: the
+/// server (stopped when dropped) and its S3 port.
+fn s3_server(env: &Path, base: &Scratch) -> (Server, u16) {
     let data = base.dir.join("weed");
     fs::create_dir_all(&data).unwrap();
     let (master, volume, filer, s3) = (free_weed_port(), free_weed_port(), free_weed_port(), free_weed_port());
-    let mut weed = Server(
+    let weed = Server(
         Command::new(env.join("bin/weed"))
             .args(["server", "-s3", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", &format!("-dir={}", data.display())])
             .args([format!("-master.port={master}"), format!("-volume.port={volume}"), format!("-filer.port={filer}"), format!("-s3.port={s3}")])
@@ -290,25 +287,40 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
             .spawn()
             .unwrap(),
     );
-    let endpoint = format!("http://127.0.0.1:{s3}");
     wait_for(s3, "/", Duration::from_secs(90), &base.dir.join("weed.err"));
     assert_eq!(http("PUT", s3, "/rlmflow"), Some(200), "creating the bucket");
-    let s3_env = [
-        ("AWS_ENDPOINT_URL", endpoint.as_str()),
-        ("AWS_ACCESS_KEY_ID", "rlmflow"),
-        ("AWS_SECRET_ACCESS_KEY", "rlmflow"),
-        ("AWS_REGION", "us-east-1"),
-    ];
+    (weed, s3)
+}
+
+/// The variables that point the S3 client at `endpoint` with the test's credentials.
+fn s3_env(endpoint: &str) -> [(&'static str, String); 4] {
+    [
+        ("AWS_ENDPOINT_URL", endpoint.to_owned()),
+        ("AWS_ACCESS_KEY_ID", "rlmflow".into()),
+        ("AWS_SECRET_ACCESS_KEY", "rlmflow".into()),
+        ("AWS_REGION", "us-east-1".into()),
+    ]
+}
+
+#[test]
+fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_one_warning() {
+    let env = servers_env();
+    let base = Scratch::new("remote-servers");
+
+    // SeaweedFS: S3 on loopback, a bucket made with one PUT.
+    let (mut weed, s3) = s3_server(&env, &base);
+    let endpoint = format!("http://127.0.0.1:{s3}");
+    let s3_env = s3_env(&endpoint);
     // A bucket that does not exist is named, not read as an empty cache.
     let missing = Scratch::new("remote-s3-missing");
     missing.pipeline(CHAIN);
-    let out = missing.command(&["pull", "p.toml", "--remote", "s3://no-such-bucket/ci"]).envs(s3_env).output().unwrap();
+    let out = missing.command(&["pull", "p.toml", "--remote", "s3://no-such-bucket/ci"]).envs(s3_env.clone()).output().unwrap();
     assert_eq!(out.status.code(), Some(2), "{}", text(&out.stdout));
     assert!(text(&out.stderr).contains(&format!("bucket `no-such-bucket` does not exist at {endpoint}")), "{}", text(&out.stderr));
     let run = |s: &Scratch, extra: &[&str]| {
         let mut args = vec!["run", "p.toml", "--json"];
         args.extend_from_slice(extra);
-        let out = s.command(&args).envs(s3_env).output().unwrap();
+        let out = s.command(&args).envs(s3_env.clone()).output().unwrap();
         assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
         crate::harness::Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect())
     };
@@ -337,8 +349,12 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
     let slow = CHAIN.replace("text = \"radar\"", "text = \"radar, again\"\nsteps = 10\nstep_ms = 100");
     let late = Scratch::new("remote-s3-stopped");
     late.pipeline(&slow);
-    let child =
-        late.command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/ci", "--push"]).envs(s3_env).stdout(Stdio::piped()).spawn().unwrap();
+    let child = late
+        .command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/ci", "--push"])
+        .envs(s3_env.clone())
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
     std::thread::sleep(Duration::from_millis(300));
     let _ = weed.0.kill();
     let _ = weed.0.wait();
@@ -649,19 +665,23 @@ fn a_download_longer_than_the_timeout_completes_while_its_bytes_keep_coming() {
     assert_eq!(events.with_status("pulled").len(), 5, "{:?}", events.finished());
     assert!(t0.elapsed() > Duration::from_secs(3), "the artifact really took longer than the timeout: {:?}", t0.elapsed());
 
-    // A link that stalls longer than the timeout is cut there: one warning, computed locally.
+    // A link that stalls longer than the timeout is cut there: one warning, and the large
+    // artifact and all that reads it computed locally (the small independent one, pulled beside
+    // it, may have arrived before the cut).
     let port = slow_server(pusher.dir.join("remote"), 256 * 1024, Duration::from_millis(2500));
     let stalled = Scratch::new("remote-stalled-reader");
     stalled.pipeline(&big.replace("seed = 7", "seed = 7\nremote_timeout_s = 1.0"));
     let events = stalled.run_expecting(0, &["--remote", &format!("http://127.0.0.1:{port}/")]);
     assert_eq!(events.of("remote_down").len(), 1, "{:?}", events.0);
-    assert_eq!(events.with_status("ran").len(), 5, "{:?}", events.finished());
+    let ran = events.with_status("ran");
+    assert!(["collect", "map", "measure", "source"].iter().all(|s| ran.contains(&s.to_string())), "{:?}", events.finished());
+    assert_eq!(ran.len() + events.with_status("pulled").len(), 5, "{:?}", events.finished());
 }
 
 /// Runs `cmd` to its end; its exit status and the most anonymous memory (heap, not the file
-/// pages it maps to hash) it held, sampled from `/proc` every 2 ms.
-fn peak_memory(cmd: &mut Command) -> (std::process::ExitStatus, u64) {
-    let mut child = cmd.stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+/// pages it maps to hash) it held, sampled from `/proc` every 2 ms. Its stderr goes to `log`.
+fn peak_memory(cmd: &mut Command, log: &Path) -> (std::process::ExitStatus, u64) {
+    let mut child = cmd.stdout(Stdio::null()).stderr(fs::File::create(log).unwrap()).spawn().unwrap();
     let status_file = format!("/proc/{}/status", child.id());
     let mut peak = 0u64;
     loop {
@@ -684,17 +704,157 @@ fn a_push_and_a_pull_of_a_large_artifact_stream_it_through_files() {
     let remote = pusher.dir.join("remote");
     pusher.pipeline(pipeline);
     pusher.run();
-    let (status, peak) = peak_memory(&mut pusher.command(&["push", "p.toml", "--remote", &file_url(&remote)]));
-    assert!(status.success());
+    let log = pusher.dir.join("push.err");
+    let (status, peak) = peak_memory(&mut pusher.command(&["push", "p.toml", "--remote", &file_url(&remote)]), &log);
+    assert!(status.success(), "{}", fs::read_to_string(&log).unwrap());
     assert_eq!(fs::metadata(remote.join("cas").join(format!("{}.tar", held(&remote).1[0]))).unwrap().len(), 64_000_000 + 2048, "one tar");
     assert!(peak < 32_000_000, "push: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
     println!("push of a 64 MB artifact: peak anonymous memory {:.1} MB", peak as f64 / 1e6);
     let reader = Scratch::new("remote-big-reader");
     reader.pipeline(pipeline);
-    let (status, peak) = peak_memory(&mut reader.command(&["pull", "p.toml", "--remote", &file_url(&remote)]));
-    assert!(status.success());
+    let log = reader.dir.join("pull.err");
+    let (status, peak) = peak_memory(&mut reader.command(&["pull", "p.toml", "--remote", &file_url(&remote)]), &log);
+    assert!(status.success(), "{}", fs::read_to_string(&log).unwrap());
     assert_eq!(reader.run().with_status("reused"), ["source"], "pulled whole");
     assert_eq!(fs::metadata(output_dir(&reader.store(), "big", "source").join("text.txt")).unwrap().len(), 64_000_000);
     assert!(peak < 32_000_000, "pull: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
     println!("pull of a 64 MB artifact: peak anonymous memory {:.1} MB", peak as f64 / 1e6);
+}
+
+/// A TCP proxy on loopback to 127.0.0.1:`to` passing at most `rate` bytes a second each way (in
+/// slices of at most a twentieth of it, each followed by the pause its size takes); with `hang_after`, it passes nothing more, holding the connections open,
+/// once that many bytes have gone through: a link that stalls. Its receive buffers are a link's
+/// (64 kB), not loopback's (which grow to megabytes and would take an upload in faster than the
+/// link passes it).
+fn throttled_proxy(to: u16, rate: usize, hang_after: Option<u64>) -> u16 {
+    use std::io::Write;
+    use std::net::{Shutdown, TcpStream};
+    use std::os::fd::AsRawFd;
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicU64, Ordering};
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let size: libc::c_int = 64 << 10;
+    // SAFETY: a valid socket and a c_int option value of its size.
+    let set = unsafe {
+        libc::setsockopt(
+            listener.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_RCVBUF,
+            (&raw const size).cast(),
+            size_of::<libc::c_int>() as libc::socklen_t,
+        )
+    };
+    assert_eq!(set, 0, "SO_RCVBUF");
+    let port = listener.local_addr().unwrap().port();
+    let passed = Arc::new(AtomicU64::new(0));
+    std::thread::spawn(move || {
+        for client in listener.incoming().flatten() {
+            let Ok(server) = TcpStream::connect(("127.0.0.1", to)) else { continue };
+            let directions = [(client.try_clone().unwrap(), server.try_clone().unwrap()), (server, client)];
+            for (mut from, mut into) in directions {
+                let passed = passed.clone();
+                std::thread::spawn(move || {
+                    let mut slice = vec![0u8; rate / 20];
+                    while let Ok(n @ 1..) = from.read(&mut slice) {
+                        if hang_after.is_some_and(|limit| passed.fetch_add(n as u64, Ordering::Relaxed) + n as u64 > limit) {
+                            std::thread::sleep(Duration::from_secs(3600));
+                        }
+                        if into.write_all(&slice[..n]).is_err() {
+                            break;
+                        }
+                        std::thread::sleep(Duration::from_secs_f64(n as f64 / rate as f64));
+                    }
+                    let _ = into.shutdown(Shutdown::Write);
+                });
+            }
+        }
+    });
+    port
+}
+
+#[test]
+fn a_64_mb_artifact_crosses_a_1_mb_per_s_link_with_a_2_s_timeout_and_a_stalled_link_is_cut_at_the_timeout() {
+    let env = servers_env();
+    let base = Scratch::new("remote-throttled");
+    let (_weed, s3) = s3_server(&env, &base);
+    let pipeline = "[pipeline]\nname = \"big\"\nremote_timeout_s = 2.0\n[stages.source]\noperator = \"write-text\"\ntext = \"0123456789abcdef\"\nrepeat = 4000000\n";
+    let pusher = Scratch::new("remote-throttled-pusher");
+    pusher.pipeline(pipeline);
+    let computed = pusher.run();
+
+    // Up and down through 1 MB/s: each takes a minute, thirty times the timeout, and completes;
+    // neither holds the artifact in memory.
+    let slow = s3_env(&format!("http://127.0.0.1:{}", throttled_proxy(s3, 1_000_000, None)));
+    let t0 = Instant::now();
+    let log = pusher.dir.join("push.err");
+    let (status, peak) = peak_memory(pusher.command(&["push", "p.toml", "--remote", "s3://rlmflow/slow"]).envs(slow.clone()), &log);
+    let up = t0.elapsed();
+    assert!(status.success(), "the push completes: {}", fs::read_to_string(&log).unwrap());
+    assert!(up > Duration::from_secs(40), "64 MB really went through the 1 MB/s link: {up:?}");
+    assert!(peak < 32_000_000, "push: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
+    println!("push of 64 MB at 1 MB/s: {:.1} s, peak anonymous memory {:.1} MB", up.as_secs_f64(), peak as f64 / 1e6);
+    let reader = Scratch::new("remote-throttled-reader");
+    reader.pipeline(pipeline);
+    let t0 = Instant::now();
+    let log = reader.dir.join("pull.err");
+    let (status, peak) = peak_memory(reader.command(&["pull", "p.toml", "--remote", "s3://rlmflow/slow"]).envs(slow.clone()), &log);
+    let down = t0.elapsed();
+    assert!(status.success(), "the pull completes: {}", fs::read_to_string(&log).unwrap());
+    assert!(down > Duration::from_secs(40), "64 MB really came through the 1 MB/s link: {down:?}");
+    assert!(peak < 32_000_000, "pull: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
+    println!("pull of 64 MB at 1 MB/s: {:.1} s, peak anonymous memory {:.1} MB", down.as_secs_f64(), peak as f64 / 1e6);
+    assert_eq!(outputs(&reader.run()), vec![("source".to_owned(), outputs(&computed)[0].1.clone())], "pulled whole");
+
+    // A link that stops after 3 MB, either way: cut 2 s after its last bytes, the run goes on
+    // without the remote (one warning) and computes the result itself.
+    let stalling = || s3_env(&format!("http://127.0.0.1:{}", throttled_proxy(s3, 1_000_000, Some(3_000_000))));
+    let stalled_push = Scratch::new("remote-stalled-push");
+    stalled_push.pipeline(pipeline);
+    let t0 = Instant::now();
+    let out = stalled_push.command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/stalled", "--push"]).envs(stalling()).output().unwrap();
+    assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
+    let events = crate::harness::Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    let down = events.of("remote_down");
+    assert_eq!(down.len(), 1, "{:?}", events.0);
+    assert!(down[0]["why"].as_str().unwrap().contains("nothing arrived or left for 2 s"), "{:?}", down[0]);
+    assert!(t0.elapsed() < Duration::from_secs(20), "cut at the timeout, not at the end of the transfer: {:?}", t0.elapsed());
+    let stalled_pull = Scratch::new("remote-stalled-pull");
+    stalled_pull.pipeline(pipeline);
+    let t0 = Instant::now();
+    let out = stalled_pull.command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/slow"]).envs(stalling()).output().unwrap();
+    assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
+    let events = crate::harness::Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    assert_eq!(events.of("remote_down").len(), 1, "{:?}", events.0);
+    assert_eq!(events.with_status("ran"), ["source"], "computed here after the cut");
+    assert!(t0.elapsed() < Duration::from_secs(20), "cut at the timeout: {:?}", t0.elapsed());
+}
+
+#[test]
+fn a_pull_runs_beside_a_stage_that_computes() {
+    // `other` is computed (nothing for it on the remote) while `source`'s artifact arrives over
+    // a slow link: the run takes about the longer of the two, not their sum.
+    let big = CHAIN.replace("text = \"radar\"", &format!("text = \"{}\"", "r".repeat(3_000_000)));
+    let pusher = Scratch::new("remote-beside-pusher");
+    let remote = pusher.dir.join("remote");
+    pusher.pipeline(&big);
+    pusher.run_expecting(0, &["--remote", &file_url(&remote), "--push"]);
+    let port = slow_server(remote, 256 * 1024, Duration::from_millis(250));
+    let reader = Scratch::new("remote-beside-reader");
+    reader.pipeline(&big.replace("text = \"independent\"", "text = \"independent, here only\"\nsteps = 12\nstep_ms = 250"));
+    let events = reader.run_expecting(0, &["--remote", &format!("http://127.0.0.1:{port}/")]);
+    let at = |event: &str, stage: &str| {
+        events
+            .of(event)
+            .iter()
+            .find(|e| e["stage"] == stage)
+            .map(|e| e["t"].as_f64().unwrap())
+            .unwrap_or_else(|| panic!("{event} {stage}: {:?}", events.0))
+    };
+    let (pulled, other_started) = (at("stage_finished", "source"), at("stage_started", "other"));
+    assert!(
+        events.with_status("ran").contains(&"other".to_owned()) && events.with_status("pulled").contains(&"source".to_owned()),
+        "{:?}",
+        events.finished()
+    );
+    assert!(other_started < 1.0 && pulled > 2.5, "`other` started at {other_started} s, while `source` arrived over {pulled} s");
 }

@@ -47,6 +47,9 @@ pub struct Launch {
 pub enum Report {
     Message(Message),
     Exited(Exit),
+    /// Not a dispatcher's: the end of a pull from the remote cache the executor started on a
+    /// thread of its own, on the same channel so one wait hears both.
+    Pulled(anyhow::Result<rlmflow_remote::Pulled>),
 }
 
 /// How an action's process ended.

@@ -1,0 +1,221 @@
+//! The HTTP link under an S3 or WebDAV remote: reqwest, watched. Every body that crosses it, up
+//! or down, reports its bytes to the [`Watch`] of the transfer that sent the request, so a
+//! transfer is bounded by the wait for its next bytes (connect, first byte, each chunk either
+//! way), never by its whole length, and an upload can show its progress.
+
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::task::{Context, Poll};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use http_body::{Body, Frame, SizeHint};
+use object_store::ClientOptions;
+use object_store::client::{HttpClient, HttpConnector, HttpError, HttpErrorKind, HttpRequest, HttpResponse, HttpResponseBody, HttpService};
+
+/// The largest piece of a request body handed to the connection at once: an upload's progress
+/// (and its watch) moves at least this often.
+const SLICE: usize = 64 << 10;
+
+/// Bytes a second: the slowest link a request body still in the kernel's buffers is waited for.
+const SLOWEST_LINK: u64 = 64_000;
+
+/// How often a watched transfer wakes to report its progress.
+const TICK: Duration = Duration::from_millis(200);
+
+/// When bytes last crossed the link for one transfer, and how many it has sent.
+///
+/// The connection hands a request body to the kernel's send buffer, which on a slow link holds
+/// seconds of it (megabytes) after the last byte is handed over: the link is still busy then,
+/// though nothing moves here. So from the end of a body until its response the wait may also
+/// last as long as the body would take at [`SLOWEST_LINK`]; while the kernel still holds
+/// unsent bytes, a link that stops taking them is cut by the kernel at the timeout
+/// (`TCP_USER_TIMEOUT`), so only a server that takes a whole body and never answers costs the
+/// longer wait.
+#[derive(Debug)]
+pub(crate) struct Watch {
+    origin: Instant,
+    /// Milliseconds from `origin` to the last bytes.
+    last: AtomicU64,
+    sent: AtomicU64,
+    /// Milliseconds the last body would take at [`SLOWEST_LINK`], from its end until its
+    /// response (0 else).
+    grace: AtomicU64,
+}
+
+impl Watch {
+    pub(crate) fn new() -> Arc<Watch> {
+        let zero = || AtomicU64::new(0);
+        Arc::new(Watch { origin: Instant::now(), last: zero(), sent: zero(), grace: zero() })
+    }
+
+    fn now(&self) -> u64 {
+        self.origin.elapsed().as_millis() as u64
+    }
+
+    fn touch(&self) {
+        self.last.store(self.now(), Ordering::Relaxed);
+    }
+
+    fn idle(&self) -> Duration {
+        self.origin.elapsed().saturating_sub(Duration::from_millis(self.last.load(Ordering::Relaxed)))
+    }
+
+    /// How long the transfer may stay quiet now, given the `limit` for a wait.
+    fn allowed(&self, limit: Duration) -> Duration {
+        limit + Duration::from_millis(self.grace.load(Ordering::Relaxed))
+    }
+
+    /// Request-body bytes handed to the connection so far.
+    pub(crate) fn sent(&self) -> u64 {
+        self.sent.load(Ordering::Relaxed)
+    }
+}
+
+tokio::task_local! {
+    /// The watch of the transfer whose requests the current task sends.
+    static CURRENT: Arc<Watch>;
+}
+
+/// Runs `request` (whose HTTP requests report to `watch`) until it ends, or `None` once no bytes
+/// crossed the link for `limit`; `tick` runs every [`TICK`] meanwhile.
+pub(crate) async fn bounded<T>(watch: &Arc<Watch>, limit: Duration, request: impl Future<Output = T>, tick: &mut dyn FnMut(&Watch)) -> Option<T> {
+    watch.touch();
+    let mut request = std::pin::pin!(CURRENT.scope(watch.clone(), request));
+    loop {
+        match tokio::time::timeout(watch.allowed(limit).saturating_sub(watch.idle()).min(TICK), &mut request).await {
+            Ok(value) => return Some(value),
+            Err(_) => {
+                tick(watch);
+                if watch.idle() >= watch.allowed(limit) {
+                    return None;
+                }
+            }
+        }
+    }
+}
+
+/// Makes object_store's HTTP clients: reqwest with a connect timeout of `timeout`, its bodies
+/// watched, and no timeout of its own after that: reqwest's read timeout also runs while an
+/// upload is still sending (the response is awaited meanwhile), so it would cut off a large
+/// upload; [`bounded`] watches both directions instead. (It builds its own reqwest client, so
+/// the builder's proxy and certificate options are not used; reqwest reads `HTTPS_PROXY` itself.)
+#[derive(Debug)]
+pub(crate) struct WatchedConnector {
+    pub(crate) timeout: Duration,
+}
+
+impl HttpConnector for WatchedConnector {
+    fn connect(&self, _: &ClientOptions) -> object_store::Result<HttpClient> {
+        let client = reqwest::Client::builder()
+            .user_agent(concat!("rlmflow/", env!("CARGO_PKG_VERSION")))
+            .connect_timeout(self.timeout)
+            .tcp_user_timeout(self.timeout)
+            .build()
+            .map_err(|e| object_store::Error::Generic { store: "HTTP", source: Box::new(e) })?;
+        Ok(HttpClient::new(WatchedClient(client)))
+    }
+}
+
+#[derive(Debug)]
+struct WatchedClient(reqwest::Client);
+
+impl HttpService for WatchedClient {
+    fn call<'a, 'b>(&'a self, request: HttpRequest) -> Pin<Box<dyn Future<Output = Result<HttpResponse, HttpError>> + Send + 'b>>
+    where
+        'a: 'b,
+        Self: 'b,
+    {
+        // A request sent outside a watched transfer (a credential lookup) gets a watch of its own.
+        let watch = CURRENT.try_with(Arc::clone).unwrap_or_else(|_| Watch::new());
+        Box::pin(async move {
+            let (parts, body) = request.into_parts();
+            let url = reqwest::Url::parse(&parts.uri.to_string()).map_err(|e| HttpError::new(HttpErrorKind::Request, e))?;
+            let mut sent = reqwest::Request::new(parts.method, url);
+            *sent.headers_mut() = parts.headers;
+            *sent.body_mut() =
+                Some(reqwest::Body::wrap(Watched { inner: body, pending: Bytes::new(), watch: watch.clone(), counts: true, taken: 0 }));
+            let response = self.0.execute(sent).await.map_err(|e| HttpError::new(kind(&e), e))?;
+            watch.grace.store(0, Ordering::Relaxed);
+            watch.touch();
+            let (parts, body) = http::Response::<reqwest::Body>::from(response).into_parts();
+            let body = HttpResponseBody::new(Watched { inner: body, pending: Bytes::new(), watch, counts: false, taken: 0 });
+            Ok(HttpResponse::from_parts(parts, body))
+        })
+    }
+}
+
+/// How object_store should treat a failed request (connect and timeout failures are retried).
+fn kind(e: &reqwest::Error) -> HttpErrorKind {
+    if e.is_timeout() {
+        HttpErrorKind::Timeout
+    } else if e.is_connect() {
+        HttpErrorKind::Connect
+    } else if e.is_request() {
+        HttpErrorKind::Request
+    } else {
+        HttpErrorKind::Unknown
+    }
+}
+
+/// A body whose frames touch `watch` as they pass, handed on in slices of at most [`SLICE`];
+/// `counts`: its bytes are the transfer's sent bytes (a request body), `taken` of them so far.
+struct Watched<B> {
+    inner: B,
+    pending: Bytes,
+    watch: Arc<Watch>,
+    counts: bool,
+    taken: u64,
+}
+
+impl<B> Body for Watched<B>
+where
+    B: Body<Data = Bytes> + Unpin,
+    B::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
+{
+    type Data = Bytes;
+    type Error = HttpError;
+
+    fn poll_frame(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Result<Frame<Bytes>, HttpError>>> {
+        let this = &mut *self;
+        while this.pending.is_empty() {
+            match Pin::new(&mut this.inner).poll_frame(cx) {
+                Poll::Ready(Some(Ok(frame))) => match frame.into_data() {
+                    Ok(data) => this.pending = data,
+                    Err(trailers) => return Poll::Ready(Some(Ok(trailers))),
+                },
+                Poll::Ready(Some(Err(e))) => return Poll::Ready(Some(Err(HttpError::new_boxed(HttpErrorKind::Interrupted, e.into())))),
+                Poll::Ready(None) => return Poll::Ready(None),
+                Poll::Pending => return Poll::Pending,
+            }
+        }
+        let slice = this.pending.split_to(this.pending.len().min(SLICE));
+        let watch = &this.watch;
+        watch.touch();
+        if this.counts {
+            watch.sent.fetch_add(slice.len() as u64, Ordering::Relaxed);
+            this.taken += slice.len() as u64;
+            if this.pending.is_empty() && this.inner.is_end_stream() {
+                watch.grace.store(this.taken * 1000 / SLOWEST_LINK, Ordering::Relaxed);
+            }
+        }
+        Poll::Ready(Some(Ok(Frame::data(slice))))
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.pending.is_empty() && self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        let inner = self.inner.size_hint();
+        let pending = self.pending.len() as u64;
+        let mut hint = SizeHint::new();
+        hint.set_lower(inner.lower() + pending);
+        if let Some(upper) = inner.upper() {
+            hint.set_upper(upper + pending);
+        }
+        hint
+    }
+}
