@@ -8,6 +8,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
+#[path = "pipelines/datasets.rs"]
+mod datasets;
 #[path = "pipelines/fuzz.rs"]
 mod fuzz;
 #[path = "pipelines/import.rs"]

@@ -7,7 +7,7 @@ use std::path::Path;
 use super::{artifacts, rlmflow, root, scratch};
 
 /// A `.npy` file of float32 (`<f4`) or uint8 (`|u1`) values in `shape`.
-fn write_npy(path: &Path, descr: &str, shape: &[usize], data: &[u8]) {
+pub(super) fn write_npy(path: &Path, descr: &str, shape: &[usize], data: &[u8]) {
     let dims: Vec<String> = shape.iter().map(usize::to_string).collect();
     let mut header =
         format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': ({}), }}", dims.join(", ") + if shape.len() == 1 { "," } else { "" });
@@ -22,7 +22,7 @@ fn write_npy(path: &Path, descr: &str, shape: &[usize], data: &[u8]) {
     std::fs::write(path, bytes).unwrap();
 }
 
-fn f32_bytes(values: &[f32]) -> Vec<u8> {
+pub(super) fn f32_bytes(values: &[f32]) -> Vec<u8> {
     values.iter().flat_map(|v| v.to_le_bytes()).collect()
 }
 

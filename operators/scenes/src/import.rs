@@ -32,6 +32,10 @@ use rlmflow_stages::{Context, InputOutlines, Operator, OperatorSpec, Outcome, Ou
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
+use crate::datasets::cruw::Cruw;
+use crate::datasets::radiate::Radiate;
+use crate::datasets::{Dataset, Unknown};
+use crate::geometry::{Bins, RangeAzimuthMap, sample};
 use crate::render::Rendered;
 use crate::writer::SceneWriter;
 
@@ -50,6 +54,14 @@ pub struct ImportSettings {
     pub image: usize,
     /// The range the imported range-azimuth image reaches, in metres (the simulators' `radar.range_max_m`).
     pub range_max_m: f64,
+    /// What `path` holds: `auto` (a manifest, or an MCAP file), or a published dataset in its
+    /// own layout: `radiate`, `cruw` (ROD2021).
+    pub format: Format,
+    /// The dataset's sequences to read, by folder name (empty: all).
+    pub sequences: Vec<String>,
+    /// An annotated object of a class the dataset's table does not map: `error` or `skip`
+    /// (counted and named in the import's metrics).
+    pub unknown_classes: UnknownClasses,
     /// How the manifest's images are laid out and scaled.
     pub axes: Axes,
     /// The scenario of frames whose line names none.
@@ -68,6 +80,14 @@ pub struct Axes {
     pub azimuth_span_deg: f64,
     pub rows: Rows,
     pub columns: Columns,
+    /// How the columns divide the azimuth span: evenly in degrees, or evenly in its sine (the
+    /// angle bins of an FMCW radar's FFT; the first and last columns' centres at the span's ends).
+    pub azimuth_bins: AzimuthBins,
+    /// Each column's azimuth centre in degrees, counter-clockwise (the left positive), in column
+    /// order: exact axes for any sensor (overrides `azimuth_span_deg` and `azimuth_bins`).
+    pub azimuth_centres_deg: Vec<f64>,
+    /// Each row's range centre in metres, in row order (overrides `range_span_m` and `rows`).
+    pub range_centres_m: Vec<f64>,
     pub power: Power,
     /// For `linear` and `db`: the span below each frame's peak mapped onto the pixel range.
     pub dynamic_range_db: f64,
@@ -100,6 +120,28 @@ pub enum Columns {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
+pub enum AzimuthBins {
+    Degrees,
+    Sine,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Format {
+    Auto,
+    Radiate,
+    Cruw,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum UnknownClasses {
+    Error,
+    Skip,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
 pub enum Power {
     /// Received power (non-negative), shown in dB.
     Linear,
@@ -116,6 +158,9 @@ impl Default for ImportSettings {
             manifest: "manifest.jsonl".into(),
             image: 64,
             range_max_m: 50.0,
+            format: Format::Auto,
+            sequences: Vec::new(),
+            unknown_classes: UnknownClasses::Error,
             axes: Axes::default(),
             scenario: "imported".into(),
             batch: 256,
@@ -131,6 +176,9 @@ impl Default for Axes {
             azimuth_span_deg: 180.0,
             rows: Rows::NearFirst,
             columns: Columns::LeftFirst,
+            azimuth_bins: AzimuthBins::Degrees,
+            azimuth_centres_deg: Vec::new(),
+            range_centres_m: Vec::new(),
             power: Power::Linear,
             dynamic_range_db: 40.0,
         }
@@ -162,7 +210,33 @@ impl Settings for ImportSettings {
                 format!("must be in (0, 360] (the columns' azimuths, centred on straight ahead), not {}", self.axes.azimuth_span_deg),
             ));
         }
+        if self.axes.azimuth_bins == AzimuthBins::Sine && self.axes.azimuth_span_deg > 180.0 {
+            return Err(SettingError::new(
+                "axes.azimuth_span_deg",
+                format!(
+                    "{} degrees cannot be spanned by bins even in sine; valid with azimuth_bins = \"sine\": (0, 180]",
+                    self.axes.azimuth_span_deg
+                ),
+            ));
+        }
+        for (key, list) in [("axes.azimuth_centres_deg", &self.axes.azimuth_centres_deg), ("axes.range_centres_m", &self.axes.range_centres_m)] {
+            let bins = Bins::Centres(list.clone());
+            if let Some(bad) = list.iter().find(|v| !v.is_finite()) {
+                return Err(SettingError::new(key, format!("holds {bad}; every bin centre must be a finite number")));
+            }
+            if !list.is_empty()
+                && let Err(e) = bins.check(list.len())
+            {
+                return Err(SettingError::new(key, format!("{e}; list one centre per bin, in the image's order")));
+            }
+        }
         SettingError::check_positive("axes.dynamic_range_db", self.axes.dynamic_range_db, 200.0)?;
+        if self.format != Format::Auto && self.image == 0 {
+            return Err(SettingError::new("image", "must be set (8..=1024): a dataset's maps are resampled into rlmflow's range-azimuth image"));
+        }
+        if self.format == Format::Auto && !self.sequences.is_empty() {
+            return Err(SettingError::new("sequences", "names a dataset's sequences; set `format` to the dataset (\"radiate\", \"cruw\")"));
+        }
         if self.axes.layout == Layout::RangeAzimuth && self.image == 0 && !self.path.ends_with(".mcap") {
             return Err(SettingError::new("image", "must be set (8..=1024) to resample a range-azimuth map; 0 keeps images as given only"));
         }
@@ -191,7 +265,23 @@ impl Operator for Import {
         let source = ctx.input("path")?.to_path_buf();
         let mcap = std::fs::read_dir(&source)?.flatten().map(|e| e.path()).find(|p| p.extension().is_some_and(|e| e == "mcap"));
         let mut sink = Sink { checkpoint: ctx.checkpoint_dir.clone(), batch: s.batch as usize, writer: None, pending: Vec::new(), seen: 0 };
+        let mut skipped = BTreeMap::new();
         let from = match mcap {
+            _ if s.format != Format::Auto => {
+                let shown = Path::new(&s.path);
+                let unknown = if s.unknown_classes == UnknownClasses::Skip { Unknown::Skip } else { Unknown::Error };
+                let dataset: Box<dyn Dataset> = match s.format {
+                    Format::Radiate => Box::new(Radiate::open(&source, shown, &s.sequences, unknown)?),
+                    Format::Cruw => Box::new(Cruw::open(&source, shown, &s.sequences, unknown, s.axes.dynamic_range_db)?),
+                    Format::Auto => unreachable!("a dataset format"),
+                };
+                read_dataset(dataset.as_ref(), s, ctx, &mut sink)?;
+                skipped = dataset.skipped().clone();
+                match s.format {
+                    Format::Radiate => "radiate",
+                    _ => "cruw",
+                }
+            }
             Some(file) if !source.join(&s.manifest).exists() => {
                 let shown =
                     if s.path.ends_with(".mcap") { PathBuf::from(&s.path) } else { Path::new(&s.path).join(file.file_name().unwrap_or_default()) };
@@ -207,9 +297,15 @@ impl Operator for Import {
         let summary = sink.finish(&ctx.output_dir, s.range_max_m, generator)?;
         let without = summary.frames_without_positions;
         let grids = if without > 0 { format!(", {without} labelled by their grid alone") } else { String::new() };
+        let skips = if skipped.is_empty() {
+            String::new()
+        } else {
+            let named: Vec<String> = skipped.iter().map(|(class, n)| format!("{n} {class}")).collect();
+            format!("; skipped objects of unknown classes: {}", named.join(", "))
+        };
         Ok(Outcome {
-            metrics: json!({"frames": summary.frames, "vehicles": summary.vehicles(), "frames_without_positions": without}),
-            summary: format!("{} frames from {from}{grids}, {} vehicles", summary.frames, summary.vehicles()),
+            metrics: json!({"frames": summary.frames, "vehicles": summary.vehicles(), "frames_without_positions": without, "skipped_classes": skipped}),
+            summary: format!("{} frames from {from}{grids}, {} vehicles{skips}", summary.frames, summary.vehicles()),
         })
     }
 }
@@ -290,12 +386,12 @@ struct LineActor {
 }
 
 /// A recording's image: its shape and values, as stored.
-struct Raw {
-    height: usize,
-    width: usize,
-    values: Vec<f32>,
+pub(crate) struct Raw {
+    pub(crate) height: usize,
+    pub(crate) width: usize,
+    pub(crate) values: Vec<f32>,
     /// The largest value its type holds (255 for uint8, 65,535 for 16-bit PNG), for `normalised`.
-    integer_max: Option<f32>,
+    pub(crate) integer_max: Option<f32>,
 }
 
 fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink) -> anyhow::Result<()> {
@@ -367,7 +463,13 @@ fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink)
         }
         let unit = normalise(&raw, &s.axes).with_context(|| format!("{at}: image `{}`", line.image))?;
         let pixels = match s.axes.layout {
-            Layout::RangeAzimuth => resample_range_azimuth(&unit, raw.height, raw.width, side, s),
+            Layout::RangeAzimuth => {
+                let map = manifest_map(unit, raw.height, raw.width, &s.axes);
+                for (bins, n, key) in [(&map.range, raw.height, "axes.range_centres_m"), (&map.azimuth, raw.width, "axes.azimuth_centres_deg")] {
+                    bins.check(n).map_err(|e| anyhow::anyhow!("{at}: image `{}` against `{key}`: {e}", line.image))?;
+                }
+                map.resample(side, s.range_max_m)
+            }
             Layout::AsGiven => resize(&unit, raw.height, raw.width, side),
         };
         let bytes = to_bytes(&pixels);
@@ -403,6 +505,38 @@ fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink)
     Ok(())
 }
 
+/// A dataset's frames through the sink, each map resampled into rlmflow's range-azimuth image
+/// and each object placed on its pixel.
+fn read_dataset(dataset: &dyn Dataset, s: &ImportSettings, ctx: &Context, sink: &mut Sink) -> anyhow::Result<()> {
+    if dataset.len() == 0 {
+        bail!("{}: no frames", s.path);
+    }
+    let view = View::RangeAzimuth.name();
+    let images = [Image { view: view.clone(), topic: format!("/radar/{view}"), size: s.image }];
+    let projection = range_azimuth(s.image, s);
+    let progress = ctx.progress(dataset.len() as u64, "frames");
+    for i in 0..dataset.len() {
+        let recorded = dataset.frame(i)?;
+        let bytes = to_bytes(&recorded.map.resample(s.image, s.range_max_m));
+        let actors = recorded
+            .objects
+            .iter()
+            .enumerate()
+            .map(|(k, o)| {
+                let (row, col) = projection.pixel(o.x, o.y);
+                let (x, y, heading, length, width) = (o.x, o.y, o.heading, o.length, o.width);
+                Actor { id: k as u32, class: o.class.into(), x, y, heading, length, width, speed: 0.0, lane_heading: None, row, col }
+            })
+            .collect();
+        let mut frame = Frame::new(i as u64, recorded.scenario, actors, std::slice::from_ref(&bytes));
+        frame.episode = Some(recorded.episode);
+        sink.push(&images, (frame, vec![bytes]))?;
+        progress.inc(1);
+    }
+    progress.finish();
+    Ok(())
+}
+
 /// `Ok` for a path that names a file inside the recording: relative, without `..`; else what
 /// is wrong with it. The recording is tracked by content, so a file outside it would be read
 /// without entering the key.
@@ -424,7 +558,7 @@ fn inside_recording(name: &str) -> Result<(), &'static str> {
 /// An image file of the recording in `dir` (its snapshot), named `name` by the manifest of the
 /// user's recording `shown`: `.npy` (2-D, float32 or uint8) or `.png` (grayscale, 8 or 16
 /// bits), at least one pixel.
-fn read_image(dir: &Path, shown: &Path, name: &str) -> anyhow::Result<Raw> {
+pub(crate) fn read_image(dir: &Path, shown: &Path, name: &str) -> anyhow::Result<Raw> {
     if let Err(problem) = inside_recording(name) {
         bail!("{problem}; images are named relative to the recording's directory");
     }
@@ -465,7 +599,7 @@ fn read_image(dir: &Path, shown: &Path, name: &str) -> anyhow::Result<Raw> {
 }
 
 /// Values in [0, 1] as `axes.power` says to read them.
-fn normalise(raw: &Raw, axes: &Axes) -> anyhow::Result<Vec<f32>> {
+pub(crate) fn normalise(raw: &Raw, axes: &Axes) -> anyhow::Result<Vec<f32>> {
     let db: Vec<f32> = match axes.power {
         Power::Normalised => {
             return match raw.integer_max {
@@ -492,48 +626,37 @@ fn normalise(raw: &Raw, axes: &Axes) -> anyhow::Result<Vec<f32>> {
     Ok(db.iter().map(|&v| if peak.is_finite() && v.is_finite() { ((v - (peak - range)) / range).clamp(0.0, 1.0) } else { 0.0 }).collect())
 }
 
-/// Bilinear sample of `values` (height x width) at continuous (row, col), pixel centres at
-/// integer + 0.5; 0 outside.
-fn sample(values: &[f32], height: usize, width: usize, row: f64, col: f64) -> f32 {
-    let (r, c) = (row - 0.5, col - 0.5);
-    if r < -0.5 || c < -0.5 || r > height as f64 - 0.5 || c > width as f64 - 0.5 {
-        return 0.0;
-    }
-    let (r0, c0) = (r.floor().max(0.0) as usize, c.floor().max(0.0) as usize);
-    let (r1, c1) = ((r0 + 1).min(height - 1), (c0 + 1).min(width - 1));
-    let (fr, fc) = ((r - r0 as f64).clamp(0.0, 1.0) as f32, (c - c0 as f64).clamp(0.0, 1.0) as f32);
-    let at = |r: usize, c: usize| values[r * width + c];
-    (at(r0, c0) * (1.0 - fc) + at(r0, c1) * fc) * (1.0 - fr) + (at(r1, c0) * (1.0 - fc) + at(r1, c1) * fc) * fr
-}
-
 /// rlmflow's range-azimuth image of `side` pixels out to `range_max_m`, where actors are placed.
 fn range_azimuth(side: usize, s: &ImportSettings) -> Projection {
     Projection { view: View::RangeAzimuth, size: side, range_max_m: s.range_max_m, half_fov: 0.0 }
 }
 
-/// A range-azimuth map resampled into rlmflow's range-azimuth image of `side` pixels: each
-/// pixel's range and azimuth looked up in the map's axes; outside them, black.
-fn resample_range_azimuth(values: &[f32], height: usize, width: usize, side: usize, s: &ImportSettings) -> Vec<f32> {
-    let projection = range_azimuth(side, s);
-    let (span, half) = (s.axes.range_span_m, s.axes.azimuth_span_deg.to_radians() / 2.0);
-    let mut out = vec![0f32; side * side];
-    for (p, v) in out.iter_mut().enumerate() {
-        let (x, y) = projection.point((p / side) as f64 + 0.5, (p % side) as f64 + 0.5);
-        let (range, azimuth) = (x.hypot(y), y.atan2(x)); // azimuth counter-clockwise (left) from ahead
-        if range > span || azimuth.abs() > half {
-            continue;
+/// A manifest image's map: its rows and columns placed by `axes`.
+fn manifest_map(values: Vec<f32>, height: usize, width: usize, axes: &Axes) -> RangeAzimuthMap {
+    let span = axes.range_span_m;
+    let range = if !axes.range_centres_m.is_empty() {
+        Bins::Centres(axes.range_centres_m.clone())
+    } else {
+        match axes.rows {
+            Rows::NearFirst => Bins::Even { from: 0.0, to: span },
+            Rows::FarFirst => Bins::Even { from: span, to: 0.0 },
         }
-        let row = match s.axes.rows {
-            Rows::NearFirst => range / span * height as f64,
-            Rows::FarFirst => (1.0 - range / span) * height as f64,
-        };
-        let col = match s.axes.columns {
-            Columns::LeftFirst => (half - azimuth) / (2.0 * half) * width as f64,
-            Columns::RightFirst => (azimuth + half) / (2.0 * half) * width as f64,
-        };
-        *v = sample(values, height, width, row, col);
-    }
-    out
+    };
+    let half = axes.azimuth_span_deg.to_radians() / 2.0;
+    // Counter-clockwise from ahead: the left is positive.
+    let (first, last) = match axes.columns {
+        Columns::LeftFirst => (half, -half),
+        Columns::RightFirst => (-half, half),
+    };
+    let azimuth = if !axes.azimuth_centres_deg.is_empty() {
+        Bins::Centres(axes.azimuth_centres_deg.iter().map(|d| d.to_radians()).collect())
+    } else {
+        match axes.azimuth_bins {
+            AzimuthBins::Degrees => Bins::Even { from: first, to: last },
+            AzimuthBins::Sine => Bins::Sine { first, last },
+        }
+    };
+    RangeAzimuthMap { values, rows: height, cols: width, range, azimuth, wraps: false }
 }
 
 /// An image resized to `side` x `side` (bilinear; the same image when the sizes agree).
@@ -727,7 +850,7 @@ mod tests {
             }
             let raw = Raw { height: rows, width: cols, values, integer_max: None };
             let unit = normalise(&raw, &s.axes).unwrap();
-            let image = resample_range_azimuth(&unit, rows, cols, 64, &s);
+            let image = manifest_map(unit, rows, cols, &s.axes).resample(64, s.range_max_m);
             let placed = actor(
                 0,
                 LineActor { class: "car".into(), x, y, heading: 0.0, length: 4.5, width: 1.8, speed: 0.0, lane_heading: None, row: None, col: None },

@@ -4,6 +4,8 @@
 //! model and write the same Scenes artifact; `import` writes it from a researcher's own recordings.
 
 mod concat;
+mod datasets;
+mod geometry;
 #[cfg(feature = "highway")]
 mod highway;
 mod import;
@@ -15,7 +17,7 @@ mod writer;
 pub use concat::{Concat, ConcatSettings};
 #[cfg(feature = "highway")]
 pub use highway::{HighwayEnv, HighwaySettings, SCENARIOS, ScenarioMix};
-pub use import::{Axes, Import, ImportSettings, Layout, Power};
+pub use import::{Axes, AzimuthBins, Format, Import, ImportSettings, Layout, Power, UnknownClasses};
 pub use procedural::{Procedural, ProceduralSettings};
 pub use render::{Rendered, Renderer, Scene, Vehicle};
 pub use writer::SceneWriter;

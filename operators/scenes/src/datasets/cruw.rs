@@ -1,0 +1,170 @@
+//! CRUW's ROD2021 release (cruw-devkit): a TI AWR1843 FMCW radar's range-azimuth maps, as released or as the devkit's `reorganize_rod2021.sh` leaves them.
+//!
+//! ```text
+//! <root>/TRAIN_RAD_H/<seq>/RADAR_RA_H/000000_0000.npy   128 x 128 x 2 float32 (real, imaginary); chirp 0000 read
+//! <root>/TRAIN_RAD_H_ANNO/<seq>.txt                     "frame range_m azimuth_rad class" per object
+//!   or  <root>/sequences/train/<seq>/RADAR_RA_H/...  and  <root>/annotations/train/<seq>.txt
+//! ```
+//!
+//! Geometry from `sensor_config_rod2021.json` as the devkit's `confmap2ra` computes it: row `k`
+//! at range `(k + 3) * fs / 134 * c / (2 * slope)` (fs 4 MHz, slope 21.0017 MHz/us, 3 of 134 FFT
+//! bins cropped each end), column `j` at azimuth `asin(-1 + 2j / 127)`: bins even in sine, not in
+//! degrees, from -90 degrees (column 0) to 90. Azimuth is positive to the right (the devkit's
+//! `pol2cart_ramap`: lateral `x = r sin a`, ahead `y = r cos a`).
+
+use std::collections::BTreeMap;
+use std::f64::consts::PI;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context as _, bail};
+use rlmflow_stages::npy::{Dtype, Npy};
+
+use super::{Classes, Dataset, Object, Recorded, Unknown, sequences};
+use crate::geometry::{Bins, RangeAzimuthMap};
+use crate::import::{Axes, Power, Raw, normalise};
+
+pub const SIZE: usize = 128;
+const SAMPLE_RATE: f64 = 4e6;
+const SWEEP_SLOPE: f64 = 21.0017e12;
+const CROP: usize = 3;
+const SPEED_OF_LIGHT: f64 = 299_792_458.0;
+
+pub const CLASSES: Classes = Classes(&[("car", "car"), ("pedestrian", "walker"), ("cyclist", "walker")]);
+
+/// Row `k`'s range in metres.
+pub fn range_of_row(k: usize) -> f64 {
+    let bins = (SIZE + 2 * CROP) as f64;
+    (k + CROP) as f64 * SAMPLE_RATE / bins * SPEED_OF_LIGHT / SWEEP_SLOPE / 2.0
+}
+
+/// Length and width the labels draw an object of `class` with (CRUW annotates centres only).
+fn size_of(class: &str) -> (f64, f64) {
+    match class {
+        "car" => (4.5, 1.8),
+        _ => (0.6, 0.6),
+    }
+}
+
+struct Sequence {
+    name: String,
+    shown: PathBuf,
+    dir: PathBuf,
+    /// Frame numbers with a chirp-0 map, and each one's objects.
+    frames: Vec<(u64, Vec<Object>)>,
+}
+
+pub struct Cruw {
+    sequences: Vec<Sequence>,
+    order: Vec<(usize, usize)>,
+    skipped: BTreeMap<String, usize>,
+    /// The span below each map's peak shown, in dB.
+    dynamic_range_db: f64,
+}
+
+impl Cruw {
+    pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: Unknown, dynamic_range_db: f64) -> anyhow::Result<Cruw> {
+        let layouts = [("TRAIN_RAD_H", "TRAIN_RAD_H_ANNO"), ("sequences/train", "annotations/train")];
+        let Some((radar, annotations)) = layouts.into_iter().find(|(radar, _)| root.join(radar).is_dir()) else {
+            bail!(
+                "{}: neither TRAIN_RAD_H/ (as released) nor sequences/train/ (as reorganize_rod2021.sh leaves it); point `path` at the ROD2021 root",
+                shown.display()
+            );
+        };
+        let mut skipped = BTreeMap::new();
+        let mut found = Vec::new();
+        for (name, dir) in sequences(&root.join(radar), &shown.join(radar), "RADAR_RA_H", wanted)? {
+            let anno = root.join(annotations).join(format!("{name}.txt"));
+            let anno_shown = shown.join(annotations).join(format!("{name}.txt"));
+            found.push(read_sequence(name.clone(), &dir, &shown.join(radar).join(&name), &anno, &anno_shown, unknown, &mut skipped)?);
+        }
+        let order = found.iter().enumerate().flat_map(|(s, seq)| (0..seq.frames.len()).map(move |k| (s, k))).collect();
+        Ok(Cruw { sequences: found, order, skipped, dynamic_range_db })
+    }
+}
+
+fn read_sequence(
+    name: String,
+    dir: &Path,
+    shown: &Path,
+    anno: &Path,
+    anno_shown: &Path,
+    unknown: Unknown,
+    skipped: &mut BTreeMap<String, usize>,
+) -> anyhow::Result<Sequence> {
+    let mut numbers: Vec<u64> = std::fs::read_dir(dir.join("RADAR_RA_H"))?
+        .flatten()
+        .filter_map(|e| e.file_name().to_str()?.strip_suffix("_0000.npy")?.parse().ok())
+        .collect();
+    numbers.sort_unstable();
+    if numbers.is_empty() {
+        bail!("{}: no chirp-0 maps (`000000_0000.npy`, ...)", shown.join("RADAR_RA_H").display());
+    }
+    let text =
+        std::fs::read_to_string(anno).with_context(|| format!("{}: missing; every ROD2021 training sequence has one", anno_shown.display()))?;
+    let index: BTreeMap<u64, usize> = numbers.iter().enumerate().map(|(k, &n)| (n, k)).collect();
+    let mut frames: Vec<(u64, Vec<Object>)> = numbers.iter().map(|&n| (n, Vec::new())).collect();
+    for (n, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+        let at = format!("{}:{}", anno_shown.display(), n + 1);
+        let words: Vec<&str> = line.split_whitespace().collect();
+        let parsed = match words[..] {
+            [frame, range, azimuth, class] => {
+                frame.parse::<u64>().ok().zip(range.parse::<f64>().ok()).zip(azimuth.parse::<f64>().ok()).map(|((f, r), a)| (f, r, a, class))
+            }
+            _ => None,
+        };
+        let Some((frame, range, azimuth, class)) = parsed.filter(|(_, r, a, _)| r.is_finite() && a.is_finite() && *r >= 0.0) else {
+            bail!("{at}: `{line}`; a line is `frame range_m azimuth_rad class`, e.g. `12 7.3 -0.21 car`");
+        };
+        let Some(&k) = index.get(&frame) else {
+            bail!(
+                "{at}: frame {frame} has no map ({} holds frames {}..={})",
+                shown.join("RADAR_RA_H").display(),
+                numbers[0],
+                numbers[numbers.len() - 1]
+            );
+        };
+        let Some(ours) = CLASSES.map(class, unknown, skipped).map_err(|e| anyhow::anyhow!("{at}: {e}"))? else { continue };
+        let (length, width) = size_of(ours);
+        frames[k].1.push(Object { class: ours, x: range * azimuth.cos(), y: -range * azimuth.sin(), heading: 0.0, length, width });
+    }
+    Ok(Sequence { name, shown: shown.to_path_buf(), dir: dir.to_path_buf(), frames })
+}
+
+impl Dataset for Cruw {
+    fn len(&self) -> usize {
+        self.order.len()
+    }
+
+    fn frame(&self, i: usize) -> anyhow::Result<Recorded> {
+        let (s, k) = self.order[i];
+        let seq = &self.sequences[s];
+        let (number, objects) = &seq.frames[k];
+        let name = format!("RADAR_RA_H/{number:06}_0000.npy");
+        let shown = seq.shown.join(&name);
+        let npy = Npy::open_as(&seq.dir.join(&name), &shown)?;
+        if npy.shape != [SIZE, SIZE, 2] || npy.dtype != Dtype::F32 {
+            bail!("{}: {:?} {:?}; a ROD2021 map is [128, 128, 2] float32 (real, imaginary)", shown.display(), npy.shape, npy.dtype);
+        }
+        let complex = npy.all_f32()?;
+        if let Some(p) = complex.iter().position(|v| !v.is_finite()) {
+            bail!("{}: {} at element {p}; every value must be a finite number", shown.display(), complex[p]);
+        }
+        let power = complex.chunks_exact(2).map(|c| c[0] * c[0] + c[1] * c[1]).collect();
+        let raw = Raw { height: SIZE, width: SIZE, values: power, integer_max: None };
+        let axes = Axes { power: Power::Linear, dynamic_range_db: self.dynamic_range_db, ..Axes::default() };
+        let map = RangeAzimuthMap {
+            values: normalise(&raw, &axes)?,
+            rows: SIZE,
+            cols: SIZE,
+            range: Bins::Centres((0..SIZE).map(range_of_row).collect()),
+            // Column 0 is -90 degrees, to the right: +90 counter-clockwise.
+            azimuth: Bins::Sine { first: PI / 2.0, last: -PI / 2.0 },
+            wraps: false,
+        };
+        Ok(Recorded { map, objects: objects.clone(), episode: seq.name.clone(), scenario: "cruw".into() })
+    }
+
+    fn skipped(&self) -> &BTreeMap<String, usize> {
+        &self.skipped
+    }
+}

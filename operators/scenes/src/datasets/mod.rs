@@ -1,0 +1,99 @@
+//! Published radar datasets read in their own on-disk layout, as their devkits read them:
+//! sequences become episodes, annotations their objects in the ego frame (x ahead, y left,
+//! metres), and each frame's map comes with the sensor geometry that places its bins.
+//!
+//! A reader indexes the dataset when opened (every sequence, timestamp and annotation file, so a
+//! bad one is named before anything is written) and reads one frame's map at a time.
+
+pub mod cruw;
+pub mod radiate;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::bail;
+
+use crate::geometry::RangeAzimuthMap;
+
+/// One frame of a dataset.
+pub struct Recorded {
+    pub map: RangeAzimuthMap,
+    pub objects: Vec<Object>,
+    pub episode: String,
+    pub scenario: String,
+}
+
+/// An annotated object in the ego frame, of an rlmflow class.
+#[derive(Clone, Copy)]
+pub struct Object {
+    pub class: &'static str,
+    pub x: f64,
+    pub y: f64,
+    /// Radians counter-clockwise from straight ahead (0 where the dataset gives none).
+    pub heading: f64,
+    pub length: f64,
+    pub width: f64,
+}
+
+/// A dataset opened for reading.
+pub trait Dataset {
+    fn len(&self) -> usize;
+    /// Frame `i` in sequence order.
+    fn frame(&self, i: usize) -> anyhow::Result<Recorded>;
+    /// Objects of classes with no rlmflow class, skipped (`unknown_classes = "skip"`), by name.
+    fn skipped(&self) -> &BTreeMap<String, usize>;
+}
+
+/// What to do with an object whose class has no rlmflow class.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Unknown {
+    Error,
+    Skip,
+}
+
+/// A dataset's class table: its class names and the rlmflow class each becomes.
+pub struct Classes(pub &'static [(&'static str, &'static str)]);
+
+impl Classes {
+    /// The rlmflow class of `name`; `Ok(None)` for an unknown one to skip (counted in
+    /// `skipped`), an error naming it and the known ones otherwise.
+    pub fn map(&self, name: &str, unknown: Unknown, skipped: &mut BTreeMap<String, usize>) -> Result<Option<&'static str>, String> {
+        if let Some((_, ours)) = self.0.iter().find(|(theirs, _)| *theirs == name) {
+            return Ok(Some(ours));
+        }
+        if unknown == Unknown::Skip {
+            *skipped.entry(name.to_owned()).or_default() += 1;
+            return Ok(None);
+        }
+        let known: Vec<&str> = self.0.iter().map(|(theirs, _)| *theirs).collect();
+        Err(format!("unknown class `{name}`; known: {} (or set unknown_classes = \"skip\" to count and skip it)", known.join(", ")))
+    }
+}
+
+/// The sequence directories under `root` holding `marker` (or `root` itself when it does), by
+/// name, narrowed to `wanted` when it names any; a wanted one that is missing is an error
+/// listing those found.
+pub fn sequences(root: &Path, shown: &Path, marker: &str, wanted: &[String]) -> anyhow::Result<Vec<(String, PathBuf)>> {
+    if root.join(marker).exists() {
+        let name = shown.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "sequence".into());
+        return Ok(vec![(name, root.to_path_buf())]);
+    }
+    let mut found: Vec<(String, PathBuf)> = std::fs::read_dir(root)?
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.join(marker).exists())
+        .map(|p| (p.file_name().unwrap_or_default().to_string_lossy().into_owned(), p))
+        .collect();
+    found.sort();
+    if found.is_empty() {
+        bail!("{}: no sequence (a folder holding {marker}) here or in its folders", shown.display());
+    }
+    if wanted.is_empty() {
+        return Ok(found);
+    }
+    let names: Vec<&str> = found.iter().map(|(n, _)| n.as_str()).collect();
+    if let Some(missing) = wanted.iter().find(|w| !names.contains(&w.as_str())) {
+        bail!("{}: no sequence `{missing}` (a folder holding {marker}); found: {}", shown.display(), names.join(", "));
+    }
+    Ok(found.into_iter().filter(|(n, _)| wanted.contains(n)).collect())
+}
