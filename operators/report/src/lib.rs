@@ -44,11 +44,14 @@ pub struct PaperSettings {
     pub captions: usize,
     /// Write `report.rrd` (needs the build's Python feature).
     pub rerun: bool,
+    /// The paper's segmentation table quoted beside ours: `carla` (its simulated test set) or
+    /// `radiate` (its sim-to-real table, for segmenters trained and tested on RADIATE).
+    pub paper: paper::Table,
 }
 
 impl Default for PaperSettings {
     fn default() -> Self {
-        PaperSettings { title: "rlmflow report".into(), samples: 4, captions: 3, rerun: true }
+        PaperSettings { title: "rlmflow report".into(), samples: 4, captions: 3, rerun: true, paper: paper::Table::Carla }
     }
 }
 
@@ -87,7 +90,7 @@ impl Operator for Paper {
         progress.inc(1);
         report.captioning(&study)?;
         progress.inc(1);
-        report.segmentation(&study)?;
+        report.segmentation(&study, s.paper)?;
         progress.inc(1);
         let (samples, captioners) = (samples::samples(&study, s.samples)?, samples::captioners(&study)?);
         report.samples(&samples)?;
