@@ -148,11 +148,13 @@ fn write_cruw(root: &Path) -> Vec<Vec<Placed>> {
 }
 
 /// Imports `format` from `data` at `image` pixels out to `range_max` and checks every written
-/// object: imported with its class and position, in its sequence, and on its return (a bright
-/// pixel, well above the floor, within one pixel of where the actor is placed).
+/// object: imported with its class and position, in its sequence, on its return (a bright
+/// pixel, well above the floor, within one pixel of where the actor is placed), and counted by
+/// the labels' grid in its distance bin.
 fn imports_on_returns(name: &str, format: &str, write: fn(&Path) -> Vec<Vec<Placed>>, range_max: f64, sequences: usize) {
     let pipeline = format!(
-        "[pipeline]\nname = \"{name}\"\nseed = 1\n[stages.scenes]\noperator = \"import\"\nformat = \"{format}\"\npath = \"data\"\nimage = 256\nrange_max_m = {range_max}\n"
+        "[pipeline]\nname = \"{name}\"\nseed = 1\n[stages.scenes]\noperator = \"import\"\nformat = \"{format}\"\npath = \"data\"\nimage = 256\nrange_max_m = {range_max}\n\
+         [stages.labels]\noperator = \"ego-grid\"\nsplit_by = \"frame\"\n"
     );
     let dir = scratch(name, &pipeline);
     let placed = write(&dir.join("data"));
@@ -184,6 +186,18 @@ fn imports_on_returns(name: &str, format: &str, write: fn(&Path) -> Vec<Vec<Plac
         }
     }
     assert_eq!(on_return, objects, "{on_return} of {objects} objects on their return");
+    // The labels' grid counts each vehicle in the bin of its distance (10 m bins to 40 m).
+    let lines = std::fs::read_to_string(artifacts(&dir.join(".rlmflow/objects"), "labels.jsonl")[0].join("labels.jsonl")).unwrap();
+    for (line, expected) in lines.lines().zip(&placed) {
+        let grid: serde_json::Value = serde_json::from_str::<serde_json::Value>(line).unwrap()["grid"].clone();
+        for (bin, name) in ["0-10m", "10-20m", "20-30m", "30-40m"].iter().enumerate() {
+            let want = expected
+                .iter()
+                .filter(|o| matches!(o.ours, "car" | "truck") && o.ahead.hypot(o.left) < 40.0 && (o.ahead.hypot(o.left) / 10.0) as usize == bin)
+                .count();
+            assert_eq!(grid[name]["total_vehicles"].as_u64(), Some(want as u64), "{name}: {grid}");
+        }
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
