@@ -147,11 +147,71 @@ fn write_cruw(root: &Path) -> Vec<Vec<Placed>> {
     all
 }
 
+const CARRADA_RANGE: f64 = 0.1953125;
+const CARRADA_ANGLE: f64 = PI / 256.0;
+
+/// CARRADA's row `i` range centre: the devkit's `to_ra` puts range r at row `256 - floor(r /
+/// 0.1953125)`, far rows first.
+fn carrada_range(i: usize) -> f64 {
+    (256.0 - i as f64 + 0.5) * CARRADA_RANGE
+}
+
+/// CARRADA's column `j` angle centre (`128 + trunc(angle / (pi / 256))`), positive to the right.
+fn carrada_angle(j: usize) -> f64 {
+    let k = j as f64 - 128.0;
+    if k == 0.0 { 0.0 } else { (k + 0.5 * k.signum()) * CARRADA_ANGLE }
+}
+
+/// A CARRADA root: `<seq>/range_angle_numpy/00000k.npy` (256 x 256 float32 received power) and
+/// `annotations_frame_oriented.json` with each object's range-angle box (the matrix cells of its
+/// footprint, min and max, as the devkit's `get_box`) and label (1 pedestrian, 2 cyclist, 3 car).
+fn write_carrada(root: &Path) -> Vec<Vec<Placed>> {
+    let classes = [("car", "car", 4.5, 1.8), ("pedestrian", "walker", 1.0, 1.0), ("cyclist", "walker", 1.8, 1.0)];
+    let label = |theirs: &str| ["background", "pedestrian", "cyclist", "car"].iter().position(|l| *l == theirs).unwrap();
+    let mut all = Vec::new();
+    let mut annotations = serde_json::Map::new();
+    for (s, name) in ["2019-09-16-12-52-12", "2020-02-28-13-09-58"].into_iter().enumerate() {
+        let dir = root.join(name).join("range_angle_numpy");
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut frames = serde_json::Map::new();
+        for k in 0..3 {
+            let objects = scene(s, k, 40.0, true, &classes);
+            let mut map = vec![0f32; 256 * 256];
+            let mut boxes: Vec<[usize; 4]> = vec![[usize::MAX, usize::MAX, 0, 0]; objects.len()];
+            for (p, v) in map.iter_mut().enumerate() {
+                let (range, angle) = (carrada_range(p / 256), carrada_angle(p % 256));
+                let (ahead, left) = (range * angle.cos(), -range * angle.sin());
+                *v = 0.01 * (1 + (p * 7 + k) % 5) as f32;
+                for (o, b) in objects.iter().zip(&mut boxes) {
+                    if inside(o, ahead, left) {
+                        *v = 1e4;
+                        *b = [b[0].min(p / 256), b[1].min(p % 256), b[2].max(p / 256), b[3].max(p % 256)];
+                    }
+                }
+            }
+            write_npy(&dir.join(format!("{k:06}.npy")), "<f4", &[256, 256], &f32_bytes(&map));
+            let mut instances = serde_json::Map::new();
+            for (n, (o, b)) in objects.iter().zip(&boxes).enumerate() {
+                assert!(b[0] != usize::MAX, "{o:?} covers a cell");
+                let view = serde_json::json!({"box": [[b[0], b[1]], [b[2], b[3]]], "label": label(o.theirs), "sparse": [], "dense": []});
+                instances.insert(format!("{}", 100 * s + n), serde_json::json!({"range_angle": view, "range_doppler": view}));
+            }
+            frames.insert(format!("{k:06}"), serde_json::Value::Object(instances));
+            all.push(objects);
+        }
+        annotations.insert(name.into(), serde_json::Value::Object(frames));
+    }
+    std::fs::write(root.join("annotations_frame_oriented.json"), serde_json::to_vec(&annotations).unwrap()).unwrap();
+    all
+}
+
 /// Imports `format` from `data` at `image` pixels out to `range_max` and checks every written
 /// object: imported with its class and position, in its sequence, on its return (a bright
 /// pixel, well above the floor, within one pixel of where the actor is placed), and counted by
 /// the labels' grid in its distance bin.
-fn imports_on_returns(name: &str, format: &str, write: fn(&Path) -> Vec<Vec<Placed>>, range_max: f64, sequences: usize) {
+/// Positions are compared within `tolerance` metres (a dataset that annotates bins, not metres,
+/// gives a position to a bin).
+fn imports_on_returns(name: &str, format: &str, write: fn(&Path) -> Vec<Vec<Placed>>, range_max: f64, sequences: usize, tolerance: f64) {
     let pipeline = format!(
         "[pipeline]\nname = \"{name}\"\nseed = 1\n[stages.scenes]\noperator = \"import\"\nformat = \"{format}\"\npath = \"data\"\nimage = 256\nrange_max_m = {range_max}\n\
          [stages.labels]\noperator = \"ego-grid\"\nsplit_by = \"frame\"\n"
@@ -173,7 +233,7 @@ fn imports_on_returns(name: &str, format: &str, write: fn(&Path) -> Vec<Vec<Plac
         assert_eq!(frame.actors.len(), expected.len(), "frame {}", frame.index);
         for (actor, o) in frame.actors.iter().zip(expected) {
             assert_eq!(actor.class, o.ours);
-            assert!((actor.x - o.ahead).abs() < 1e-3 && (actor.y - o.left).abs() < 1e-3, "{actor:?} against {o:?}");
+            assert!((actor.x - o.ahead).abs() < tolerance && (actor.y - o.left).abs() < tolerance, "{actor:?} against {o:?}");
             let (row, col) = (actor.row as i64, actor.col as i64);
             let bright = (-1..=1)
                 .flat_map(|dr| (-1..=1).map(move |dc| (row + dr, (col + dc).rem_euclid(256))))
@@ -203,12 +263,17 @@ fn imports_on_returns(name: &str, format: &str, write: fn(&Path) -> Vec<Vec<Plac
 
 #[test]
 fn radiate_imports_with_every_object_on_its_return() {
-    imports_on_returns("radiate", "radiate", write_radiate, 50.0, 2);
+    imports_on_returns("radiate", "radiate", write_radiate, 50.0, 2, 1e-3);
 }
 
 #[test]
 fn cruw_imports_with_every_object_on_its_return() {
-    imports_on_returns("cruw", "cruw", write_cruw, 30.0, 2);
+    imports_on_returns("cruw", "cruw", write_cruw, 30.0, 2, 1e-3);
+}
+
+#[test]
+fn carrada_imports_with_every_object_on_its_return() {
+    imports_on_returns("carrada", "carrada", write_carrada, 50.0, 2, 0.6);
 }
 
 /// Each bad dataset input stops the import with the file (and line or object) named, and leaves
@@ -297,13 +362,37 @@ fn bad_dataset_input_is_named_and_leaves_nothing() {
             }),
             "TRAIN_RAD_H_ANNO/2019_04_09_BMS1000.txt:1: `0 13.0809 car`; a line is `frame range_m azimuth_rad class`",
         ),
+        (
+            "carrada",
+            "",
+            "no-annotations",
+            Box::new(|d| std::fs::remove_file(d.join("annotations_frame_oriented.json")).unwrap()),
+            "annotations_frame_oriented.json: missing",
+        ),
+        (
+            "carrada",
+            "",
+            "frame-beyond",
+            Box::new(|d| std::fs::remove_file(d.join("2019-09-16-12-52-12/range_angle_numpy/000002.npy")).unwrap()),
+            "sequence `2019-09-16-12-52-12` annotates frame 000002, but data/2019-09-16-12-52-12/range_angle_numpy has no 000002.npy",
+        ),
+        (
+            "carrada",
+            "",
+            "unknown-label",
+            Box::new(|d| {
+                let path = d.join("annotations_frame_oriented.json");
+                std::fs::write(&path, std::fs::read_to_string(&path).unwrap().replacen("\"label\":3", "\"label\":7", 1)).unwrap();
+            }),
+            "unknown class `label 7`; known: pedestrian, cyclist, car",
+        ),
     ];
     for (format, extra, name, damage, expected) in cases {
         let dir = scratch(&format!("bad-{format}-{name}"), &pipeline(format, extra));
-        if format == "radiate" {
-            write_radiate(&dir.join("data"));
-        } else {
-            write_cruw(&dir.join("data"));
+        match format {
+            "radiate" => drop(write_radiate(&dir.join("data"))),
+            "cruw" => drop(write_cruw(&dir.join("data"))),
+            _ => drop(write_carrada(&dir.join("data"))),
         }
         damage(&dir.join("data"));
         let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);

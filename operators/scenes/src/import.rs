@@ -32,6 +32,7 @@ use rlmflow_stages::{Context, InputOutlines, Operator, OperatorSpec, Outcome, Ou
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
+use crate::datasets::carrada::Carrada;
 use crate::datasets::cruw::Cruw;
 use crate::datasets::radiate::Radiate;
 use crate::datasets::{Dataset, Unknown};
@@ -55,7 +56,7 @@ pub struct ImportSettings {
     /// The range the imported range-azimuth image reaches, in metres (the simulators' `radar.range_max_m`).
     pub range_max_m: f64,
     /// What `path` holds: `auto` (a manifest, or an MCAP file), or a published dataset in its
-    /// own layout: `radiate`, `cruw` (ROD2021).
+    /// own layout: `radiate`, `cruw` (ROD2021), `carrada` (its maps' values read by `axes.power`).
     pub format: Format,
     /// The dataset's sequences to read, by folder name (empty: all).
     pub sequences: Vec<String>,
@@ -131,6 +132,7 @@ pub enum Format {
     Auto,
     Radiate,
     Cruw,
+    Carrada,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -235,7 +237,10 @@ impl Settings for ImportSettings {
             return Err(SettingError::new("image", "must be set (8..=1024): a dataset's maps are resampled into rlmflow's range-azimuth image"));
         }
         if self.format == Format::Auto && !self.sequences.is_empty() {
-            return Err(SettingError::new("sequences", "names a dataset's sequences; set `format` to the dataset (\"radiate\", \"cruw\")"));
+            return Err(SettingError::new(
+                "sequences",
+                "names a dataset's sequences; set `format` to the dataset (\"radiate\", \"cruw\", \"carrada\")",
+            ));
         }
         if self.axes.layout == Layout::RangeAzimuth && self.image == 0 && !self.path.ends_with(".mcap") {
             return Err(SettingError::new("image", "must be set (8..=1024) to resample a range-azimuth map; 0 keeps images as given only"));
@@ -273,13 +278,15 @@ impl Operator for Import {
                 let dataset: Box<dyn Dataset> = match s.format {
                     Format::Radiate => Box::new(Radiate::open(&source, shown, &s.sequences, unknown)?),
                     Format::Cruw => Box::new(Cruw::open(&source, shown, &s.sequences, unknown, s.axes.dynamic_range_db)?),
+                    Format::Carrada => Box::new(Carrada::open(&source, shown, &s.sequences, unknown, &s.axes)?),
                     Format::Auto => unreachable!("a dataset format"),
                 };
                 read_dataset(dataset.as_ref(), s, ctx, &mut sink)?;
                 skipped = dataset.skipped().clone();
                 match s.format {
                     Format::Radiate => "radiate",
-                    _ => "cruw",
+                    Format::Cruw => "cruw",
+                    _ => "carrada",
                 }
             }
             Some(file) if !source.join(&s.manifest).exists() => {

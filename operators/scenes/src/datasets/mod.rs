@@ -5,6 +5,7 @@
 //! A reader indexes the dataset when opened (every sequence, timestamp and annotation file, so a
 //! bad one is named before anything is written) and reads one frame's map at a time.
 
+pub mod carrada;
 pub mod cruw;
 pub mod radiate;
 
