@@ -1,6 +1,7 @@
 //! `cargo bench -p rlmflow-e2e --bench text`: the text half of the pipeline on a corpus of
 //! procedural scenes. `import` frames/s of those scenes, from their MCAP and from a manifest of
-//! `.npy` images; labels frames/s and template captions/s on one core; parser captions/s on
+//! `.npy` images, and of each published dataset's reader on its fixture (RADIATE, CRUW,
+//! CARRADA, at 64 px); labels frames/s and template captions/s on one core; parser captions/s on
 //! one core against its target (>= 50,000, printed as a ratio; above 1.00 meets it); BPE
 //! training plus tokenisation captions/s on one core and on every core.
 
@@ -10,7 +11,7 @@ use std::time::Instant;
 use rlmflow_captions::{Template, TemplateSettings};
 use rlmflow_labels::{EgoGrid, EgoGridSettings};
 use rlmflow_radar::RadarConfig;
-use rlmflow_scenes::{Axes, Import, ImportSettings, Layout, Power, Procedural, ProceduralSettings};
+use rlmflow_scenes::{Axes, Format, Import, ImportSettings, Layout, Power, Procedural, ProceduralSettings};
 use rlmflow_stages::captions::Captions;
 use rlmflow_stages::{Context, Operator};
 use rlmflow_tokens::{Bpe, BpeSettings};
@@ -112,6 +113,21 @@ fn main() {
         rate / PARSER_TARGET,
         if rate >= PARSER_TARGET { "meets" } else { "MISSES" }
     );
+
+    // Each dataset reader on its fixture: 4 sequences of 50 frames.
+    let names = ["seq_0", "seq_1", "seq_2", "seq_3"];
+    let datasets: [(&str, Format, fn(&Path, &[&str], usize) -> Vec<Vec<rlmflow_test_support::datasets::Placed>>); 3] = [
+        ("RADIATE", Format::Radiate, rlmflow_test_support::datasets::write_radiate_sized),
+        ("CRUW", Format::Cruw, rlmflow_test_support::datasets::write_cruw_sized),
+        ("CARRADA", Format::Carrada, rlmflow_test_support::datasets::write_carrada_sized),
+    ];
+    for (name, format, write) in datasets {
+        let data = root.join(format!("dataset-{name}"));
+        let frames = write(&data, &names, 50).len();
+        let settings = ImportSettings { path: name.to_lowercase(), format, image: 64, ..ImportSettings::default() };
+        let (_, t) = stage(&root, &format!("import-{name}"), &Import, &settings, &[("path", &data)], 1);
+        println!("  import from {name:8},  64 px, one core     {:>10.0} frames/s", frames as f64 / t);
+    }
 
     for threads in [1, cores] {
         let s = BpeSettings::default();
