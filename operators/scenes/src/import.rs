@@ -872,4 +872,32 @@ mod tests {
             assert_eq!(at(placed.row, 2.0), 0.0);
         }
     }
+
+    /// An FFT radar's map, its columns even in the sine of the angle (or listed bin by bin):
+    /// read with those axes, a return far off axis lands under its actor; read as even in
+    /// degrees, it does not.
+    #[test]
+    fn sine_and_listed_azimuth_bins_put_an_off_axis_return_under_its_actor() {
+        let (rows, cols) = (64, 64);
+        let (x, y) = (10.0f64, 14.0f64); // 54 degrees to the left
+        let sine_col = |azimuth: f64| (1.0 - azimuth.sin()) / 2.0 * (cols - 1) as f64; // left first, centres at +-90
+        let centres: Vec<f64> = (0..cols).map(|j| (1.0 - 2.0 * j as f64 / (cols - 1) as f64).asin().to_degrees()).collect();
+        let mut values = vec![1e-3f32; rows * cols];
+        let (row, col) = ((x.hypot(y) / 50.0 * rows as f64) as usize, sine_col(y.atan2(x)).round() as usize);
+        for r in row - 1..=row + 1 {
+            for c in col - 1..=col + 1 {
+                values[r * cols + c] = 1e3;
+            }
+        }
+        let raw = Raw { height: rows, width: cols, values, integer_max: None };
+        let brightness = |axes: Axes| {
+            let s = ImportSettings { image: 128, axes, ..ImportSettings::default() };
+            let image = manifest_map(normalise(&raw, &s.axes).unwrap(), rows, cols, &s.axes).resample(128, s.range_max_m);
+            let (r, c) = range_azimuth(128, &s).pixel(x, y);
+            image[r as usize * 128 + c as usize]
+        };
+        assert!(brightness(Axes { azimuth_bins: AzimuthBins::Sine, ..Axes::default() }) > 0.9);
+        assert!(brightness(Axes { azimuth_centres_deg: centres, ..Axes::default() }) > 0.9);
+        assert!(brightness(Axes::default()) < 0.5, "read as even in degrees the return is elsewhere");
+    }
 }
