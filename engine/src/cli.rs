@@ -11,7 +11,7 @@ use rlmflow_stages::{Device, ItemCount, Registry};
 use crate::config::{self, ConfigError, Pipeline};
 use crate::plan::{Freshness, assess, plan};
 use crate::run::{RunOptions, print_status, run};
-use crate::ui::Ui;
+use crate::ui::{Ui, print_store_warnings};
 
 #[derive(Parser)]
 #[command(name = "rlmflow", version, about = "Declarative data-and-training pipelines for radar-language research")]
@@ -356,7 +356,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let fits = crate::footprint::fits(&plan, registry, device, &runs);
             if dry_run {
                 print_status(&plan, &states, &selected, &fits, None, json);
-                print_warnings(existing.as_ref());
+                print_store_warnings(existing.as_ref());
                 if p.executor == config::Executor::Local {
                     crate::footprint::refuse_oversized(&plan, &fits)?;
                 }
@@ -378,11 +378,11 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let opts = RunOptions { jobs, json, device, verify_inputs, remote: remote.settings(&p)? };
             if !check_determinism.is_empty() {
                 let same = crate::determinism::check(&plan, registry, &store, &check_determinism, &opts)?;
-                print_warnings(Some(&store));
+                print_store_warnings(Some(&store));
                 return Ok(if same { ExitCode::SUCCESS } else { ExitCode::FAILURE });
             }
             let summary = run(&plan, registry, &store, &selected, &opts)?;
-            print_warnings(Some(&store));
+            print_store_warnings(Some(&store));
             Ok(if summary.failed > 0 { ExitCode::FAILURE } else { ExitCode::SUCCESS })
         }
         Command::Status { pipeline, json, store, remote } => {
@@ -397,7 +397,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             if let Some(why) = remote.as_ref().and_then(|r| r.down()) {
                 eprintln!("warning: remote cache {} not asked: {why}", remote.as_ref().map_or("", |r| r.url()));
             }
-            print_warnings(store.as_ref());
+            print_store_warnings(store.as_ref());
             Ok(ExitCode::SUCCESS)
         }
         Command::Push(Transfer { pipeline, only, store, remote }) => {
@@ -459,7 +459,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 report.bytes() as f64 / 1e6,
                 report.kept_objects
             );
-            print_warnings(Some(&store));
+            print_store_warnings(Some(&store));
             Ok(ExitCode::SUCCESS)
         }
         Command::Verify { pipeline, recompute, only, sample, store } => {
@@ -515,7 +515,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 .collect();
             let path = store.pin(&name, &keys)?;
             println!("pinned {} cached stage instances in {}", keys.len(), path.display());
-            print_warnings(Some(&store));
+            print_store_warnings(Some(&store));
             Ok(ExitCode::SUCCESS)
         }
         Command::Parse { file } => parse_captions(file.as_deref()),
@@ -591,13 +591,6 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             };
             Ok(ExitCode::from(code as u8))
         }
-    }
-}
-
-/// What the store met and treated as absent (damaged records, refs, plans), on stderr.
-pub(crate) fn print_warnings(store: Option<&Store>) {
-    for warning in store.map(Store::take_warnings).unwrap_or_default() {
-        eprintln!("warning: {warning}");
     }
 }
 
@@ -687,7 +680,7 @@ fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> any
             }
         }
     }
-    print_warnings(store.as_ref());
+    print_store_warnings(store.as_ref());
     Ok(ExitCode::SUCCESS)
 }
 
@@ -721,7 +714,7 @@ fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow
             (Freshness::Cached(_), None) => unreachable!("cached without a store"),
         }
     }
-    print_warnings(store.as_ref());
+    print_store_warnings(store.as_ref());
     Ok(ExitCode::SUCCESS)
 }
 

@@ -5,6 +5,10 @@
 //! setting values, missing or ambiguous inputs, artifact type mismatches and cycles are all
 //! reported together.
 
+mod hyperqueue;
+
+pub use hyperqueue::{HyperQueueSettings, WorkerStore};
+
 use std::collections::{BTreeMap, HashMap};
 use std::fmt;
 use std::ops::Range;
@@ -14,7 +18,6 @@ use anyhow::Context as _;
 
 use rlmflow_stages::{Arity, DynOperator, InputOutlines, ItemCount, Need, Outline, Part, Registry, Share, StageKind};
 
-use crate::dispatch::HyperQueueSettings;
 use serde_json::{Map, Value};
 use toml::de::{DeTable, DeValue};
 

@@ -23,8 +23,8 @@ use anyhow::{Context as _, bail};
 use rlmflow_cache::{Digest, Store, differing_files, hash_tree};
 use rlmflow_stages::Registry;
 
-use crate::exec::{Message, PREFIX};
 use crate::plan::{Freshness, Plan, assess};
+use crate::protocol::{Message, PREFIX};
 use crate::run::{RunOptions, run};
 
 /// Checks every instance of `stages`; returns whether all were deterministic.

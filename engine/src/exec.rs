@@ -1,11 +1,10 @@
 //! `rlmflow exec KEY --store DIR`: runs one action. The engine starts it as a child process, so
 //! an operator crash cannot take a run down; a remote executor can call it the same way.
 //!
-//! It talks to its parent through lines on stdout that start with [`PREFIX`], each a JSON
-//! [`Message`]; other output goes to the stage's log.
+//! It talks to its parent through the wire protocol of [`crate::protocol`]; other output goes to
+//! the stage's log.
 
 use std::collections::BTreeMap;
-use std::io::Write;
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -15,46 +14,11 @@ use anyhow::Context as _;
 use rlmflow_cache::{ActionRecord, ActionRequest, Digest, Store, hash_tree, now_rfc3339};
 use rlmflow_stages::numerics::{PlatformRecord, Target};
 use rlmflow_stages::{Context, Device, DynOperator, Input, Outcome, Registry, Reporter, SettingError};
-use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
-pub const PREFIX: &str = "@rlmflow ";
-
-/// Exit status of an exec whose input object failed verification (quarantined): the engine
-/// recomputes the upstream action and tries again.
-pub const EXIT_CORRUPT_INPUT: i32 = 3;
-
-#[derive(Debug, Serialize, Deserialize)]
-#[serde(tag = "t", rename_all = "snake_case")]
-pub enum Message {
-    /// Another process holds the action's lock.
-    Waiting,
-    /// The action was completed by another process meanwhile.
-    Reused,
-    Progress {
-        position: u64,
-        length: u64,
-        message: String,
-    },
-    Event {
-        name: String,
-        data: Value,
-    },
-    CorruptInput {
-        digest: Digest,
-        files: Vec<String>,
-    },
-    Done {
-        output: Digest,
-    },
-    Failed {
-        message: String,
-        /// The setting the failure is about (dotted, relative to the stage table), when the
-        /// operator said so ([`SettingError`]): the engine names its file and line.
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        setting: Option<String>,
-    },
-}
+use crate::platform::cuda_present;
+use crate::protocol::{EXIT_CORRUPT_INPUT, Message, PREFIX, send};
+use crate::ui::print_store_warnings;
 
 /// Why an operator failed: its message, and the setting it is about, if any.
 #[derive(Debug)]
@@ -76,13 +40,6 @@ impl From<String> for Failure {
     fn from(message: String) -> Failure {
         Failure { message, setting: None }
     }
-}
-
-pub fn send(message: &Message) {
-    let line = format!("{PREFIX}{}\n", serde_json::to_string(message).expect("message serialises"));
-    let mut out = std::io::stdout().lock();
-    // A parent that died cannot read us; nothing else to do then.
-    let _ = out.write_all(line.as_bytes()).and_then(|_| out.flush());
 }
 
 struct StdoutReporter;
@@ -125,7 +82,7 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
     };
     let fresh = store.fresh(&key)?.is_some();
     // Into the stage's log: a damaged record read here is a miss, and the action runs again.
-    crate::cli::print_warnings(Some(&store));
+    print_store_warnings(Some(&store));
     if fresh {
         send(&Message::Reused);
         return Ok(0);
@@ -246,7 +203,7 @@ fn pin_platform(
 ) -> Result<(Device, Option<PlatformRecord>), String> {
     let resources = op.resources(&request.settings);
     let Some(kernels) = resources.kernels else { return Ok((device, None)) };
-    let target = Target::of(kernels.device, device, crate::dispatch::cuda_present());
+    let target = Target::of(kernels.device, device, cuda_present());
     // A model operator computes with its own `threads` setting (part of its key).
     let record = PlatformRecord::new(kernels.numerics, target, resources.threads, registry.libraries());
     if let Some(planned) = request.preimage.platform.as_ref().filter(|p| **p != record.class) {

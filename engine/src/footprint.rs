@@ -56,7 +56,7 @@ pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> 
         outlines.push(op.outline(&inst.settings, &inputs).unwrap_or_default());
         fits.push(op.footprint(&inst.settings, &inputs).filter(|_| runs[fits.len()]).map(|footprint| {
             let resources = op.resources(&inst.settings);
-            let cuda = resources.needs_cuda || (resources.gpu && (matches!(device, Device::Cuda(_)) || crate::dispatch::cuda_present()));
+            let cuda = resources.needs_cuda || (resources.gpu && (matches!(device, Device::Cuda(_)) || crate::platform::cuda_present()));
             // The device the stage names, else the run's, else the first.
             let index = match (resources.kernels.map(|k| k.device), device) {
                 (Some(Device::Cuda(n)), _) | (_, Device::Cuda(n)) => n,

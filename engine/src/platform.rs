@@ -3,6 +3,7 @@
 //! computes that its machine is of that class.
 
 use std::collections::BTreeMap;
+use std::path::Path;
 use std::sync::Mutex;
 
 use rlmflow_stages::numerics::{Cpu, Gpu, Target, class};
@@ -20,7 +21,7 @@ pub struct Platform {
 
 impl Platform {
     pub fn detect(run_device: Device) -> Platform {
-        Platform { run_device, cpu: Cpu::detect(), cuda: crate::dispatch::cuda_present(), gpus: Mutex::new(BTreeMap::new()) }
+        Platform { run_device, cpu: Cpu::detect(), cuda: cuda_present(), gpus: Mutex::new(BTreeMap::new()) }
     }
 
     /// The class of machines that compute the same bytes as this one for an action with
@@ -37,4 +38,14 @@ impl Platform {
     pub fn cpu(&self) -> &Cpu {
         &self.cpu
     }
+}
+
+/// Whether this machine has a CUDA device, as far as the driver's device nodes tell.
+pub fn cuda_present() -> bool {
+    cuda_device_nodes(Path::new("/dev"))
+}
+
+/// Whether `dev` holds a node the CUDA driver creates: `nvidiactl`, or `dxg` under WSL 2.
+pub(crate) fn cuda_device_nodes(dev: &Path) -> bool {
+    ["nvidiactl", "dxg"].iter().any(|node| dev.join(node).exists())
 }

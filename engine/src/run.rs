@@ -18,9 +18,9 @@ use serde_json::{Value, json};
 
 use crate::config::{Executor as ExecutorKind, RemoteSettings};
 use crate::dispatch::{Dispatch, Exit, Launch, Local, Report};
-use crate::exec::{EXIT_CORRUPT_INPUT, Message};
 use crate::footprint::Fit;
 use crate::plan::{Freshness, Plan, why};
+use crate::protocol::{EXIT_CORRUPT_INPUT, Message};
 use crate::ui::Ui;
 
 #[derive(Clone, Debug)]

@@ -3,6 +3,7 @@
 //! event log with `--json`.
 
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
+use rlmflow_cache::Store;
 
 /// Progress bars on a terminal; plain lines otherwise.
 #[derive(Clone)]
@@ -78,5 +79,12 @@ impl Drop for TransferBar {
         if let Some(bar) = self.bar.take() {
             bar.finish_and_clear();
         }
+    }
+}
+
+/// What the store met and treated as absent (damaged records, refs, plans), on stderr.
+pub(crate) fn print_store_warnings(store: Option<&Store>) {
+    for warning in store.map(Store::take_warnings).unwrap_or_default() {
+        eprintln!("warning: {warning}");
     }
 }

@@ -33,9 +33,9 @@ use pyo3::conversion::FromPyObjectOwned;
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
-use super::{Dispatch, Exit, HyperQueueSettings, Launch, Report, WorkerStore, forward_line};
-use crate::config::RemoteSettings;
-use crate::exec::Message;
+use super::{Dispatch, Exit, Launch, Report, forward_line};
+use crate::config::{HyperQueueSettings, RemoteSettings, WorkerStore};
+use crate::protocol::Message;
 
 const HELPER: &str = include_str!("hyperqueue.py");
 
@@ -435,7 +435,7 @@ impl OwnTask {
 /// or was reused, `Some(false)` when it failed or found an input corrupt; `None` for anything
 /// else (progress, events, other output).
 fn outcome_of(line: &str) -> Option<bool> {
-    match line.strip_prefix(crate::exec::PREFIX).map(serde_json::from_str::<Message>)? {
+    match line.strip_prefix(crate::protocol::PREFIX).map(serde_json::from_str::<Message>)? {
         Ok(Message::Progress { .. } | Message::Event { .. } | Message::Waiting) | Err(_) => None,
         Ok(message) => Some(matches!(message, Message::Done { .. } | Message::Reused)),
     }

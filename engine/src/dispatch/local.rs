@@ -2,7 +2,6 @@
 
 use std::fs::File;
 use std::io::{BufRead, BufReader, Write};
-use std::path::Path;
 use std::process::{Command, Stdio};
 use std::sync::mpsc::Sender;
 use std::sync::{Arc, Mutex};
@@ -22,18 +21,8 @@ impl Local {
     /// "auto"`) when libtorch sees one, which needs the CUDA driver's device nodes. On a machine
     /// without them such stages share the CPUs like any other.
     pub fn new(device: Device) -> Local {
-        Local { gpu: device != Device::Cpu || cuda_present() }
+        Local { gpu: device != Device::Cpu || crate::platform::cuda_present() }
     }
-}
-
-/// Whether this machine has a CUDA device, as far as the driver's device nodes tell.
-pub fn cuda_present() -> bool {
-    cuda_device_nodes(Path::new("/dev"))
-}
-
-/// Whether `dev` holds a node the CUDA driver creates: `nvidiactl`, or `dxg` under WSL 2.
-fn cuda_device_nodes(dev: &Path) -> bool {
-    ["nvidiactl", "dxg"].iter().any(|node| dev.join(node).exists())
 }
 
 impl Dispatch for Local {
@@ -106,6 +95,9 @@ mod tests {
     fn gpu_stages_run_one_at_a_time_only_where_a_gpu_can_be() {
         let dev = std::env::temp_dir().join(format!("rlmflow-dev-{}", std::process::id()));
         std::fs::create_dir_all(&dev).unwrap();
+        use std::path::Path;
+
+        use crate::platform::cuda_device_nodes;
         assert!(!cuda_device_nodes(&dev), "an empty /dev has no CUDA device");
         std::fs::write(dev.join("nvidiactl"), "").unwrap();
         assert!(cuda_device_nodes(&dev));

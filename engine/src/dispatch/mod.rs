@@ -10,9 +10,7 @@
 use std::path::PathBuf;
 use std::sync::mpsc::Sender;
 
-use serde::{Deserialize, Serialize};
-
-use crate::exec::Message;
+use crate::protocol::Message;
 
 #[cfg(feature = "python")]
 mod hyperqueue;
@@ -20,7 +18,7 @@ mod local;
 
 #[cfg(feature = "python")]
 pub use hyperqueue::HyperQueue;
-pub use local::{Local, cuda_present};
+pub use local::Local;
 
 /// One action to start.
 #[derive(Clone, Debug)]
@@ -115,84 +113,12 @@ pub(crate) fn forward_lines(reader: impl std::io::BufRead, id: usize, tx: &Sende
 /// One line of a stage's stdout: a protocol message to `tx`, anything else to `log`.
 pub(crate) fn forward_line(line: &str, id: usize, tx: &Sender<(usize, Report)>, log: &std::sync::Mutex<std::fs::File>) {
     use std::io::Write;
-    match line.strip_prefix(crate::exec::PREFIX).map(serde_json::from_str::<Message>) {
+    match line.strip_prefix(crate::protocol::PREFIX).map(serde_json::from_str::<Message>) {
         Some(Ok(message)) => {
             let _ = tx.send((id, Report::Message(message)));
         }
         _ => {
             let _ = writeln!(log.lock().unwrap(), "{line}");
         }
-    }
-}
-
-/// `[pipeline.hyperqueue]`.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct HyperQueueSettings {
-    /// The directory of a running server (`hq server start --server-dir DIR`), relative to the
-    /// pipeline file; none starts a local cluster for the run.
-    pub server_dir: Option<PathBuf>,
-    /// Workers in the cluster: started when local; on a server, how many the engine keeps busy.
-    pub workers: usize,
-    /// Cores per worker (0: this machine's): the most CPU threads one task asks for.
-    pub cores: usize,
-    /// Times a task that ended without an outcome is submitted again (0: the stage fails at once).
-    pub retries: u32,
-    /// Whether a stage that can use a GPU asks for one (the workers must have GPUs).
-    pub gpus: bool,
-    /// The store a task uses: `"shared"`, the run's own (on a filesystem every worker sees);
-    /// `"temporary"`, a fresh one per task in the worker's temporary directory; or an absolute
-    /// path, a store of each worker's own kept between tasks. Other than shared, inputs and
-    /// results travel through the remote cache, which the run must push to.
-    pub worker_store: String,
-}
-
-/// Where a HyperQueue task keeps its store.
-#[derive(Clone, Debug, PartialEq)]
-pub enum WorkerStore {
-    Shared,
-    Temporary,
-    /// A directory on each worker.
-    Own(PathBuf),
-}
-
-impl Default for HyperQueueSettings {
-    fn default() -> Self {
-        HyperQueueSettings { server_dir: None, workers: 1, cores: 0, retries: 1, gpus: false, worker_store: "shared".into() }
-    }
-}
-
-impl HyperQueueSettings {
-    /// Checks ranges; returns the offending key and what is valid.
-    pub fn check(&self) -> Result<(), (&'static str, String)> {
-        if !(1..=4096).contains(&self.workers) {
-            return Err(("workers", format!("must be in 1..=4096, not {}", self.workers)));
-        }
-        if self.cores > 4096 {
-            return Err(("cores", format!("must be in 0..=4096 (0: this machine's cores), not {}", self.cores)));
-        }
-        if self.retries > 100 {
-            return Err(("retries", format!("must be in 0..=100, not {}", self.retries)));
-        }
-        self.worker_store()?;
-        Ok(())
-    }
-
-    pub fn worker_store(&self) -> Result<WorkerStore, (&'static str, String)> {
-        match self.worker_store.as_str() {
-            "shared" => Ok(WorkerStore::Shared),
-            "temporary" => Ok(WorkerStore::Temporary),
-            path if path.starts_with('/') => Ok(WorkerStore::Own(PathBuf::from(path))),
-            other => Err((
-                "worker_store",
-                format!(
-                    "`{other}` is not valid; valid: \"shared\" (the run's store), \"temporary\" (one per task) or an absolute path on the workers"
-                ),
-            )),
-        }
-    }
-
-    pub fn cores(&self) -> usize {
-        if self.cores > 0 { self.cores } else { std::thread::available_parallelism().map_or(1, |n| n.get()) }
     }
 }
