@@ -32,10 +32,7 @@ use rlmflow_stages::{Context, InputOutlines, Operator, OperatorSpec, Outcome, Ou
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
-use crate::datasets::carrada::Carrada;
-use crate::datasets::cruw::Cruw;
-use crate::datasets::radiate::Radiate;
-use crate::datasets::{Dataset, Unknown};
+use crate::datasets::{Opened, carrada, cruw, radiate};
 use crate::geometry::{Bins, RangeAzimuthMap, sample};
 use crate::render::Rendered;
 use crate::writer::SceneWriter;
@@ -273,21 +270,15 @@ impl Operator for Import {
         let mut skipped = BTreeMap::new();
         let from = match mcap {
             _ if s.format != Format::Auto => {
-                let shown = Path::new(&s.path);
-                let unknown = if s.unknown_classes == UnknownClasses::Skip { Unknown::Skip } else { Unknown::Error };
-                let dataset: Box<dyn Dataset> = match s.format {
-                    Format::Radiate => Box::new(Radiate::open(&source, shown, &s.sequences, unknown)?),
-                    Format::Cruw => Box::new(Cruw::open(&source, shown, &s.sequences, unknown, s.axes.dynamic_range_db)?),
-                    Format::Carrada => Box::new(Carrada::open(&source, shown, &s.sequences, unknown, &s.axes)?),
+                let (shown, wanted, unknown) = (Path::new(&s.path), &s.sequences, s.unknown_classes);
+                let (opened, name) = match s.format {
+                    Format::Radiate => (radiate::open(&source, shown, wanted, unknown)?, "radiate"),
+                    Format::Cruw => (cruw::open(&source, shown, wanted, unknown, s.axes.dynamic_range_db)?, "cruw"),
+                    Format::Carrada => (carrada::open(&source, shown, wanted, unknown, &s.axes)?, "carrada"),
                     Format::Auto => unreachable!("a dataset format"),
                 };
-                read_dataset(dataset.as_ref(), s, ctx, &mut sink)?;
-                skipped = dataset.skipped().clone();
-                match s.format {
-                    Format::Radiate => "radiate",
-                    Format::Cruw => "cruw",
-                    _ => "carrada",
-                }
+                skipped = read_dataset(opened, s, ctx, &mut sink)?;
+                name
             }
             Some(file) if !source.join(&s.manifest).exists() => {
                 let shown =
@@ -513,17 +504,17 @@ fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink)
 }
 
 /// A dataset's frames through the sink, each map resampled into rlmflow's range-azimuth image
-/// and each object placed on its pixel.
-fn read_dataset(dataset: &dyn Dataset, s: &ImportSettings, ctx: &Context, sink: &mut Sink) -> anyhow::Result<()> {
-    if dataset.len() == 0 {
+/// and each object placed on its pixel; returns the objects skipped by class.
+fn read_dataset(dataset: Opened, s: &ImportSettings, ctx: &Context, sink: &mut Sink) -> anyhow::Result<BTreeMap<String, usize>> {
+    if dataset.frames.is_empty() {
         bail!("{}: no frames", s.path);
     }
     let view = View::RangeAzimuth.name();
     let images = [Image { view: view.clone(), topic: format!("/radar/{view}"), size: s.image }];
     let projection = range_azimuth(s.image, s);
-    let progress = ctx.progress(dataset.len() as u64, "frames");
-    for i in 0..dataset.len() {
-        let recorded = dataset.frame(i)?;
+    let progress = ctx.progress(dataset.frames.len() as u64, "frames");
+    for (i, read) in dataset.frames.into_iter().enumerate() {
+        let recorded = read()?;
         let bytes = to_bytes(&recorded.map.resample(s.image, s.range_max_m));
         let actors = recorded
             .objects
@@ -541,7 +532,7 @@ fn read_dataset(dataset: &dyn Dataset, s: &ImportSettings, ctx: &Context, sink: 
         progress.inc(1);
     }
     progress.finish();
-    Ok(())
+    Ok(dataset.skipped)
 }
 
 /// `Ok` for a path that names a file inside the recording: relative, without `..`; else what

@@ -15,15 +15,15 @@
 
 use std::collections::BTreeMap;
 use std::f64::consts::PI;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use anyhow::{Context as _, bail};
 use rlmflow_stages::npy::{Dtype, Npy};
 use serde::Deserialize;
 
-use super::{Classes, Dataset, Object, Recorded, Unknown, sequences};
+use super::{Classes, FrameReader, Object, Opened, Recorded, Sequence, sequences};
 use crate::geometry::{Bins, RangeAzimuthMap};
-use crate::import::{Axes, Raw, normalise};
+use crate::import::{Axes, Raw, UnknownClasses, normalise};
 
 pub const SIZE: usize = 256;
 pub const RANGE_RES: f64 = 0.1953125;
@@ -57,116 +57,89 @@ struct View {
     label: i64,
 }
 
-struct Sequence {
-    name: String,
-    shown: PathBuf,
-    dir: PathBuf,
-    frames: Vec<(String, Vec<Object>)>,
-}
-
-pub struct Carrada {
-    sequences: Vec<Sequence>,
-    order: Vec<(usize, usize)>,
-    skipped: BTreeMap<String, usize>,
-    axes: Axes,
-}
-
-impl Carrada {
-    /// `axes` says how to read the maps' values (`power`, `dynamic_range_db`).
-    pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: Unknown, axes: &Axes) -> anyhow::Result<Carrada> {
-        let file = shown.join("annotations_frame_oriented.json");
-        let bytes = std::fs::read(root.join("annotations_frame_oriented.json"))
-            .with_context(|| format!("{}: missing; CARRADA's annotations are read from it", file.display()))?;
-        let all: BTreeMap<String, BTreeMap<String, BTreeMap<String, Annotated>>> = serde_json::from_slice(&bytes).map_err(|e| {
-            anyhow::anyhow!(
-                "{}:{}: {e}; valid: {{\"<seq>\": {{\"000000\": {{\"<instance>\": {{\"range_angle\": {{\"box\": [[r0, a0], [r1, a1]], \"label\": 3}}}}}}}}}}",
+/// Opens the CARRADA copy at `root` (named `shown` in messages): the annotations are read and
+/// every sequence's maps listed now, each map when its frame is, its values read as `axes` says
+/// (`power`, `dynamic_range_db`).
+pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: UnknownClasses, axes: &Axes) -> anyhow::Result<Opened> {
+    let file = shown.join("annotations_frame_oriented.json");
+    let bytes = std::fs::read(root.join("annotations_frame_oriented.json"))
+        .with_context(|| format!("{}: missing; CARRADA's annotations are read from it", file.display()))?;
+    let all: BTreeMap<String, BTreeMap<String, BTreeMap<String, Annotated>>> = serde_json::from_slice(&bytes).map_err(|e| {
+        anyhow::anyhow!(
+            "{}:{}: {e}; valid: {{\"<seq>\": {{\"000000\": {{\"<instance>\": {{\"range_angle\": {{\"box\": [[r0, a0], [r1, a1]], \"label\": 3}}}}}}}}}}",
+            file.display(),
+            e.line()
+        )
+    })?;
+    let mut skipped = BTreeMap::new();
+    let mut frames: Vec<FrameReader> = Vec::new();
+    for seq in sequences(root, shown, "range_angle_numpy", wanted)? {
+        let name = &seq.name;
+        let mut numbers: Vec<String> = std::fs::read_dir(seq.dir.join("range_angle_numpy"))?
+            .flatten()
+            .filter_map(|e| e.file_name().to_str()?.strip_suffix(".npy").map(str::to_owned))
+            .collect();
+        numbers.sort();
+        let annotated =
+            all.get(name).with_context(|| format!("{}: no sequence `{name}`, whose maps are in {}", file.display(), seq.shown.display()))?;
+        if let Some(extra) = annotated.keys().find(|f| numbers.binary_search(f).is_err()) {
+            bail!(
+                "{}: sequence `{name}` annotates frame {extra}, but {} has no {extra}.npy",
                 file.display(),
-                e.line()
-            )
-        })?;
-        let mut skipped = BTreeMap::new();
-        let mut found = Vec::new();
-        for (name, dir) in sequences(root, shown, "range_angle_numpy", wanted)? {
-            let mut frames: Vec<String> = std::fs::read_dir(dir.join("range_angle_numpy"))?
-                .flatten()
-                .filter_map(|e| e.file_name().to_str()?.strip_suffix(".npy").map(str::to_owned))
-                .collect();
-            frames.sort();
-            let annotated = all
-                .get(&name)
-                .with_context(|| format!("{}: no sequence `{name}`, whose maps are in {}", file.display(), shown.join(&name).display()))?;
-            if let Some(extra) = annotated.keys().find(|f| frames.binary_search(f).is_err()) {
-                bail!(
-                    "{}: sequence `{name}` annotates frame {extra}, but {} has no {extra}.npy",
-                    file.display(),
-                    shown.join(&name).join("range_angle_numpy").display()
-                );
-            }
-            let mut with_objects = Vec::new();
-            for frame in frames {
-                let mut objects = Vec::new();
-                for (instance, a) in annotated.get(&frame).into_iter().flatten() {
-                    let Some(view) = &a.range_angle else { continue };
-                    let at = || format!("{}: sequence `{name}`, frame {frame}, instance {instance}", file.display());
-                    let class = match usize::try_from(view.label).ok().and_then(|l| LABELS.get(l)).filter(|&&l| l != "background") {
-                        Some(theirs) => CLASSES.map(theirs, unknown, &mut skipped).map_err(|e| anyhow::anyhow!("{}: {e}", at()))?,
-                        None => CLASSES.map(&format!("label {}", view.label), unknown, &mut skipped).map_err(|e| anyhow::anyhow!("{}: {e}", at()))?,
-                    };
-                    let Some(class) = class else { continue };
-                    let [[r0, a0], [r1, a1]] = view.corners;
-                    if ![r0, a0, r1, a1].iter().all(|v| (0.0..SIZE as f64).contains(v)) {
-                        bail!("{}: box {:?} leaves the 256 x 256 map", at(), view.corners);
-                    }
-                    let (range, col) = (range_of_row((r0 + r1) / 2.0), (a0 + a1) / 2.0);
-                    let (lo, hi) = (angle_of_column(col.floor() as usize), angle_of_column((col.floor() as usize + 1).min(SIZE - 1)));
-                    let angle = lo + (hi - lo) * col.fract();
-                    let (length, width) = if class == "car" { (4.5, 1.8) } else { (0.6, 0.6) };
-                    objects.push(Object { class, x: range * angle.cos(), y: -range * angle.sin(), heading: 0.0, length, width });
-                }
-                with_objects.push((frame, objects));
-            }
-            let seq_shown = if dir == root { shown.to_path_buf() } else { shown.join(&name) };
-            found.push(Sequence { name, shown: seq_shown, dir, frames: with_objects });
+                seq.shown.join("range_angle_numpy").display()
+            );
         }
-        let order = found.iter().enumerate().flat_map(|(s, seq)| (0..seq.frames.len()).map(move |k| (s, k))).collect();
-        Ok(Carrada { sequences: found, order, skipped, axes: axes.clone() })
+        for frame in numbers {
+            let mut objects = Vec::new();
+            for (instance, a) in annotated.get(&frame).into_iter().flatten() {
+                let Some(view) = &a.range_angle else { continue };
+                let at = || format!("{}: sequence `{name}`, frame {frame}, instance {instance}", file.display());
+                let theirs = usize::try_from(view.label)
+                    .ok()
+                    .and_then(|l| LABELS.get(l))
+                    .filter(|&&l| l != "background")
+                    .map_or_else(|| format!("label {}", view.label), |l| l.to_string());
+                let Some(class) = CLASSES.map(&theirs, unknown, &mut skipped).map_err(|e| anyhow::anyhow!("{}: {e}", at()))? else { continue };
+                let [[r0, a0], [r1, a1]] = view.corners;
+                if ![r0, a0, r1, a1].iter().all(|v| (0.0..SIZE as f64).contains(v)) {
+                    bail!("{}: box {:?} leaves the 256 x 256 map", at(), view.corners);
+                }
+                let (range, col) = (range_of_row((r0 + r1) / 2.0), (a0 + a1) / 2.0);
+                let (lo, hi) = (angle_of_column(col.floor() as usize), angle_of_column((col.floor() as usize + 1).min(SIZE - 1)));
+                let angle = lo + (hi - lo) * col.fract();
+                let (length, width) = if class == "car" { (4.5, 1.8) } else { (0.6, 0.6) };
+                objects.push(Object { class, x: range * angle.cos(), y: -range * angle.sin(), heading: 0.0, length, width });
+            }
+            let (Sequence { name, dir, shown }, axes) = (seq.clone(), axes.clone());
+            frames.push(Box::new(move || {
+                Ok(Recorded { map: range_angle_map(&dir, &shown, &frame, &axes)?, objects, episode: name, scenario: "carrada".into() })
+            }));
+        }
     }
+    Ok(Opened { frames, skipped })
 }
 
-impl Dataset for Carrada {
-    fn len(&self) -> usize {
-        self.order.len()
+/// Frame `frame`'s range-angle map in the sequence at `dir` (`shown` in messages), its values
+/// read as `axes` says.
+fn range_angle_map(dir: &Path, shown: &Path, frame: &str, axes: &Axes) -> anyhow::Result<RangeAzimuthMap> {
+    let name = format!("range_angle_numpy/{frame}.npy");
+    let shown = shown.join(&name);
+    let npy = Npy::open_as(&dir.join(&name), &shown)?;
+    if npy.shape != [SIZE, SIZE] || npy.dtype != Dtype::F32 {
+        bail!("{}: {:?} {:?}; a CARRADA range-angle map is [256, 256] float32", shown.display(), npy.shape, npy.dtype);
     }
-
-    fn frame(&self, i: usize) -> anyhow::Result<Recorded> {
-        let (s, k) = self.order[i];
-        let seq = &self.sequences[s];
-        let (frame, objects) = &seq.frames[k];
-        let name = format!("range_angle_numpy/{frame}.npy");
-        let shown = seq.shown.join(&name);
-        let npy = Npy::open_as(&seq.dir.join(&name), &shown)?;
-        if npy.shape != [SIZE, SIZE] || npy.dtype != Dtype::F32 {
-            bail!("{}: {:?} {:?}; a CARRADA range-angle map is [256, 256] float32", shown.display(), npy.shape, npy.dtype);
-        }
-        let values = npy.all_f32()?;
-        if let Some(p) = values.iter().position(|v| !v.is_finite()) {
-            bail!("{}: {} at row {}, column {}; every value must be a finite number", shown.display(), values[p], p / SIZE, p % SIZE);
-        }
-        let raw = Raw { height: SIZE, width: SIZE, values, integer_max: None };
-        let unit = normalise(&raw, &self.axes).with_context(|| format!("{}", shown.display()))?;
-        let map = RangeAzimuthMap {
-            values: unit,
-            rows: SIZE,
-            cols: SIZE,
-            range: Bins::Centres((0..SIZE).map(|i| range_of_row(i as f64)).collect()),
-            // Counter-clockwise: column 0 is the left.
-            azimuth: Bins::Centres((0..SIZE).map(|j| -angle_of_column(j)).collect()),
-            wraps: false,
-        };
-        Ok(Recorded { map, objects: objects.clone(), episode: seq.name.clone(), scenario: "carrada".into() })
+    let values = npy.all_f32()?;
+    if let Some(p) = values.iter().position(|v| !v.is_finite()) {
+        bail!("{}: {} at row {}, column {}; every value must be a finite number", shown.display(), values[p], p / SIZE, p % SIZE);
     }
-
-    fn skipped(&self) -> &BTreeMap<String, usize> {
-        &self.skipped
-    }
+    let raw = Raw { height: SIZE, width: SIZE, values, integer_max: None };
+    Ok(RangeAzimuthMap {
+        values: normalise(&raw, axes).with_context(|| format!("{}", shown.display()))?,
+        rows: SIZE,
+        cols: SIZE,
+        range: Bins::Centres((0..SIZE).map(|i| range_of_row(i as f64)).collect()),
+        // Counter-clockwise: column 0 is the left.
+        azimuth: Bins::Centres((0..SIZE).map(|j| -angle_of_column(j)).collect()),
+        wraps: false,
+    })
 }

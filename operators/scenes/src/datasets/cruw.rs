@@ -14,14 +14,14 @@
 
 use std::collections::BTreeMap;
 use std::f64::consts::PI;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use anyhow::{Context as _, bail};
 use rlmflow_stages::npy::{Dtype, Npy};
 
-use super::{Classes, Dataset, Object, Recorded, Unknown, sequences};
+use super::{Classes, FrameReader, Object, Opened, Recorded, Sequence, sequences};
 use crate::geometry::{Bins, RangeAzimuthMap};
-use crate::import::{Axes, Power, Raw, normalise};
+use crate::import::{Axes, Power, Raw, UnknownClasses, normalise};
 
 pub const SIZE: usize = 128;
 const SAMPLE_RATE: f64 = 4e6;
@@ -45,52 +45,42 @@ fn size_of(class: &str) -> (f64, f64) {
     }
 }
 
-struct Sequence {
-    name: String,
-    shown: PathBuf,
-    dir: PathBuf,
-    /// Frame numbers with a chirp-0 map, and each one's objects.
-    frames: Vec<(u64, Vec<Object>)>,
-}
-
-pub struct Cruw {
-    sequences: Vec<Sequence>,
-    order: Vec<(usize, usize)>,
-    skipped: BTreeMap<String, usize>,
-    /// The span below each map's peak shown, in dB.
-    dynamic_range_db: f64,
-}
-
-impl Cruw {
-    pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: Unknown, dynamic_range_db: f64) -> anyhow::Result<Cruw> {
-        let layouts = [("TRAIN_RAD_H", "TRAIN_RAD_H_ANNO"), ("sequences/train", "annotations/train")];
-        let Some((radar, annotations)) = layouts.into_iter().find(|(radar, _)| root.join(radar).is_dir()) else {
-            bail!(
-                "{}: neither TRAIN_RAD_H/ (as released) nor sequences/train/ (as reorganize_rod2021.sh leaves it); point `path` at the ROD2021 root",
-                shown.display()
-            );
-        };
-        let mut skipped = BTreeMap::new();
-        let mut found = Vec::new();
-        for (name, dir) in sequences(&root.join(radar), &shown.join(radar), "RADAR_RA_H", wanted)? {
-            let anno = root.join(annotations).join(format!("{name}.txt"));
-            let anno_shown = shown.join(annotations).join(format!("{name}.txt"));
-            found.push(read_sequence(name.clone(), &dir, &shown.join(radar).join(&name), &anno, &anno_shown, unknown, &mut skipped)?);
+/// Opens the ROD2021 copy at `root` (named `shown` in messages): every sequence's maps are listed
+/// and its annotations read now, each map when its frame is. `dynamic_range_db`: the span below
+/// each map's peak shown.
+pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: UnknownClasses, dynamic_range_db: f64) -> anyhow::Result<Opened> {
+    let layouts = [("TRAIN_RAD_H", "TRAIN_RAD_H_ANNO"), ("sequences/train", "annotations/train")];
+    let Some((radar, annotations)) = layouts.into_iter().find(|(radar, _)| root.join(radar).is_dir()) else {
+        bail!(
+            "{}: neither TRAIN_RAD_H/ (as released) nor sequences/train/ (as reorganize_rod2021.sh leaves it); point `path` at the ROD2021 root",
+            shown.display()
+        );
+    };
+    let mut skipped = BTreeMap::new();
+    let mut frames: Vec<FrameReader> = Vec::new();
+    for seq in sequences(&root.join(radar), &shown.join(radar), "RADAR_RA_H", wanted)? {
+        let file = format!("{}.txt", seq.name);
+        let annotated = read_sequence(&seq, &root.join(annotations).join(&file), &shown.join(annotations).join(&file), unknown, &mut skipped)?;
+        for (number, objects) in annotated {
+            let Sequence { name, dir, shown } = seq.clone();
+            frames.push(Box::new(move || {
+                Ok(Recorded { map: complex_map(&dir, &shown, number, dynamic_range_db)?, objects, episode: name, scenario: "cruw".into() })
+            }));
         }
-        let order = found.iter().enumerate().flat_map(|(s, seq)| (0..seq.frames.len()).map(move |k| (s, k))).collect();
-        Ok(Cruw { sequences: found, order, skipped, dynamic_range_db })
     }
+    Ok(Opened { frames, skipped })
 }
 
+/// A sequence's frames with a chirp-0 map, in order, each with its objects from the annotation
+/// file `anno` (`anno_shown` in messages).
 fn read_sequence(
-    name: String,
-    dir: &Path,
-    shown: &Path,
+    seq: &Sequence,
     anno: &Path,
     anno_shown: &Path,
-    unknown: Unknown,
+    unknown: UnknownClasses,
     skipped: &mut BTreeMap<String, usize>,
-) -> anyhow::Result<Sequence> {
+) -> anyhow::Result<Vec<(u64, Vec<Object>)>> {
+    let (dir, shown) = (&seq.dir, &seq.shown);
     let mut numbers: Vec<u64> = std::fs::read_dir(dir.join("RADAR_RA_H"))?
         .flatten()
         .filter_map(|e| e.file_name().to_str()?.strip_suffix("_0000.npy")?.parse().ok())
@@ -127,44 +117,32 @@ fn read_sequence(
         let (length, width) = size_of(ours);
         frames[k].1.push(Object { class: ours, x: range * azimuth.cos(), y: -range * azimuth.sin(), heading: 0.0, length, width });
     }
-    Ok(Sequence { name, shown: shown.to_path_buf(), dir: dir.to_path_buf(), frames })
+    Ok(frames)
 }
 
-impl Dataset for Cruw {
-    fn len(&self) -> usize {
-        self.order.len()
+/// Frame `number`'s chirp-0 map in the sequence at `dir` (`shown` in messages), as received
+/// power over `dynamic_range_db`.
+fn complex_map(dir: &Path, shown: &Path, number: u64, dynamic_range_db: f64) -> anyhow::Result<RangeAzimuthMap> {
+    let name = format!("RADAR_RA_H/{number:06}_0000.npy");
+    let shown = shown.join(&name);
+    let npy = Npy::open_as(&dir.join(&name), &shown)?;
+    if npy.shape != [SIZE, SIZE, 2] || npy.dtype != Dtype::F32 {
+        bail!("{}: {:?} {:?}; a ROD2021 map is [128, 128, 2] float32 (real, imaginary)", shown.display(), npy.shape, npy.dtype);
     }
-
-    fn frame(&self, i: usize) -> anyhow::Result<Recorded> {
-        let (s, k) = self.order[i];
-        let seq = &self.sequences[s];
-        let (number, objects) = &seq.frames[k];
-        let name = format!("RADAR_RA_H/{number:06}_0000.npy");
-        let shown = seq.shown.join(&name);
-        let npy = Npy::open_as(&seq.dir.join(&name), &shown)?;
-        if npy.shape != [SIZE, SIZE, 2] || npy.dtype != Dtype::F32 {
-            bail!("{}: {:?} {:?}; a ROD2021 map is [128, 128, 2] float32 (real, imaginary)", shown.display(), npy.shape, npy.dtype);
-        }
-        let complex = npy.all_f32()?;
-        if let Some(p) = complex.iter().position(|v| !v.is_finite()) {
-            bail!("{}: {} at element {p}; every value must be a finite number", shown.display(), complex[p]);
-        }
-        let power = complex.chunks_exact(2).map(|c| c[0] * c[0] + c[1] * c[1]).collect();
-        let raw = Raw { height: SIZE, width: SIZE, values: power, integer_max: None };
-        let axes = Axes { power: Power::Linear, dynamic_range_db: self.dynamic_range_db, ..Axes::default() };
-        let map = RangeAzimuthMap {
-            values: normalise(&raw, &axes)?,
-            rows: SIZE,
-            cols: SIZE,
-            range: Bins::Centres((0..SIZE).map(range_of_row).collect()),
-            // Column 0 is -90 degrees, to the right: +90 counter-clockwise.
-            azimuth: Bins::Sine { first: PI / 2.0, last: -PI / 2.0 },
-            wraps: false,
-        };
-        Ok(Recorded { map, objects: objects.clone(), episode: seq.name.clone(), scenario: "cruw".into() })
+    let complex = npy.all_f32()?;
+    if let Some(p) = complex.iter().position(|v| !v.is_finite()) {
+        bail!("{}: {} at element {p}; every value must be a finite number", shown.display(), complex[p]);
     }
-
-    fn skipped(&self) -> &BTreeMap<String, usize> {
-        &self.skipped
-    }
+    let power = complex.chunks_exact(2).map(|c| c[0] * c[0] + c[1] * c[1]).collect();
+    let raw = Raw { height: SIZE, width: SIZE, values: power, integer_max: None };
+    let axes = Axes { power: Power::Linear, dynamic_range_db, ..Axes::default() };
+    Ok(RangeAzimuthMap {
+        values: normalise(&raw, &axes)?,
+        rows: SIZE,
+        cols: SIZE,
+        range: Bins::Centres((0..SIZE).map(range_of_row).collect()),
+        // Column 0 is -90 degrees, to the right: +90 counter-clockwise.
+        azimuth: Bins::Sine { first: PI / 2.0, last: -PI / 2.0 },
+        wraps: false,
+    })
 }

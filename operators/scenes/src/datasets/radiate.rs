@@ -21,9 +21,9 @@ use std::path::Path;
 use anyhow::{Context as _, bail};
 use serde::Deserialize;
 
-use super::{Classes, Dataset, Object, Recorded, Unknown, sequences};
+use super::{Classes, FrameReader, Object, Opened, Recorded, Sequence, sequences};
 use crate::geometry::{Bins, RangeAzimuthMap};
-use crate::import::read_image;
+use crate::import::{UnknownClasses, read_image};
 
 /// Metres per range bin and per Cartesian pixel (radiate_sdk's `radar_calib.range_res`).
 pub const RANGE_RES: f64 = 0.173611;
@@ -52,44 +52,34 @@ struct Annotated {
 }
 
 #[derive(Deserialize)]
-struct Box {
+struct BoundingBox {
     position: [f64; 4],
     #[serde(default)]
     rotation: f64,
 }
 
-struct Sequence {
-    name: String,
-    shown: std::path::PathBuf,
-    dir: std::path::PathBuf,
-    scenario: String,
-    /// Frame numbers, in time order.
-    frames: Vec<u64>,
-    /// Objects per frame index.
-    objects: Vec<Vec<Object>>,
-}
-
-pub struct Radiate {
-    sequences: Vec<Sequence>,
-    /// (sequence, frame index) in order.
-    order: Vec<(usize, usize)>,
-    skipped: BTreeMap<String, usize>,
-}
-
-impl Radiate {
-    pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: Unknown) -> anyhow::Result<Radiate> {
-        let mut skipped = BTreeMap::new();
-        let mut found = Vec::new();
-        for (name, dir) in sequences(root, shown, "Navtech_Polar.txt", wanted)? {
-            let seq_shown = if dir == root { shown.to_path_buf() } else { shown.join(&name) };
-            found.push(read_sequence(name, &dir, &seq_shown, unknown, &mut skipped)?);
+/// Opens the RADIATE copy at `root` (named `shown` in messages): every sequence's timestamps and
+/// annotations are read now, each polar scan when its frame is.
+pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: UnknownClasses) -> anyhow::Result<Opened> {
+    let mut skipped = BTreeMap::new();
+    let mut frames: Vec<FrameReader> = Vec::new();
+    for seq in sequences(root, shown, "Navtech_Polar.txt", wanted)? {
+        let (scenario, annotated) = read_sequence(&seq, unknown, &mut skipped)?;
+        for (number, objects) in annotated {
+            let (Sequence { name, dir, shown }, scenario) = (seq.clone(), scenario.clone());
+            frames.push(Box::new(move || Ok(Recorded { map: polar_scan(&dir, &shown, number)?, objects, episode: name, scenario })));
         }
-        let order = found.iter().enumerate().flat_map(|(s, seq)| (0..seq.frames.len()).map(move |k| (s, k))).collect();
-        Ok(Radiate { sequences: found, order, skipped })
     }
+    Ok(Opened { frames, skipped })
 }
 
-fn read_sequence(name: String, dir: &Path, shown: &Path, unknown: Unknown, skipped: &mut BTreeMap<String, usize>) -> anyhow::Result<Sequence> {
+/// A sequence's scenario and, for each radar frame in order, its number and objects.
+fn read_sequence(
+    seq: &Sequence,
+    unknown: UnknownClasses,
+    skipped: &mut BTreeMap<String, usize>,
+) -> anyhow::Result<(String, Vec<(u64, Vec<Object>)>)> {
+    let (dir, shown) = (&seq.dir, &seq.shown);
     let stamps = shown.join("Navtech_Polar.txt");
     let text = std::fs::read_to_string(dir.join("Navtech_Polar.txt")).with_context(|| format!("reading {}", stamps.display()))?;
     let mut frames = Vec::new();
@@ -145,7 +135,7 @@ fn read_sequence(name: String, dir: &Path, shown: &Path, unknown: Unknown, skipp
                     frames.len()
                 );
             };
-            let b: Box = serde_json::from_value(bbox.clone()).map_err(|e| {
+            let b: BoundingBox = serde_json::from_value(bbox.clone()).map_err(|e| {
                 anyhow::anyhow!(
                     "{}: object {}, frame {frame}: {e}; a box is {{\"position\": [x, y, w, h], \"rotation\": degrees}}",
                     annotations.display(),
@@ -162,12 +152,12 @@ fn read_sequence(name: String, dir: &Path, shown: &Path, unknown: Unknown, skipp
         .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
         .and_then(|m| m["type"].as_str().map(|t| format!("radiate-{t}")))
         .unwrap_or_else(|| "radiate".into());
-    Ok(Sequence { name, shown: shown.to_path_buf(), dir: dir.to_path_buf(), scenario, frames, objects })
+    Ok((scenario, frames.into_iter().zip(objects).collect()))
 }
 
 /// A box of the Cartesian image in the ego frame: its centre, its long side as length along
 /// its heading.
-fn object_of(class: &'static str, b: &Box) -> Object {
+fn object_of(class: &'static str, b: &BoundingBox) -> Object {
     let [x, y, w, h] = b.position;
     let (col, row) = (x + w / 2.0, y + h / 2.0);
     // Ahead is up the image, the ego's left is the image's left.
@@ -177,43 +167,30 @@ fn object_of(class: &'static str, b: &Box) -> Object {
     Object { class, x: ahead, y: left, heading: (heading + PI).rem_euclid(2.0 * PI) - PI, length: length * RANGE_RES, width: width * RANGE_RES }
 }
 
-impl Dataset for Radiate {
-    fn len(&self) -> usize {
-        self.order.len()
+/// Frame `number`'s polar scan in the sequence at `dir` (`shown` in messages), as a map of range
+/// rows and azimuth columns.
+fn polar_scan(dir: &Path, shown: &Path, number: u64) -> anyhow::Result<RangeAzimuthMap> {
+    let name = format!("Navtech_Polar/{number:06}.png");
+    let raw = read_image(dir, shown, &name).with_context(|| format!("{}", shown.join(&name).display()))?;
+    if (raw.height, raw.width) != (AZIMUTHS, RANGE_BINS) {
+        bail!(
+            "{}: {} x {} pixels; a Navtech polar scan is {AZIMUTHS} azimuths x {RANGE_BINS} range bins",
+            shown.join(&name).display(),
+            raw.height,
+            raw.width
+        );
     }
-
-    fn frame(&self, i: usize) -> anyhow::Result<Recorded> {
-        let (s, k) = self.order[i];
-        let seq = &self.sequences[s];
-        let frame = seq.frames[k];
-        let name = format!("Navtech_Polar/{frame:06}.png");
-        let raw = read_image(&seq.dir, &seq.shown, &name).with_context(|| format!("{}", seq.shown.join(&name).display()))?;
-        if (raw.height, raw.width) != (AZIMUTHS, RANGE_BINS) {
-            bail!(
-                "{}: {} x {} pixels; a Navtech polar scan is {AZIMUTHS} azimuths x {RANGE_BINS} range bins",
-                seq.shown.join(&name).display(),
-                raw.height,
-                raw.width
-            );
-        }
-        let max = raw.integer_max.unwrap_or(255.0);
-        // Rows become range, columns azimuth.
-        let values = (0..RANGE_BINS * AZIMUTHS).map(|p| raw.values[(p % AZIMUTHS) * RANGE_BINS + p / AZIMUTHS] / max).collect();
-        let half = PI / AZIMUTHS as f64;
-        let map = RangeAzimuthMap {
-            values,
-            rows: RANGE_BINS,
-            cols: AZIMUTHS,
-            range: Bins::Even { from: -RANGE_RES / 2.0, to: (RANGE_BINS as f64 - 0.5) * RANGE_RES },
-            // Clockwise from ahead: counter-clockwise angles decrease along the columns.
-            azimuth: Bins::Even { from: half, to: half - 2.0 * PI },
-            wraps: true,
-        };
-        let objects = seq.objects[k].clone();
-        Ok(Recorded { map, objects, episode: seq.name.clone(), scenario: seq.scenario.clone() })
-    }
-
-    fn skipped(&self) -> &BTreeMap<String, usize> {
-        &self.skipped
-    }
+    let max = raw.integer_max.unwrap_or(255.0);
+    // Rows become range, columns azimuth.
+    let values = (0..RANGE_BINS * AZIMUTHS).map(|p| raw.values[(p % AZIMUTHS) * RANGE_BINS + p / AZIMUTHS] / max).collect();
+    let half = PI / AZIMUTHS as f64;
+    Ok(RangeAzimuthMap {
+        values,
+        rows: RANGE_BINS,
+        cols: AZIMUTHS,
+        range: Bins::Even { from: -RANGE_RES / 2.0, to: (RANGE_BINS as f64 - 0.5) * RANGE_RES },
+        // Clockwise from ahead: counter-clockwise angles decrease along the columns.
+        azimuth: Bins::Even { from: half, to: half - 2.0 * PI },
+        wraps: true,
+    })
 }
