@@ -448,8 +448,9 @@ impl Executor<'_> {
                 self.ui.say(format!("  reused   {}  ({:.1}s saved)", inst.label, record.duration_s));
                 continue;
             }
+            // A remote that went down answers every pull at once with a miss: not asked again.
             if !self.asked_remote[i]
-                && let Some(remote) = self.remote().cloned()
+                && let Some(remote) = self.remote().filter(|r| r.down().is_none()).cloned()
             {
                 if self.pulling < MAX_PULLS {
                     self.asked_remote[i] = true;

@@ -151,8 +151,8 @@ impl Remote {
         // TLS on ring; an error only says a provider is installed already.
         let _ = rustls::crypto::ring::default_provider().install_default();
         // No whole-request timeout: it would cut off a large transfer that is still moving. The
-        // link bounds the wait for the connection and for each read, and `call` the wait for
-        // the next bytes either way.
+        // link's client bounds the wait to connect; `call` bounds the wait for the next bytes
+        // either way.
         let client = ClientOptions::new().with_timeout_disabled().with_allow_http(true);
         let retry = RetryConfig { max_retries: 1, retry_timeout: timeout, ..RetryConfig::default() };
         let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
@@ -498,7 +498,9 @@ impl Remote {
             file.read_to_end(&mut body)?;
             let put = self.objects.put(key, PutPayload::from(body));
             let sent = self.watched("uploading an object", &watch, put, &mut |w| progress(w.sent().min(size), size)).is_ok();
-            progress(size, size);
+            if sent {
+                progress(size, size);
+            }
             return Ok(sent);
         }
         let Ok(Some(mut upload)) = self.call("starting an upload", self.objects.put_multipart(key)) else { return Ok(false) };

@@ -109,12 +109,12 @@ pub(crate) struct WatchedConnector {
 
 impl HttpConnector for WatchedConnector {
     fn connect(&self, _: &ClientOptions) -> object_store::Result<HttpClient> {
-        let client = reqwest::Client::builder()
-            .user_agent(concat!("rlmflow/", env!("CARGO_PKG_VERSION")))
-            .connect_timeout(self.timeout)
-            .tcp_user_timeout(self.timeout)
-            .build()
-            .map_err(|e| object_store::Error::Generic { store: "HTTP", source: Box::new(e) })?;
+        let builder = reqwest::Client::builder().user_agent(concat!("rlmflow/", env!("CARGO_PKG_VERSION"))).connect_timeout(self.timeout);
+        // Where the kernel offers it (Linux), unacknowledged bytes cut the connection at the
+        // timeout: what bounds a stall while a body drains from the kernel's buffer.
+        #[cfg(any(target_os = "linux", target_os = "android", target_os = "fuchsia"))]
+        let builder = builder.tcp_user_timeout(self.timeout);
+        let client = builder.build().map_err(|e| object_store::Error::Generic { store: "HTTP", source: Box::new(e) })?;
         Ok(HttpClient::new(WatchedClient(client)))
     }
 }

@@ -93,11 +93,11 @@ mod tests {
 
     #[test]
     fn gpu_stages_run_one_at_a_time_only_where_a_gpu_can_be() {
-        let dev = std::env::temp_dir().join(format!("rlmflow-dev-{}", std::process::id()));
-        std::fs::create_dir_all(&dev).unwrap();
         use std::path::Path;
 
         use crate::platform::cuda_device_nodes;
+        let dev = std::env::temp_dir().join(format!("rlmflow-dev-{}", std::process::id()));
+        std::fs::create_dir_all(&dev).unwrap();
         assert!(!cuda_device_nodes(&dev), "an empty /dev has no CUDA device");
         std::fs::write(dev.join("nvidiactl"), "").unwrap();
         assert!(cuda_device_nodes(&dev));
