@@ -252,7 +252,7 @@ fn two_concurrent_runs_compute_a_shared_stage_once() {
     assert!(a.status.success() && b.status.success());
     let starts = s.trace().iter().filter(|l| l.starts_with("start write-text source")).count();
     assert_eq!(starts, 1, "{:?}", s.trace());
-    let b_events = Events(text(&b.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    let b_events = Events::parse(&b.stdout);
     assert_eq!(b_events.status_of("source"), "reused");
 }
 

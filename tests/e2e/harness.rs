@@ -42,7 +42,7 @@ impl Scratch {
         args.extend_from_slice(extra);
         let out = self.cli(&args);
         assert_eq!(out.status.code(), Some(code), "stdout:\n{}\nstderr:\n{}", text(&out.stdout), text(&out.stderr));
-        Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).expect(l)).collect())
+        Events::parse(&out.stdout)
     }
 
     pub fn run(&self) -> Events {
@@ -74,6 +74,11 @@ pub fn text(bytes: &[u8]) -> String {
 pub struct Events(pub Vec<Value>);
 
 impl Events {
+    /// The events a `--json` run printed on `stdout`, one JSON object a line.
+    pub fn parse(stdout: &[u8]) -> Events {
+        Events(text(stdout).lines().map(|l| serde_json::from_str(l).expect(l)).collect())
+    }
+
     /// `stage -> status` of every `stage_finished` event, in order.
     pub fn finished(&self) -> Vec<(String, String)> {
         self.0

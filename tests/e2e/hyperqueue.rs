@@ -124,7 +124,7 @@ fn run_killing_the_source_task(name: &str, retries: u32) -> (Scratch, Option<i32
     let pid: i32 = line.rsplit("pid=").next().unwrap().trim().parse().unwrap();
     unsafe { libc::kill(pid, libc::SIGKILL) };
     let out = child.wait_with_output().unwrap();
-    let events = Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    let events = Events::parse(&out.stdout);
     (s, out.status.code(), events)
 }
 

@@ -322,7 +322,7 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
         args.extend_from_slice(extra);
         let out = s.command(&args).envs(s3_env.clone()).output().unwrap();
         assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
-        crate::harness::Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect())
+        crate::harness::Events::parse(&out.stdout)
     };
     let pusher = Scratch::new("remote-s3-pusher");
     pusher.pipeline(CHAIN);
@@ -360,7 +360,7 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
     let _ = weed.0.wait();
     let out = child.wait_with_output().unwrap();
     assert!(out.status.success(), "{}", text(&out.stdout));
-    let events = crate::harness::Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    let events = crate::harness::Events::parse(&out.stdout);
     assert_eq!(events.of("remote_down").len(), 1, "{:?}", events.0);
     assert_eq!(events.with_status("ran").len() + events.with_status("pulled").len(), 5);
 
@@ -451,7 +451,7 @@ fn run_signing(s: &Scratch, extra: &[&str], key: Option<&Path>) -> crate::harnes
     }
     let out = cmd.output().unwrap();
     assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
-    crate::harness::Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect())
+    crate::harness::Events::parse(&out.stdout)
 }
 
 #[test]
@@ -813,7 +813,7 @@ fn a_64_mb_artifact_crosses_a_1_mb_per_s_link_with_a_2_s_timeout_and_a_stalled_l
     let t0 = Instant::now();
     let out = stalled_push.command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/stalled", "--push"]).envs(stalling()).output().unwrap();
     assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
-    let events = crate::harness::Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    let events = crate::harness::Events::parse(&out.stdout);
     let down = events.of("remote_down");
     assert_eq!(down.len(), 1, "{:?}", events.0);
     assert!(down[0]["why"].as_str().unwrap().contains("nothing arrived or left for 2 s"), "{:?}", down[0]);
@@ -823,7 +823,7 @@ fn a_64_mb_artifact_crosses_a_1_mb_per_s_link_with_a_2_s_timeout_and_a_stalled_l
     let t0 = Instant::now();
     let out = stalled_pull.command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/slow"]).envs(stalling()).output().unwrap();
     assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
-    let events = crate::harness::Events(text(&out.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect());
+    let events = crate::harness::Events::parse(&out.stdout);
     assert_eq!(events.of("remote_down").len(), 1, "{:?}", events.0);
     assert_eq!(events.with_status("ran"), ["source"], "computed here after the cut");
     assert!(t0.elapsed() < Duration::from_secs(20), "cut at the timeout: {:?}", t0.elapsed());

@@ -11,7 +11,7 @@ use super::{artifacts, rlmflow, scratch};
 /// Imports `format` from `data` at `image` pixels out to `range_max` and checks every written
 /// object: imported with its class and position, in its sequence, on its return (a bright
 /// pixel, well above the floor, within one pixel of where the actor is placed), and counted by
-/// the labels' grid in its distance bin.
+/// the labels' grid in its distance bin; and the import gives the same bytes in fresh processes.
 /// Positions are compared within `tolerance` metres (a dataset that annotates bins, not metres,
 /// gives a position to a bin).
 fn imports_on_returns(name: &str, format: &str, write: fn(&Path) -> Vec<Vec<Placed>>, range_max: f64, sequences: usize, tolerance: f64) {
@@ -61,6 +61,9 @@ fn imports_on_returns(name: &str, format: &str, write: fn(&Path) -> Vec<Vec<Plac
             assert_eq!(grid[name]["total_vehicles"].as_u64(), Some(want as u64), "{name}: {grid}");
         }
     }
+    // Same key, same bytes: the import twice more, each in a fresh process.
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--check-determinism", "scenes"]);
+    assert!(ok && out.contains("same bytes"), "{out}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -79,85 +82,78 @@ fn carrada_imports_with_every_object_on_its_return() {
     imports_on_returns("carrada", "carrada", write_carrada, 50.0, 2, 0.6);
 }
 
+/// Rewrites the text file at `path` through `change`.
+fn edit(path: &Path, change: impl FnOnce(String) -> String) {
+    std::fs::write(path, change(std::fs::read_to_string(path).unwrap())).unwrap();
+}
+
 /// Each bad dataset input stops the import with the file (and line or object) named, and leaves
 /// no artifact in the store.
 #[test]
 fn bad_dataset_input_is_named_and_leaves_nothing() {
-    let pipeline = |format: &str, extra: &str| {
-        format!(
-            "[pipeline]\nname = \"bad\"\nseed = 1\n[stages.scenes]\noperator = \"import\"\nformat = \"{format}\"\npath = \"data\"\nimage = 32\n{extra}"
-        )
+    let pipeline = |format: &str| {
+        format!("[pipeline]\nname = \"bad\"\nseed = 1\n[stages.scenes]\noperator = \"import\"\nformat = \"{format}\"\npath = \"data\"\nimage = 32\n")
     };
-    let cases: Vec<(&str, &str, &str, Box<dyn Fn(&Path)>, &str)> = vec![
+    let cases: Vec<(&str, &str, Box<dyn Fn(&Path)>, &str)> = vec![
         (
             "radiate",
-            "",
             "no-annotations",
             Box::new(|d| std::fs::remove_file(d.join("fog_6_0/annotations/annotations.json")).unwrap()),
             "fog_6_0/annotations/annotations.json: missing",
         ),
         (
             "radiate",
-            "",
             "frame-beyond",
             Box::new(|d| {
                 let path = d.join("city_1_0/Navtech_Polar.txt");
-                let text = std::fs::read_to_string(&path).unwrap();
-                std::fs::write(&path, text.lines().take(2).map(|l| format!("{l}\n")).collect::<String>()).unwrap();
+                edit(&path, |t| t.lines().take(2).map(|l| format!("{l}\n")).collect());
             }),
             "has a box for frame 3, but data/city_1_0/Navtech_Polar.txt lists no such radar frame",
         ),
         (
             "radiate",
-            "",
             "unknown-class",
             Box::new(|d| {
                 let path = d.join("city_1_0/annotations/annotations.json");
-                std::fs::write(&path, std::fs::read_to_string(&path).unwrap().replacen("\"car\"", "\"tram\"", 1)).unwrap();
+                edit(&path, |t| t.replacen("\"car\"", "\"tram\"", 1));
             }),
             "unknown class `tram`; known: car, van",
         ),
         (
             "radiate",
-            "",
             "corrupt-png",
             Box::new(|d| std::fs::write(d.join("fog_6_0/Navtech_Polar/000002.png"), b"not a png").unwrap()),
             "data/fog_6_0/Navtech_Polar/000002.png",
         ),
         (
             "radiate",
-            "",
             "two-sizes",
             Box::new(|d| write_png(&d.join("fog_6_0/Navtech_Polar/000003.png"), 576, 200, &vec![9u8; 576 * 200])),
             "data/fog_6_0/Navtech_Polar/000003.png: 200 x 576 pixels; a Navtech polar scan is 400 azimuths x 576 range bins",
         ),
         (
             "cruw",
-            "",
             "no-annotations",
             Box::new(|d| std::fs::remove_file(d.join("TRAIN_RAD_H_ANNO/2019_05_29_PCMS005.txt")).unwrap()),
             "TRAIN_RAD_H_ANNO/2019_05_29_PCMS005.txt: missing",
         ),
         (
             "cruw",
-            "",
             "frame-beyond",
             Box::new(|d| {
                 let path = d.join("TRAIN_RAD_H_ANNO/2019_04_09_BMS1000.txt");
-                std::fs::write(&path, std::fs::read_to_string(&path).unwrap() + "7 5.0 0.1 car\n").unwrap();
+                edit(&path, |t| t + "7 5.0 0.1 car\n");
             }),
             "frame 7 has no map",
         ),
         (
             "cruw",
-            "",
             "corrupt-npy",
             Box::new(|d| std::fs::write(d.join("TRAIN_RAD_H/2019_04_09_BMS1000/RADAR_RA_H/000001_0000.npy"), b"\x93NUMPY").unwrap()),
             "000001_0000.npy",
         ),
         (
             "cruw",
-            "",
             "bad-line",
             Box::new(|d| {
                 let path = d.join("TRAIN_RAD_H_ANNO/2019_04_09_BMS1000.txt");
@@ -167,31 +163,28 @@ fn bad_dataset_input_is_named_and_leaves_nothing() {
         ),
         (
             "carrada",
-            "",
             "no-annotations",
             Box::new(|d| std::fs::remove_file(d.join("annotations_frame_oriented.json")).unwrap()),
             "annotations_frame_oriented.json: missing",
         ),
         (
             "carrada",
-            "",
             "frame-beyond",
             Box::new(|d| std::fs::remove_file(d.join("2019-09-16-12-52-12/range_angle_numpy/000002.npy")).unwrap()),
             "sequence `2019-09-16-12-52-12` annotates frame 000002, but data/2019-09-16-12-52-12/range_angle_numpy has no 000002.npy",
         ),
         (
             "carrada",
-            "",
             "unknown-label",
             Box::new(|d| {
                 let path = d.join("annotations_frame_oriented.json");
-                std::fs::write(&path, std::fs::read_to_string(&path).unwrap().replacen("\"label\":3", "\"label\":7", 1)).unwrap();
+                edit(&path, |t| t.replacen("\"label\":3", "\"label\":7", 1));
             }),
             "unknown class `label 7`; known: pedestrian, cyclist, car",
         ),
     ];
-    for (format, extra, name, damage, expected) in cases {
-        let dir = scratch(&format!("bad-{format}-{name}"), &pipeline(format, extra));
+    for (format, name, damage, expected) in cases {
+        let dir = scratch(&format!("bad-{format}-{name}"), &pipeline(format));
         match format {
             "radiate" => drop(write_radiate(&dir.join("data"))),
             "cruw" => drop(write_cruw(&dir.join("data"))),
@@ -217,7 +210,7 @@ fn unknown_classes_can_be_counted_and_skipped() {
     );
     write_radiate(&dir.join("data"));
     let path = dir.join("data/city_1_0/annotations/annotations.json");
-    std::fs::write(&path, std::fs::read_to_string(&path).unwrap().replace("\"bus\"", "\"tram\"")).unwrap();
+    edit(&path, |t| t.replace("\"bus\"", "\"tram\""));
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok && out.contains("3 frames from radiate") && out.contains("skipped objects of unknown classes:") && out.contains(" tram"), "{out}");
     std::fs::remove_dir_all(&dir).unwrap();
