@@ -32,7 +32,7 @@ const TICK: Duration = Duration::from_millis(200);
 /// though nothing moves here. So from the end of a body until its response the wait may also
 /// last as long as the body would take at [`SLOWEST_LINK`]; while the kernel still holds
 /// unsent bytes, a link that stops taking them is cut by the kernel at the timeout
-/// (`TCP_USER_TIMEOUT`), so only a server that takes a whole body and never answers costs the
+/// (`TCP_USER_TIMEOUT`, on Linux), so only a server that takes a whole body and never answers costs the
 /// longer wait.
 #[derive(Debug)]
 pub(crate) struct Watch {
