@@ -1,5 +1,7 @@
 use std::process::ExitCode;
 
+mod parse;
+
 use rlmflow_stages::{Catalog, Registry};
 
 /// The operators this binary ships. Each operator family registers itself here.
@@ -26,5 +28,5 @@ fn registry() -> Registry {
 }
 
 fn main() -> ExitCode {
-    rlmflow_engine::cli::main(registry())
+    rlmflow_engine::cli::main(registry(), &[parse::command()])
 }

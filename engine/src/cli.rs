@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context as _, bail};
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 use rlmflow_cache::{Digest, Store, canonical_json};
 use rlmflow_stages::{Device, ItemCount, Registry};
 
@@ -187,12 +187,6 @@ enum Command {
         #[command(subcommand)]
         action: KeyAction,
     },
-    /// Parse captions into the paper's grid JSON with the LLM-free parser: one caption per line,
-    /// or JSON lines with a `caption` field; writes one grid JSON per line. Warnings go to stderr.
-    Parse {
-        /// Default: standard input.
-        file: Option<PathBuf>,
-    },
     /// Create the managed Python environment (pinned packages from the lock compiled into this
     /// binary) if it is missing, and print where it is. Stages that need it also create it on
     /// first use.
@@ -255,12 +249,25 @@ fn open_remote(settings: &config::RemoteSettings) -> anyhow::Result<rlmflow_remo
     settings.open().map_err(|e| UsageError(format!("{e:#}")).into())
 }
 
-/// The command line of a binary with `registry`'s operators. Call it first thing in `main`.
-pub fn main(registry: Registry) -> ExitCode {
+/// A command a binary adds beside the engine's own, such as `rlmflow parse` (the caption
+/// parser's: the engine knows no machine learning).
+pub struct ExtraCommand {
+    /// Its name, help and arguments.
+    pub command: clap::Command,
+    pub run: fn(&clap::ArgMatches) -> anyhow::Result<ExitCode>,
+}
+
+/// The command line of a binary with `registry`'s operators and `extra` commands. Call it first
+/// thing in `main`.
+pub fn main(registry: Registry, extra: &[ExtraCommand]) -> ExitCode {
     #[cfg(feature = "python")]
     rlmflow_python::embed::pin_home();
-    let cli = Cli::parse();
-    match dispatch(cli.command, &registry) {
+    let matches = extra.iter().fold(Cli::command(), |cli, e| cli.subcommand(e.command.clone())).get_matches();
+    let outcome = match matches.subcommand().and_then(|(name, args)| Some((extra.iter().find(|e| e.command.get_name() == name)?, args))) {
+        Some((command, args)) => (command.run)(args),
+        None => Cli::from_arg_matches(&matches).map_err(|e| -> anyhow::Error { e.exit() }).and_then(|cli| dispatch(cli.command, &registry)),
+    };
+    match outcome {
         Ok(code) => code,
         Err(e) => {
             if let Some(usage) = e.downcast_ref::<UsageError>() {
@@ -518,7 +525,6 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             print_store_warnings(Some(&store));
             Ok(ExitCode::SUCCESS)
         }
-        Command::Parse { file } => parse_captions(file.as_deref()),
         Command::Key { action: KeyAction::Generate { name, dir } } => {
             let (secret, public) = rlmflow_remote::signing::generate(&name)?;
             let (secret_file, public_file) = (dir.join(format!("{name}.secret")), dir.join(format!("{name}.public")));
@@ -720,39 +726,4 @@ fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow
 
 fn indent(text: &str) -> String {
     text.lines().map(|l| format!("    {l}")).collect::<Vec<_>>().join("\n")
-}
-
-fn parse_captions(file: Option<&Path>) -> anyhow::Result<ExitCode> {
-    use std::io::{BufRead, Write};
-    let name = file.map_or("<stdin>".to_string(), |f| f.display().to_string());
-    let input: Box<dyn BufRead> = match file {
-        Some(f) => Box::new(std::io::BufReader::new(std::fs::File::open(f).with_context(|| format!("reading {}", f.display()))?)),
-        None => Box::new(std::io::stdin().lock()),
-    };
-    let mut out = std::io::BufWriter::new(std::io::stdout().lock());
-    for (i, line) in input.lines().enumerate() {
-        let line = line.with_context(|| format!("{name}:{}", i + 1))?;
-        let caption = if line.trim_start().starts_with('{') {
-            let value: serde_json::Value = serde_json::from_str(&line).with_context(|| format!("{name}:{}: not JSON", i + 1))?;
-            match value.get("caption").and_then(|c| c.as_str()) {
-                Some(c) => c.to_string(),
-                None => bail!("{name}:{}: a JSON line needs a string field `caption`", i + 1),
-            }
-        } else {
-            line
-        };
-        let parsed = rlmflow_parser::parse(&caption);
-        for warning in &parsed.warnings {
-            eprintln!("{name}:{}: warning: {warning}", i + 1);
-        }
-        if let Err(e) = writeln!(out, "{}", parsed.grid.to_json()) {
-            return quiet_on_closed_pipe(e);
-        }
-    }
-    out.flush().map_or_else(quiet_on_closed_pipe, |()| Ok(ExitCode::SUCCESS))
-}
-
-/// A reader that stops early (`rlmflow parse ... | head`) is not an error.
-fn quiet_on_closed_pipe(e: std::io::Error) -> anyhow::Result<ExitCode> {
-    if e.kind() == std::io::ErrorKind::BrokenPipe { Ok(ExitCode::SUCCESS) } else { Err(e.into()) }
 }

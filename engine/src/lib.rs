@@ -21,49 +21,10 @@ mod ui;
 
 #[cfg(test)]
 mod tests {
-    use std::collections::{BTreeMap, BTreeSet};
-
-    /// The engine's modules form a DAG: no module reaches back to one that uses it (each
-    /// `crate::<module>` a file names is an arrow).
+    /// The engine's modules form a DAG: no module reaches back to one that uses it.
     #[test]
     fn the_engines_modules_import_one_another_without_a_cycle() {
-        let src = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
-        let mut arrows: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
-        let mut files = vec![src.clone()];
-        while let Some(path) = files.pop() {
-            if path.is_dir() {
-                files.extend(std::fs::read_dir(&path).unwrap().map(|e| e.unwrap().path()));
-                continue;
-            }
-            let module =
-                path.strip_prefix(&src).unwrap().components().next().unwrap().as_os_str().to_string_lossy().trim_end_matches(".rs").to_owned();
-            if module == "lib" {
-                continue;
-            }
-            let text = std::fs::read_to_string(&path).unwrap();
-            let used = text
-                .match_indices("crate::")
-                .map(|(i, _)| text[i + 7..].chars().take_while(|c| c.is_ascii_lowercase() || *c == '_').collect::<String>());
-            arrows.entry(module.clone()).or_default().extend(used.filter(|m| !m.is_empty() && *m != module));
-        }
-        // Depth-first: a module met again while still on the path closes a cycle.
-        fn visit(m: &str, arrows: &BTreeMap<String, BTreeSet<String>>, path: &mut Vec<String>, done: &mut BTreeSet<String>) {
-            if let Some(at) = path.iter().position(|p| p == m) {
-                panic!("a module cycle: {} -> {m}", path[at..].join(" -> "));
-            }
-            if !done.insert(m.to_owned()) {
-                return;
-            }
-            path.push(m.to_owned());
-            for next in arrows.get(m).into_iter().flatten() {
-                visit(next, arrows, path, done);
-            }
-            path.pop();
-        }
-        let mut done = BTreeSet::new();
-        for module in arrows.keys() {
-            visit(module, &arrows, &mut Vec::new(), &mut done);
-        }
-        assert!(arrows.len() >= 10, "every module read: {arrows:?}");
+        let modules = rlmflow_test_support::modules::assert_acyclic(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src"));
+        assert!(modules >= 10, "every module read: {modules}");
     }
 }

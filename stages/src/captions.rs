@@ -14,7 +14,7 @@ use std::path::Path;
 use anyhow::bail;
 use serde::{Deserialize, Serialize};
 
-use crate::labels::Split;
+use crate::identity::Split;
 
 pub const SUMMARY: &str = "captions.json";
 pub const LINES: &str = "captions.jsonl";

@@ -25,8 +25,6 @@ use std::path::Path;
 use anyhow::{Context as _, bail};
 use serde::{Deserialize, Serialize};
 
-use crate::labels::Split;
-
 /// Hex characters in an identity (128 bits).
 pub const ID_CHARS: usize = 32;
 
@@ -48,6 +46,43 @@ pub fn split_position(group: &str, split_seed: u64) -> f64 {
     let bytes: [u8; 8] = h.finalize().as_bytes()[..8].try_into().expect("8 bytes");
     // 53 bits: every value is exact in an f64.
     (u64::from_le_bytes(bytes) >> 11) as f64 / (1u64 << 53) as f64
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+/// Which side of the split a frame is on.
+pub enum Split {
+    Train,
+    Test,
+}
+
+impl Split {
+    pub fn name(self) -> &'static str {
+        match self {
+            Split::Train => "train",
+            Split::Test => "test",
+        }
+    }
+}
+
+/// What the split rule splits: a sequence's frames together, or each frame on its own.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SplitBy {
+    /// A sequence's frames share one split (a frame outside any sequence is its own group).
+    Episode,
+    /// Each frame is split on its own (near-duplicate neighbours then straddle the split).
+    Frame,
+}
+
+impl SplitBy {
+    /// The group a frame with this identity and episode is split with.
+    pub fn group<'a>(self, id: &'a str, episode: Option<&'a str>) -> &'a str {
+        match self {
+            SplitBy::Episode => episode.unwrap_or(id),
+            SplitBy::Frame => id,
+        }
+    }
 }
 
 /// The split of a group (see the module doc).

@@ -20,28 +20,13 @@ use anyhow::{Context as _, bail};
 use serde::{Deserialize, Serialize};
 
 use crate::grid::{CELLS, Grid, GridRule};
+use crate::identity::{FrameSet, Split, SplitBy};
 use crate::npy::Npy;
 
 pub const SUMMARY: &str = "labels.json";
 pub const LINES: &str = "labels.jsonl";
 pub const MASKS: &str = "masks.npy";
 pub const FORMAT: u32 = 2;
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Split {
-    Train,
-    Test,
-}
-
-impl Split {
-    pub fn name(self) -> &'static str {
-        match self {
-            Split::Train => "train",
-            Split::Test => "test",
-        }
-    }
-}
 
 /// The Gaussian blob drawn per vehicle, in pixels of the image it is drawn on.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -65,7 +50,7 @@ pub struct SplitSummary {
     /// The rule, in words.
     pub rule: String,
     /// `episode` (a sequence's frames share a split) or `frame`.
-    pub by: String,
+    pub by: SplitBy,
     pub test_fraction: f64,
     pub seed: u64,
     /// Split groups (episodes, and frames without one) and those held out.
@@ -192,22 +177,20 @@ impl Labels {
     }
 
     /// The identities of the frames in `split`.
-    pub fn ids(&self, split: Split) -> crate::identity::FrameSet {
+    pub fn ids(&self, split: Split) -> FrameSet {
         self.split(split).map(|f| f.id.clone()).collect()
     }
 
     /// The training split cut into the frames to fit on and a validation slice of about `share`
     /// of its split groups (at least one): the groups whose split position lies highest, so an
     /// episode is never cut and the slice depends on the frames alone, not their order.
-    pub fn train_validation(&self, share: f64) -> (Vec<&FrameLabel>, Vec<&FrameLabel>) {
-        let group = |f: &FrameLabel| -> String {
-            if self.summary.split.by == "episode" { f.episode.clone().unwrap_or_else(|| f.id.clone()) } else { f.id.clone() }
-        };
-        let groups: std::collections::BTreeSet<String> = self.split(Split::Train).map(group).collect();
-        let mut ranked: Vec<(f64, &String)> = groups.iter().map(|g| (crate::identity::split_position(g, self.summary.split.seed), g)).collect();
+    pub fn train_validation<'a>(&'a self, share: f64) -> (Vec<&'a FrameLabel>, Vec<&'a FrameLabel>) {
+        let group = |f: &'a FrameLabel| self.summary.split.by.group(&f.id, f.episode.as_deref());
+        let groups: std::collections::BTreeSet<&str> = self.split(Split::Train).map(group).collect();
+        let mut ranked: Vec<(f64, &str)> = groups.iter().map(|g| (crate::identity::split_position(g, self.summary.split.seed), *g)).collect();
         ranked.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(b.1)));
         let take = ((groups.len() as f64 * share).round() as usize).clamp(usize::from(!groups.is_empty()), groups.len().saturating_sub(1).max(1));
-        let held: std::collections::BTreeSet<&String> = ranked.iter().take(take).map(|(_, g)| *g).collect();
-        self.split(Split::Train).partition(|f| !held.contains(&group(f)))
+        let held: std::collections::BTreeSet<&str> = ranked.iter().take(take).map(|(_, g)| *g).collect();
+        self.split(Split::Train).partition(|f| !held.contains(group(f)))
     }
 }

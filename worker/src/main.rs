@@ -22,5 +22,5 @@ fn registry() -> Registry {
 }
 
 fn main() -> ExitCode {
-    rlmflow_engine::cli::main(registry())
+    rlmflow_engine::cli::main(registry(), &[])
 }

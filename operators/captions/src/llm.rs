@@ -735,7 +735,8 @@ mod tests {
     use rlmflow_stages::{Device, Input};
 
     use crate::ConcatCaptions;
-    use rlmflow_stages::labels::{self, MaskGeometry, Split};
+    use rlmflow_stages::identity::{Split, SplitBy};
+    use rlmflow_stages::labels::{self, MaskGeometry};
     use rlmflow_stages::npy::{Dtype, NpyWriter};
 
     use super::*;
@@ -922,7 +923,7 @@ mod tests {
             test: 0,
             split: labels::SplitSummary {
                 rule: String::new(),
-                by: "frame".into(),
+                by: SplitBy::Frame,
                 test_fraction: 0.0,
                 seed: 0,
                 groups: frames,

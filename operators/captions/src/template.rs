@@ -372,12 +372,12 @@ mod tests {
     fn captions_are_deterministic_per_seed_and_frame() {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         let label =
-            FrameLabel { frame: 9, id: "9".repeat(32), episode: None, split: rlmflow_stages::labels::Split::Test, grid: random_grid(&mut rng) };
+            FrameLabel { frame: 9, id: "9".repeat(32), episode: None, split: rlmflow_stages::identity::Split::Test, grid: random_grid(&mut rng) };
         let s = TemplateSettings::default();
         let a = frame_captions(&s, &label, 1);
         assert_eq!(a.len(), 5);
         assert_eq!(a, frame_captions(&s, &label, 1));
         assert_ne!(a, frame_captions(&s, &label, 2));
-        assert!(a.iter().all(|c| c.frame == 9 && c.split == rlmflow_stages::labels::Split::Test));
+        assert!(a.iter().all(|c| c.frame == 9 && c.split == rlmflow_stages::identity::Split::Test));
     }
 }

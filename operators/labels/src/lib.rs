@@ -28,8 +28,8 @@
 
 use anyhow::Context as _;
 use rlmflow_stages::grid::{CELLS, Cell, Grid, GridRule, MAX_RANGE_M};
-use rlmflow_stages::identity::split_of;
-use rlmflow_stages::labels::{self, FrameLabel, MaskGeometry, NearestNeighbour, Split, SplitSummary, Stratum};
+use rlmflow_stages::identity::{Split, SplitBy, split_of};
+use rlmflow_stages::labels::{self, FrameLabel, MaskGeometry, NearestNeighbour, SplitSummary, Stratum};
 use rlmflow_stages::npy::{Dtype, NpyWriter};
 use rlmflow_stages::scenes::{Frame, Scenes};
 use rlmflow_stages::{Context, InputOutlines, Operator, OperatorSpec, Outcome, Outline, SettingError, Settings};
@@ -52,22 +52,6 @@ pub struct EgoGridSettings {
     /// measured).
     pub similarity_sample: usize,
     pub mask: MaskSettings,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum SplitBy {
-    Episode,
-    Frame,
-}
-
-impl SplitBy {
-    fn name(self) -> &'static str {
-        match self {
-            SplitBy::Episode => "episode",
-            SplitBy::Frame => "frame",
-        }
-    }
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -190,12 +174,7 @@ impl Operator for EgoGrid {
         masks.finish()?;
         progress.finish();
 
-        let group = |(id, episode): &(String, Option<String>)| -> String {
-            match s.split_by {
-                SplitBy::Episode => episode.clone().unwrap_or_else(|| id.clone()),
-                SplitBy::Frame => id.clone(),
-            }
-        };
+        let group = |(id, episode): &(String, Option<String>)| s.split_by.group(id, episode.as_deref()).to_owned();
         let splits: Vec<Split> = identities.iter().map(|f| split_of(&group(f), s.test_fraction, s.split_seed)).collect();
         let vehicles: Vec<u32> = grids.iter().map(Grid::vehicles).collect();
         let mut cells = [0u64; CELLS];
@@ -237,7 +216,7 @@ impl Operator for EgoGrid {
                 "a frame's {} is held out when BLAKE3(\"rlmflow split v1\", split_seed, its identity) as a number in [0, 1) is below test_fraction; stratification by vehicle count holds in expectation",
                 if s.split_by == SplitBy::Episode { "episode (or the frame, outside sequences)" } else { "frame" }
             ),
-            by: s.split_by.name().into(),
+            by: s.split_by,
             test_fraction: s.test_fraction,
             seed: s.split_seed,
             groups: groups.len() as u64,

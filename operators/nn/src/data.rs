@@ -8,7 +8,8 @@
 use anyhow::{Context as _, bail};
 use rlmflow_stages::Context;
 use rlmflow_stages::grid::CELLS;
-use rlmflow_stages::labels::{FrameLabel, Labels, Split};
+use rlmflow_stages::identity::Split;
+use rlmflow_stages::labels::{FrameLabel, Labels};
 use rlmflow_stages::scenes::Scenes;
 use rlmflow_stages::tokens::Tokens;
 use tch::{Kind, Tensor};

@@ -13,7 +13,7 @@ use std::path::Path;
 use anyhow::{Context as _, anyhow};
 use rlmflow_stages::captions::Captions;
 use rlmflow_stages::identity::FrameSet;
-use rlmflow_stages::labels::Split;
+use rlmflow_stages::identity::Split;
 use rlmflow_stages::npy::{Dtype, NpyWriter};
 use rlmflow_stages::tokens::{self, Special};
 use rlmflow_stages::{Context, InputOutlines, Operator, OperatorSpec, Outcome, Outline, Resources, SettingError, Settings};

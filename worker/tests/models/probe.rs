@@ -7,7 +7,8 @@ use std::path::{Path, PathBuf};
 
 use crate::common::rlmflow;
 use rlmflow_stages::grid::CELLS;
-use rlmflow_stages::labels::{Labels, Split};
+use rlmflow_stages::identity::Split;
+use rlmflow_stages::labels::Labels;
 use rlmflow_stages::probe::score;
 
 const LINEAR: &str = r#"

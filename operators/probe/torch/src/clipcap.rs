@@ -15,7 +15,7 @@ use rlmflow_nn::tch::{self, Tensor, nn};
 use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
 use rlmflow_probe::{ClipcapSettings, Decode};
 use rlmflow_stages::grid::{CELLS, Grid};
-use rlmflow_stages::labels::Split;
+use rlmflow_stages::identity::Split;
 use rlmflow_stages::probe::{self, Row, Scores, Summary, score};
 use rlmflow_stages::tokens;
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settings};

@@ -12,7 +12,7 @@ use rlmflow_nn::data::{Frames, Need, Splits};
 use rlmflow_nn::tch::{self, Kind, Tensor};
 use rlmflow_probe::{LinearSettings, Source};
 use rlmflow_stages::grid::CELLS;
-use rlmflow_stages::labels::Split;
+use rlmflow_stages::identity::Split;
 use rlmflow_stages::probe::{self, Row, Summary, score};
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settings};
 use serde_json::json;

@@ -16,7 +16,7 @@ use rlmflow_nn::segment::{Pup as PupHead, UNet, dice_bce_loss};
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
 use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
 use rlmflow_segment::{PupSettings, TOKEN_CACHE_BYTES, UnetSettings, pup_widths};
-use rlmflow_stages::labels::Split;
+use rlmflow_stages::identity::Split;
 use rlmflow_stages::npy::{Dtype, NpyWriter};
 use rlmflow_stages::segment::{self, PixelCounts, SegMetrics};
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settings, Training};
