@@ -9,7 +9,8 @@ use rlmflow_cache::{Digest, Store, canonical_json};
 use rlmflow_stages::{Device, ItemCount, Registry};
 
 use crate::config::{self, ConfigError, Pipeline};
-use crate::plan::{Freshness, assess, plan};
+use crate::plan::{Freshness, assess};
+use crate::preflight::{Preflight, planned};
 use crate::run::{RunOptions, print_status, run};
 use crate::ui::{Ui, print_store_warnings};
 
@@ -333,15 +334,6 @@ fn pull(
     Ok((pulled, bytes))
 }
 
-/// The pipeline's plan for a run on `device`, with the content of every tracked path (recorded
-/// in `store`, if any).
-fn planned<'p>(pipeline: &'p Pipeline, store: Option<&Store>, device: Device) -> anyhow::Result<crate::plan::Plan<'p>> {
-    let mut plan = plan(pipeline);
-    plan.platform = crate::platform::Platform::detect(device);
-    plan.fingerprint(store)?;
-    Ok(plan)
-}
-
 fn store_root(pipeline: &Pipeline, arg: &StoreArg) -> PathBuf {
     arg.cache.clone().unwrap_or_else(|| pipeline.cache.clone())
 }
@@ -355,18 +347,11 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                     .with_context(|| format!("unknown executor `{name}` for --executor; valid: {}", config::Executor::NAMES.join(", ")))?;
             }
             let root = store_root(&p, &store);
-            let existing = Store::open_existing(&root)?;
-            let plan = planned(&p, existing.as_ref(), device)?;
-            let selected = plan.select(&only)?;
-            let states = assess(&plan, registry, existing.as_ref())?;
-            let runs = crate::run::will_run(&states, &selected);
-            let fits = crate::footprint::fits(&plan, registry, device, &runs);
+            let pre = Preflight::new(&p, registry, &root, device, &only)?;
             if dry_run {
-                print_status(&plan, &states, &selected, &fits, None, json);
-                print_store_warnings(existing.as_ref());
-                if p.executor == config::Executor::Local {
-                    crate::footprint::refuse_oversized(&plan, &fits)?;
-                }
+                print_status(&pre.plan, &pre.states, &pre.selected, &pre.fits, None, json);
+                print_store_warnings(pre.store.as_ref());
+                pre.refuse_oversized()?;
                 return Ok(ExitCode::SUCCESS);
             }
             let jobs = jobs
@@ -375,12 +360,9 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                     config::Executor::HyperQueue => p.hyperqueue.workers * p.hyperqueue.cores(),
                 })
                 .max(1);
-            if p.executor == config::Executor::Local && !crate::dispatch::Dispatch::cuda_possible(&crate::dispatch::Local::new(device)) {
-                crate::run::refuse_cuda_stages(&plan, registry, &runs)?;
-            }
-            if p.executor == config::Executor::Local {
-                crate::footprint::refuse_oversized(&plan, &fits)?;
-            }
+            pre.refuse_cuda_stages(registry, device)?;
+            pre.refuse_oversized()?;
+            let (plan, selected) = (pre.plan, pre.selected);
             let store = Store::open(&root)?;
             let opts = RunOptions { jobs, json, device, verify_inputs, remote: remote.settings(&p)? };
             if !check_determinism.is_empty() {
@@ -394,17 +376,13 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         }
         Command::Status { pipeline, json, store, remote } => {
             let p = config::load(&pipeline, registry)?;
-            let store = Store::open_existing(&store_root(&p, &store))?;
-            let plan = planned(&p, store.as_ref(), Device::Cpu)?;
-            let all = vec![true; plan.instances.len()];
-            let states = assess(&plan, registry, store.as_ref())?;
-            let fits = crate::footprint::fits(&plan, registry, rlmflow_stages::Device::Auto, &crate::run::will_run(&states, &all));
+            let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &[])?;
             let remote = remote.settings(&p)?.map(|r| open_remote(&r)).transpose()?;
-            print_status(&plan, &states, &all, &fits, remote.as_ref(), json);
+            print_status(&pre.plan, &pre.states, &pre.selected, &pre.fits, remote.as_ref(), json);
             if let Some(why) = remote.as_ref().and_then(|r| r.down()) {
                 eprintln!("warning: remote cache {} not asked: {why}", remote.as_ref().map_or("", |r| r.url()));
             }
-            print_store_warnings(store.as_ref());
+            print_store_warnings(pre.store.as_ref());
             Ok(ExitCode::SUCCESS)
         }
         Command::Push(Transfer { pipeline, only, store, remote }) => {

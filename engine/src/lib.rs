@@ -15,6 +15,7 @@ pub mod exec;
 pub mod footprint;
 pub mod plan;
 pub mod platform;
+pub mod preflight;
 pub mod protocol;
 pub mod run;
 mod ui;

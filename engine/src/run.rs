@@ -173,39 +173,6 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
     Ok(ex.summary())
 }
 
-/// Which instances are selected and will run (not reused from the store).
-pub fn will_run(states: &[Freshness], selected: &[bool]) -> Vec<bool> {
-    states.iter().zip(selected).map(|(state, &s)| s && !matches!(state, Freshness::Cached(_))).collect()
-}
-
-/// Refuses a local run, before anything starts, in which a stage that must run needs a CUDA
-/// device this machine does not have: a config error with the stage's line and what is valid.
-pub fn refuse_cuda_stages(plan: &Plan, registry: &Registry, runs: &[bool]) -> anyhow::Result<()> {
-    let mut stages = std::collections::BTreeSet::new();
-    for (i, inst) in plan.instances.iter().enumerate() {
-        let op = registry.get(&inst.operator).expect("validated operator");
-        if runs[i] && op.resources(&inst.settings).needs_cuda {
-            stages.insert(inst.stage);
-        }
-    }
-    if stages.is_empty() {
-        return Ok(());
-    }
-    let diagnostics = stages
-        .into_iter()
-        .map(|s| {
-            let stage = &plan.pipeline.stages[s];
-            crate::config::Diagnostic {
-                line: stage.line,
-                key: format!("stages.{}", stage.name),
-                message: "needs a CUDA device (its `device` names one), and this machine has none: no CUDA driver device nodes, and the run did not say `--device cuda`".into(),
-                help: Some("valid here: device = \"auto\" (CUDA where there is one) or \"cpu\"".into()),
-            }
-        })
-        .collect();
-    Err(crate::config::ConfigError { file: plan.pipeline.file.clone(), diagnostics }.into())
-}
-
 /// The pipeline's dispatcher. An existing HyperQueue server is checked here, before anything runs.
 fn dispatcher(plan: &Plan, store: &Store, run: &str, device: Device, remote: Option<&RemoteSettings>, ui: &Ui) -> anyhow::Result<Box<dyn Dispatch>> {
     match plan.pipeline.executor {

@@ -1,8 +1,11 @@
 //! `[pipeline.hyperqueue]`: the cluster a run's actions go to.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+use super::checker::Checker;
 
 /// `[pipeline.hyperqueue]`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -73,5 +76,36 @@ impl HyperQueueSettings {
 
     pub fn cores(&self) -> usize {
         if self.cores > 0 { self.cores } else { std::thread::available_parallelism().map_or(1, |n| n.get()) }
+    }
+}
+
+impl Checker {
+    /// `[pipeline.hyperqueue]`, its `server_dir` made absolute against the pipeline file.
+    pub(super) fn hyperqueue(&mut self, file: &Path, table: Option<&Value>) -> HyperQueueSettings {
+        let Some(table) = table else { return HyperQueueSettings::default() };
+        let parsed = serde_path_to_error::deserialize::<_, HyperQueueSettings>(table.clone());
+        let mut settings = match parsed {
+            Ok(s) => s,
+            Err(e) => {
+                let inner = e.path().to_string();
+                let key = if inner == "." { "pipeline.hyperqueue".to_owned() } else { format!("pipeline.hyperqueue.{inner}") };
+                let message = e.into_inner().to_string();
+                let key = match message.strip_prefix("unknown field `").and_then(|m| m.split('`').next()) {
+                    Some(field) => format!("pipeline.hyperqueue.{field}"),
+                    None => key,
+                };
+                self.error(self.line(&key), &key, message, None);
+                return HyperQueueSettings::default();
+            }
+        };
+        if let Err((key, message)) = settings.check() {
+            let key = format!("pipeline.hyperqueue.{key}");
+            self.error(self.line(&key), &key, message, None);
+        }
+        if let Some(dir) = &settings.server_dir {
+            let dir = file.parent().unwrap_or(Path::new(".")).join(dir);
+            settings.server_dir = Some(std::path::absolute(&dir).unwrap_or(dir));
+        }
+        settings
     }
 }

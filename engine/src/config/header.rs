@@ -1,0 +1,173 @@
+//! The `[pipeline]` header: the remote cache, the executor, seeds.
+
+use std::path::Path;
+
+use anyhow::Context as _;
+use serde_json::{Map, Value};
+
+use super::checker::Checker;
+
+/// Where results are shared between machines (`rlmflow_remote`); `--remote` and `--push`
+/// override the file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RemoteSettings {
+    /// `s3://bucket/prefix`, `https://host/path` or `file:///path`; a relative `file://` path is
+    /// relative to the pipeline file.
+    pub url: Option<String>,
+    /// Upload computed results (trusted writers only: CI on the main branch).
+    pub push: bool,
+    /// The most one request may take before the remote is given up for the run.
+    pub timeout_s: f64,
+    /// `remote_trusted_keys`: public keys (`NAME:BASE64`) whose signatures make a remote record
+    /// usable; empty: every record is used, unverified.
+    pub trusted_keys: Vec<String>,
+}
+
+/// The environment variable naming the secret key file a pushing run signs its records with
+/// (never a pipeline setting: the file is shared, the key is not).
+pub const SIGNING_KEY_VARIABLE: &str = "RLMFLOW_SIGNING_KEY";
+
+impl RemoteSettings {
+    /// The remote these settings name, with its trusted keys and, when pushing, the signing key
+    /// of [`SIGNING_KEY_VARIABLE`].
+    pub fn open(&self) -> anyhow::Result<rlmflow_remote::Remote> {
+        let trusted = rlmflow_remote::signing::TrustedKeys::parse(&self.trusted_keys).context("pipeline.remote_trusted_keys")?;
+        let signer = match std::env::var_os(SIGNING_KEY_VARIABLE).filter(|_| self.push) {
+            None => None,
+            Some(file) => {
+                let text = std::fs::read_to_string(&file).with_context(|| format!("{SIGNING_KEY_VARIABLE}: reading {}", file.to_string_lossy()))?;
+                Some(
+                    rlmflow_remote::signing::SigningKey::parse(&text)
+                        .with_context(|| format!("{SIGNING_KEY_VARIABLE} ({})", file.to_string_lossy()))?,
+                )
+            }
+        };
+        Ok(self.open_transport()?.with_trust(trusted, signer))
+    }
+
+    /// The remote as a transport between this engine and its own cluster tasks (their inputs and
+    /// results): no signatures asked or made.
+    pub fn open_transport(&self) -> anyhow::Result<rlmflow_remote::Remote> {
+        let url = self.url.as_deref().ok_or_else(|| anyhow::anyhow!("no remote cache URL"))?;
+        rlmflow_remote::Remote::open(url, self.push, std::time::Duration::from_secs_f64(self.timeout_s))
+    }
+}
+
+impl Default for RemoteSettings {
+    fn default() -> Self {
+        RemoteSettings { url: None, push: false, timeout_s: 10.0, trusted_keys: Vec::new() }
+    }
+}
+
+const REMOTE_SCHEMES: &[&str] = &["s3://", "http://", "https://", "file://"];
+
+/// A remote URL with a relative `file://` path made absolute against `dir` (`file://` alone
+/// names no directory and stays as it is, for [`rlmflow_remote::check_url`] to refuse).
+pub fn resolve_remote(url: &str, dir: &Path) -> String {
+    match url.strip_prefix("file://") {
+        Some(path) if !path.is_empty() && !path.starts_with('/') => {
+            let path = dir.join(path);
+            format!("file://{}", std::path::absolute(&path).unwrap_or(path).display())
+        }
+        _ => url.to_owned(),
+    }
+}
+
+/// `[pipeline] executor`: where actions run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Executor {
+    /// Child processes of the engine.
+    Local,
+    /// Tasks of a HyperQueue server (`[pipeline.hyperqueue]`).
+    HyperQueue,
+}
+
+impl Executor {
+    pub const NAMES: &[&str] = &["local", "hyperqueue"];
+
+    pub fn parse(name: &str) -> Option<Executor> {
+        match name {
+            "local" => Some(Executor::Local),
+            "hyperqueue" => Some(Executor::HyperQueue),
+            _ => None,
+        }
+    }
+}
+
+pub(super) const PIPELINE_KEYS: &[&str] = &[
+    "name",
+    "seed",
+    "seeds",
+    "cache",
+    "executor",
+    "hyperqueue",
+    "remote",
+    "remote_push",
+    "remote_timeout_s",
+    "remote_trusted_keys",
+    "max_instances",
+];
+/// The most seeds a pipeline may list.
+const MAX_SEEDS: usize = 64;
+
+impl Checker {
+    /// `remote`, `remote_push`, `remote_timeout_s` of `[pipeline]`.
+    pub(super) fn remote(&mut self, file: &Path, header: &Map<String, Value>) -> RemoteSettings {
+        let mut remote = RemoteSettings { url: self.string(header, "pipeline", "remote"), ..RemoteSettings::default() };
+        if let Some(url) = remote.url.clone() {
+            let resolved = resolve_remote(&url, file.parent().unwrap_or(Path::new(".")));
+            let help = "e.g. remote = \"s3://bucket/rlmflow\", \"https://cache.example/rlmflow\" (WebDAV) or \"file:///srv/rlmflow\"";
+            if !REMOTE_SCHEMES.iter().any(|scheme| url.starts_with(scheme)) {
+                self.error(self.line("pipeline.remote"), "pipeline.remote", format!("`{url}` is not a remote URL"), Some(help.into()));
+            } else if let Err(problem) = rlmflow_remote::check_url(&resolved) {
+                self.error(self.line("pipeline.remote"), "pipeline.remote", problem, Some(help.into()));
+            }
+            remote.url = Some(resolved);
+        }
+        match header.get("remote_push") {
+            None => {}
+            Some(Value::Bool(push)) => remote.push = *push,
+            Some(other) => self.error(self.line("pipeline.remote_push"), "pipeline.remote_push", format!("must be true or false, not {other}"), None),
+        }
+        if let Some(value) = header.get("remote_trusted_keys") {
+            let key = "pipeline.remote_trusted_keys";
+            let keys: Option<Vec<String>> = value.as_array().and_then(|items| items.iter().map(|v| v.as_str().map(str::to_owned)).collect());
+            match keys.map(|k| rlmflow_remote::signing::TrustedKeys::parse(&k).map(|_| k)) {
+                Some(Ok(keys)) => remote.trusted_keys = keys,
+                Some(Err(e)) => {
+                    self.error(self.line(key), key, format!("{e:#}"), Some("a key is NAME:BASE64, as `rlmflow key generate NAME` prints it".into()))
+                }
+                None => self.error(self.line(key), key, format!("must be a list of public keys (strings), not {value}"), None),
+            }
+        }
+        match header.get("remote_timeout_s").map(|v| v.as_f64().filter(|t| (0.1..=3600.0).contains(t))) {
+            None => {}
+            Some(Some(t)) => remote.timeout_s = t,
+            Some(None) => {
+                let msg = format!("must be a number of seconds in 0.1..=3600, not {}", header["remote_timeout_s"]);
+                self.error(self.line("pipeline.remote_timeout_s"), "pipeline.remote_timeout_s", msg, None);
+            }
+        }
+        remote
+    }
+
+    /// `seeds = [1, 2, 3]`: distinct non-negative integers, at most [`MAX_SEEDS`].
+    pub(super) fn seeds(&mut self, header: &Map<String, Value>) -> Vec<u64> {
+        let key = "pipeline.seeds";
+        let Some(value) = header.get("seeds") else { return Vec::new() };
+        let seeds: Option<Vec<u64>> = value.as_array().and_then(|items| items.iter().map(Value::as_u64).collect());
+        let problem = match &seeds {
+            None => Some(format!("must be a list of non-negative integers, not {value}")),
+            Some(s) if s.is_empty() || s.len() > MAX_SEEDS => Some(format!("must list 1 to {MAX_SEEDS} seeds, not {}", s.len())),
+            Some(s) if (1..s.len()).any(|i| s[..i].contains(&s[i])) => Some("lists a seed twice".into()),
+            Some(_) => None,
+        };
+        match problem {
+            Some(msg) => {
+                self.error(self.line(key), key, msg, Some("e.g. seeds = [1, 2, 3]".into()));
+                Vec::new()
+            }
+            None => seeds.unwrap_or_default(),
+        }
+    }
+}
