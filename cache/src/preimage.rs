@@ -36,7 +36,8 @@ pub struct Preimage {
 }
 
 /// One field-level difference between two preimages: why an action is not fresh.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
+#[serde(tag = "change", rename_all = "snake_case")]
 pub enum Change {
     Operator { old: String, new: String },
     OperatorVersion { old: u32, new: u32 },

@@ -11,8 +11,8 @@ use rlmflow_stages::{Device, ItemCount, Registry};
 use crate::config::{self, ConfigError, Pipeline};
 use crate::plan::{Freshness, assess};
 use crate::preflight::{Preflight, planned};
-use crate::run::{RunOptions, print_status, run};
-use crate::ui::{Ui, print_store_warnings};
+use crate::run::{RunOptions, run};
+use crate::ui::{Ui, print_status, print_store_warnings};
 
 #[derive(Parser)]
 #[command(name = "rlmflow", version, about = "Declarative data-and-training pipelines for radar-language research")]
@@ -646,10 +646,10 @@ fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> any
                 }
                 println!("  preimage:\n{}", indent(&serde_json::to_string_pretty(preimage)?));
             }
-            Freshness::Pending { reason } => {
-                println!("  pending: {reason}; its key is known once that input is");
+            Freshness::Pending(waiting) => {
+                println!("  pending: {waiting}; its key is known once that input is");
                 if let (Some(s), Some(old)) = (&store, last.get(label))
-                    && let Some(before) = crate::plan::previous_preimage(s, old)?
+                    && let Some(before) = crate::reason::previous_preimage(s, old)?
                 {
                     let unknown = rlmflow_cache::Digest([0; 32]);
                     let outputs: Vec<Option<Digest>> =
@@ -657,7 +657,7 @@ fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> any
                     let now = plan.preimage(i, registry, &outputs).unwrap();
                     for change in now.diff(&before) {
                         if !matches!(&change, rlmflow_cache::Change::InputChanged { .. }) {
-                            println!("    {}", crate::plan::describe(&p.stages[plan.instances[i].stage].name, &change));
+                            println!("    {}", crate::ui::describe(&p.stages[plan.instances[i].stage].name, &change));
                         }
                     }
                 }
@@ -693,8 +693,8 @@ fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow
                     platform.to_string().lines().for_each(|line| println!("  {line}"));
                 }
             }
-            (Freshness::Stale { reasons, .. }, _) => println!("{label}: not computed yet ({})", reasons.join("; ")),
-            (Freshness::Pending { reason }, _) => println!("{label}: not computed yet ({reason})"),
+            (Freshness::Stale { reasons, .. }, _) => println!("{label}: not computed yet ({})", crate::ui::words(reasons)),
+            (Freshness::Pending(waiting), _) => println!("{label}: not computed yet ({waiting})"),
             (Freshness::Cached(_), None) => unreachable!("cached without a store"),
         }
     }

@@ -47,7 +47,7 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
         let (key, preimage, stored) = match &states[i] {
             Freshness::Cached(r) => (r.key, r.preimage.clone(), Some(r.output)),
             Freshness::Stale { key, preimage, .. } => (*key, (**preimage).clone(), None),
-            Freshness::Pending { reason } => bail!("{}: {reason}", inst.label),
+            Freshness::Pending(waiting) => bail!("{}: {waiting}", inst.label),
         };
         store.write_request(&plan.request(i, key, preimage))?;
         plan.snapshot_tracked(i, store)?;

@@ -17,6 +17,7 @@ pub mod plan;
 pub mod platform;
 pub mod preflight;
 pub mod protocol;
+pub mod reason;
 pub mod run;
 mod ui;
 

@@ -5,12 +5,13 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::PathBuf;
 
 use anyhow::{Context as _, bail};
-use rlmflow_cache::{ActionRecord, ActionRequest, Change, Digest, InputDigest, Preimage, Store};
+use rlmflow_cache::{ActionRecord, ActionRequest, Digest, InputDigest, Preimage, Store};
 use rlmflow_stages::{Arity, InstanceId, Part, Registry};
 use serde_json::Value;
 
 use crate::config::{Pipeline, SEED_DIMENSION, suggest};
 use crate::platform::Platform;
+use crate::reason::{RunReason, Waiting, why};
 
 /// One stage run for one combination of upstream variants; a sharded stage's instance is its
 /// parts (`scenes#0`, `scenes#1`, ...) and the merge of them (`scenes`), which consumers read.
@@ -290,13 +291,11 @@ pub enum Freshness {
     /// Its key is known and not in the store.
     Stale {
         key: Digest,
-        reasons: Vec<String>,
+        reasons: Vec<RunReason>,
         preimage: Box<Preimage>,
     },
     /// An input will be recomputed first, so its key is not known yet.
-    Pending {
-        reason: String,
-    },
+    Pending(Waiting),
 }
 
 /// The freshness of every instance, against `store` (`None`: nothing was ever run).
@@ -325,77 +324,18 @@ pub fn assess(plan: &Plan, registry: &Registry, store: Option<&Store>) -> anyhow
                 }
             }
             None => {
-                let waiting = inst
+                let (slot, provider) = inst
                     .inputs
                     .iter()
                     .flat_map(|input| input.providers.iter().map(move |&p| (input.slot, p)))
                     .find(|&(_, p)| outputs[p].is_none())
-                    .map(|(slot, p)| format!("input {slot} ({}) will be recomputed first", plan.instances[p].label));
-                Freshness::Pending { reason: waiting.unwrap_or_default() }
+                    .expect("a preimage is unknown only while an input's output is");
+                Freshness::Pending(Waiting { slot: slot.to_owned(), input: plan.instances[provider].label.clone() })
             }
         };
         states.push(state);
     }
     Ok(states)
-}
-
-/// Why an action with `key` is not in the store, compared with the stage's last run; `resumes`
-/// is what its operator resumes from when interrupted.
-pub fn why(store: Option<&Store>, last: Option<&Digest>, key: &Digest, now: &Preimage, stage: &str, resumes: &str) -> anyhow::Result<Vec<String>> {
-    let (Some(store), Some(last)) = (store, last) else {
-        return Ok(vec!["never run".into()]);
-    };
-    if last == key {
-        if store.record(key)?.is_some() {
-            return Ok(vec!["its output is gone (quarantined by verify, or collected)".into()]);
-        }
-        let failure = store.failure(key).map(|f| f.lines().next().unwrap_or_default().chars().take(200).collect::<String>());
-        return Ok(vec![match (failure, store.checkpoint_dir(key).is_dir()) {
-            (Some(failure), true) => format!("failed: {failure}; a rerun resumes from {resumes}"),
-            (Some(failure), false) => format!("failed: {failure}"),
-            (None, true) => format!("interrupted; resumes from {resumes}"),
-            (None, false) => "its last attempt did not finish".into(),
-        }]);
-    }
-    let Some(before) = previous_preimage(store, last)? else {
-        return Ok(vec!["changed since its last run (whose record was collected)".into()]);
-    };
-    let changes = now.diff(&before);
-    if changes.is_empty() {
-        return Ok(vec!["changed since its last run".into()]);
-    }
-    Ok(changes.iter().map(|c| describe(stage, c) + &changed_files(store, c, now, &before)).collect())
-}
-
-/// For a changed input that is a tracked path: `: a.npy, b.npy` (up to 5 of the files that
-/// differ), from the manifests the store keeps; empty otherwise.
-fn changed_files(store: &Store, change: &Change, now: &Preimage, before: &Preimage) -> String {
-    let Change::InputChanged { slot, label } = change else { return String::new() };
-    let digest = |p: &Preimage| p.inputs.iter().find(|i| &i.slot == slot && &i.label == label).map(|i| i.digest);
-    let (Some(new), Some(old)) = (digest(now), digest(before)) else { return String::new() };
-    match rlmflow_cache::external::changed_files(store, &old, &new) {
-        Some(files) if !files.is_empty() => {
-            let more = if files.len() > 5 { format!(" and {} more", files.len() - 5) } else { String::new() };
-            format!(": {}{more} changed", files.iter().take(5).cloned().collect::<Vec<_>>().join(", "))
-        }
-        _ => String::new(),
-    }
-}
-
-/// The preimage of an earlier action: from its record, or from its request if it never finished.
-pub fn previous_preimage(store: &Store, key: &Digest) -> anyhow::Result<Option<Preimage>> {
-    Ok(match store.record(key)? {
-        Some(r) => Some(r.preimage),
-        None => store.request(key)?.map(|r| r.preimage),
-    })
-}
-
-/// A change as `status` prints it: settings are prefixed with the stage (`pretrain.alpha ...`).
-pub fn describe(stage: &str, change: &Change) -> String {
-    match change {
-        Change::Setting { .. } => format!("{stage}.{change}"),
-        _ => change.to_string(),
-    }
 }
 
 #[cfg(test)]
@@ -707,28 +647,5 @@ operator = "od"
         let e = parse(Path::new("t.toml"), &SHARED_INPUT.replace("shards = 2", "shard_size = 2"), &r).unwrap_err().to_string();
         assert!(e.contains("stages.c.shard_size: `sc` splits the items of its `a` input, which are counted only when it runs"), "{e}");
         assert!(e.contains("use `shards = N`"), "{e}");
-    }
-
-    #[test]
-    fn an_interrupted_or_failed_action_says_which_and_what_it_resumes_from() {
-        let root = std::env::temp_dir().join(format!("rlmflow-why-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&root);
-        let store = Store::open(&root).unwrap();
-        let preimage =
-            Preimage { operator: "llm".into(), operator_version: 1, config: serde_json::json!({}), seed: 0, inputs: vec![], platform: None };
-        let key = preimage.key();
-        let reasons = |resumes: &str| why(Some(&store), Some(&key), &key, &preimage, "captions", resumes).unwrap();
-        assert_eq!(reasons("its checkpoint"), ["its last attempt did not finish"]);
-        std::fs::create_dir_all(store.checkpoint_dir(&key)).unwrap();
-        assert_eq!(
-            reasons("its response cache (the answers it already has)"),
-            ["interrupted; resumes from its response cache (the answers it already has)"]
-        );
-        assert_eq!(reasons("its checkpoint"), ["interrupted; resumes from its checkpoint"]);
-        store.write_failure(&key, "batch: larger than the training share\n(details)").unwrap();
-        assert_eq!(reasons("its checkpoint"), ["failed: batch: larger than the training share; a rerun resumes from its checkpoint"]);
-        std::fs::remove_dir_all(store.checkpoint_dir(&key)).unwrap();
-        assert_eq!(reasons("its checkpoint"), ["failed: batch: larger than the training share"]);
-        std::fs::remove_dir_all(&root).unwrap();
     }
 }

@@ -18,9 +18,9 @@ use serde_json::{Value, json};
 
 use crate::config::{Executor as ExecutorKind, RemoteSettings};
 use crate::dispatch::{Dispatch, Exit, Launch, Local, Report};
-use crate::footprint::Fit;
-use crate::plan::{Freshness, Plan, why};
+use crate::plan::Plan;
 use crate::protocol::{EXIT_CORRUPT_INPUT, Message};
+use crate::reason::why;
 use crate::ui::Ui;
 
 #[derive(Clone, Debug)]
@@ -44,45 +44,6 @@ pub struct Summary {
     pub pulled: usize,
     pub failed: usize,
     pub skipped: usize,
-}
-
-/// Prints where each selected instance stands (`status`, `run --dry-run`), with the memory
-/// estimate of each that will run.
-pub fn print_status(plan: &Plan, states: &[Freshness], selected: &[bool], fits: &[Option<Fit>], remote: Option<&Remote>, json: bool) {
-    let width = plan.instances.iter().map(|i| i.label.len()).max().unwrap_or(0);
-    if let Some(remote) = remote.filter(|r| !r.verified() && !json) {
-        println!("  note      remote cache {}: its records are used unverified (no `remote_trusted_keys`)", remote.url());
-    }
-    for (i, state) in states.iter().enumerate().filter(|(i, _)| selected[*i]) {
-        let label = &plan.instances[i].label;
-        if json {
-            let memory = fits[i].as_ref().map(|f| {
-                json!({"parameters": f.footprint.parameters, "peak_bytes": f.footprint.peak_bytes, "capacity_bytes": f.capacity, "fits": !f.exceeds()})
-            });
-            let line = match state {
-                Freshness::Cached(r) => json!({"stage": label, "state": "cached", "key": r.key, "output": r.output}),
-                Freshness::Stale { key, reasons, .. } => {
-                    let remote = remote.map(|r| r.holds(key));
-                    json!({"stage": label, "state": "will run", "key": key, "reasons": reasons, "memory": memory, "remote_holds": remote})
-                }
-                Freshness::Pending { reason } => json!({"stage": label, "state": "pending", "reasons": [reason], "memory": memory}),
-            };
-            println!("{line}");
-            continue;
-        }
-        match state {
-            Freshness::Cached(r) => println!("  cached    {label:width$}  (ran {:.1}s, {})", r.duration_s, r.started),
-            Freshness::Stale { key, reasons, .. } => {
-                let held = if remote.is_some_and(|r| r.holds(key)) { "; the remote cache holds it" } else { "" };
-                println!("  will run  {label:width$}  {}{held}", reasons.join("; "));
-            }
-            Freshness::Pending { reason } => println!("  pending   {label:width$}  {reason}"),
-        }
-        if let (false, Some(fit)) = (matches!(state, Freshness::Cached(_)), &fits[i]) {
-            let verdict = if fit.exceeds() { "  DOES NOT FIT" } else { "" };
-            println!("            {:width$}  {}{verdict}", "", fit.describe());
-        }
-    }
 }
 
 #[derive(Clone, Debug)]
@@ -431,7 +392,7 @@ impl Executor<'_> {
             let stage = &self.plan.pipeline.stages[inst.stage];
             let resumes = self.registry.get(&inst.operator).expect("validated operator").resumes_from();
             let reasons = why(Some(self.store), self.last.get(&inst.label), &key, &preimage, &stage.name, resumes)?;
-            self.ui.say(format!("  run      {}  ({})", inst.label, reasons.join("; ")));
+            self.ui.say(format!("  run      {}  ({})", inst.label, crate::ui::words(&reasons)));
             self.events.write("stage_planned", json!({"stage": inst.label, "key": key, "reasons": reasons}))?;
             // The operator reads a snapshot of each tracked path, by the digest in its key.
             if let Err(e) = self.plan.snapshot_tracked(i, self.store) {

@@ -1,9 +1,17 @@
 //! What a run shows on a terminal: one line per event, a bar per running stage and per artifact
 //! moving to or from the remote cache; plain lines when stdout is not a terminal, nothing but the
-//! event log with `--json`.
+//! event log with `--json`. The one place where what the engine knows is put into words.
+
+use std::fmt;
 
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
-use rlmflow_cache::Store;
+use rlmflow_cache::{Change, Store};
+use rlmflow_remote::Remote;
+use serde_json::json;
+
+use crate::footprint::Fit;
+use crate::plan::{Freshness, Plan};
+use crate::reason::{RunReason, Waiting};
 
 /// Progress bars on a terminal; plain lines otherwise.
 #[derive(Clone)]
@@ -86,5 +94,138 @@ impl Drop for TransferBar {
 pub(crate) fn print_store_warnings(store: Option<&Store>) {
     for warning in store.map(Store::take_warnings).unwrap_or_default() {
         eprintln!("warning: {warning}");
+    }
+}
+
+/// Prints where each selected instance stands (`status`, `run --dry-run`), with the memory
+/// estimate of each that will run.
+pub(crate) fn print_status(plan: &Plan, states: &[Freshness], selected: &[bool], fits: &[Option<Fit>], remote: Option<&Remote>, json: bool) {
+    let width = plan.instances.iter().map(|i| i.label.len()).max().unwrap_or(0);
+    if let Some(remote) = remote.filter(|r| !r.verified() && !json) {
+        println!("  note      remote cache {}: its records are used unverified (no `remote_trusted_keys`)", remote.url());
+    }
+    for (i, state) in states.iter().enumerate().filter(|(i, _)| selected[*i]) {
+        let label = &plan.instances[i].label;
+        if json {
+            let memory = fits[i].as_ref().map(|f| {
+                json!({"parameters": f.footprint.parameters, "peak_bytes": f.footprint.peak_bytes, "capacity_bytes": f.capacity, "fits": !f.exceeds()})
+            });
+            let line = match state {
+                Freshness::Cached(r) => json!({"stage": label, "state": "cached", "key": r.key, "output": r.output}),
+                Freshness::Stale { key, reasons, .. } => {
+                    let remote = remote.map(|r| r.holds(key));
+                    json!({"stage": label, "state": "will run", "key": key, "reasons": reasons, "memory": memory, "remote_holds": remote})
+                }
+                Freshness::Pending(waiting) => json!({"stage": label, "state": "pending", "waiting": waiting, "memory": memory}),
+            };
+            println!("{line}");
+            continue;
+        }
+        match state {
+            Freshness::Cached(r) => println!("  cached    {label:width$}  (ran {:.1}s, {})", r.duration_s, r.started),
+            Freshness::Stale { key, reasons, .. } => {
+                let held = if remote.is_some_and(|r| r.holds(key)) { "; the remote cache holds it" } else { "" };
+                println!("  will run  {label:width$}  {}{held}", words(reasons));
+            }
+            Freshness::Pending(waiting) => println!("  pending   {label:width$}  {waiting}"),
+        }
+        if let (false, Some(fit)) = (matches!(state, Freshness::Cached(_)), &fits[i]) {
+            let verdict = if fit.exceeds() { "  DOES NOT FIT" } else { "" };
+            println!("            {:width$}  {}{verdict}", "", fit.describe());
+        }
+    }
+}
+
+/// Reasons as one line: `never run`, `pretrain.alpha 1 -> 4; input tokens changed`.
+pub(crate) fn words(reasons: &[RunReason]) -> String {
+    reasons.iter().map(ToString::to_string).collect::<Vec<_>>().join("; ")
+}
+
+impl fmt::Display for RunReason {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            RunReason::NeverRun => write!(f, "never run"),
+            RunReason::OutputGone => write!(f, "its output is gone (quarantined by verify, or collected)"),
+            RunReason::Failed { error, resumes_from: Some(from) } => write!(f, "failed: {error}; a rerun resumes from {from}"),
+            RunReason::Failed { error, resumes_from: None } => write!(f, "failed: {error}"),
+            RunReason::Interrupted { resumes_from } => write!(f, "interrupted; resumes from {resumes_from}"),
+            RunReason::Unfinished => write!(f, "its last attempt did not finish"),
+            RunReason::RecordCollected => write!(f, "changed since its last run (whose record was collected)"),
+            RunReason::KeyChanged => write!(f, "changed since its last run"),
+            RunReason::Changed { stage, change, files, more_files } => {
+                write!(f, "{}", describe(stage, change))?;
+                if !files.is_empty() {
+                    let more = if *more_files > 0 { format!(" and {more_files} more") } else { String::new() };
+                    write!(f, ": {}{more} changed", files.join(", "))?;
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
+impl fmt::Display for Waiting {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "input {} ({}) will be recomputed first", self.slot, self.input)
+    }
+}
+
+/// A change as `status` prints it: settings are prefixed with the stage (`pretrain.alpha ...`).
+pub(crate) fn describe(stage: &str, change: &Change) -> String {
+    match change {
+        Change::Setting { .. } => format!("{stage}.{change}"),
+        _ => change.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_reason_reads_as_the_terminal_has_always_shown_it() {
+        let changed = |change: Change, files: &[&str], more_files: usize| RunReason::Changed {
+            stage: "pretrain".into(),
+            change,
+            files: files.iter().map(|f| f.to_string()).collect(),
+            more_files,
+        };
+        let cases = [
+            (RunReason::NeverRun, "never run"),
+            (RunReason::OutputGone, "its output is gone (quarantined by verify, or collected)"),
+            (
+                RunReason::Failed { error: "batch: too large".into(), resumes_from: Some("its checkpoint".into()) },
+                "failed: batch: too large; a rerun resumes from its checkpoint",
+            ),
+            (RunReason::Failed { error: "batch: too large".into(), resumes_from: None }, "failed: batch: too large"),
+            (RunReason::Interrupted { resumes_from: "its checkpoint".into() }, "interrupted; resumes from its checkpoint"),
+            (RunReason::Unfinished, "its last attempt did not finish"),
+            (RunReason::RecordCollected, "changed since its last run (whose record was collected)"),
+            (RunReason::KeyChanged, "changed since its last run"),
+            (changed(Change::Setting { key: "alpha".into(), old: Some(json!(1)), new: Some(json!(4)) }, &[], 0), "pretrain.alpha 1 -> 4"),
+            (changed(Change::OperatorVersion { old: 1, new: 2 }, &[], 0), "operator version 1 -> 2"),
+            (
+                changed(Change::InputChanged { slot: "source".into(), label: String::new() }, &["a.npy", "b.npy"], 3),
+                "input source changed: a.npy, b.npy and 3 more changed",
+            ),
+        ];
+        for (reason, words) in cases {
+            assert_eq!(reason.to_string(), words);
+        }
+        assert_eq!(Waiting { slot: "scenes".into(), input: "scenes[a]".into() }.to_string(), "input scenes (scenes[a]) will be recomputed first");
+    }
+
+    #[test]
+    fn a_reason_as_data_names_its_kind_and_fields() {
+        let reason = RunReason::Changed {
+            stage: "map".into(),
+            change: Change::Setting { key: "suffix".into(), old: Some(json!("!")), new: Some(json!("!!")) },
+            files: vec![],
+            more_files: 0,
+        };
+        let expected = json!({"reason": "changed", "stage": "map", "change": "setting", "key": "suffix", "old": "!", "new": "!!"});
+        assert_eq!(serde_json::to_value(&reason).unwrap(), expected);
+        let failed = RunReason::Failed { error: "boom".into(), resumes_from: None };
+        assert_eq!(serde_json::to_value(&failed).unwrap(), json!({"reason": "failed", "error": "boom", "resumes_from": null}));
     }
 }

@@ -30,7 +30,30 @@ fn a_config_change_reruns_exactly_the_changed_stage_and_its_dependants() {
     assert_eq!(events.with_status("reused"), ["other", "source"]);
     let planned = events.of("stage_planned");
     let map = planned.iter().find(|e| e["stage"] == "map").unwrap();
-    assert_eq!(map["reasons"][0], r#"map.suffix "!" -> "!!""#);
+    let setting = serde_json::json!({"reason": "changed", "stage": "map", "change": "setting", "key": "suffix", "old": "!", "new": "!!"});
+    assert_eq!(map["reasons"], serde_json::json!([setting]), "the event carries the reason as data");
+    let measure = planned.iter().find(|e| e["stage"] == "measure").unwrap();
+    assert_eq!(measure["reasons"][0]["change"], "input_changed", "{measure}");
+}
+
+#[test]
+fn status_says_why_in_words_on_the_terminal_and_as_data_with_json() {
+    let s = Scratch::new("why");
+    s.pipeline(CHAIN);
+    s.run();
+    s.pipeline(&CHAIN.replace(r#"suffix = "!""#, r#"suffix = "!!""#));
+    let words = text(&s.cli(&["status", "p.toml"]).stdout);
+    let map = words.lines().find(|l| l.contains(" map ")).unwrap();
+    assert!(map.starts_with("  will run  map") && map.ends_with(r#"map.suffix "!" -> "!!""#), "{words}");
+    let measure = words.lines().find(|l| l.contains(" measure ")).unwrap();
+    assert!(measure.starts_with("  pending   measure") && measure.ends_with("(map) will be recomputed first"), "{words}");
+    let lines: Vec<serde_json::Value> =
+        text(&s.cli(&["status", "p.toml", "--json"]).stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let state = |stage: &str| lines.iter().find(|l| l["stage"] == stage).unwrap().clone();
+    assert_eq!(state("map")["reasons"][0]["key"], "suffix");
+    assert_eq!(state("source")["state"], "cached");
+    let pending = state("measure");
+    assert_eq!((pending["state"].as_str(), pending["waiting"]["input"].as_str()), (Some("pending"), Some("map")), "{pending}");
 }
 
 #[test]
