@@ -317,9 +317,10 @@ pub enum ItemCount {
     OfInput(&'static str),
 }
 
-/// An operator that runs in a worker binary: the planning binary knows its spec, settings and
-/// resources (so every setting is validated up front without the worker's libraries), and the
-/// worker registers the implementation under the same name.
+/// An operator that runs in a worker binary, defined once in a light crate: its spec, settings,
+/// resources, outline and footprint, so the planning binary validates every setting up front
+/// without the worker's libraries. The worker registers the same value with its training
+/// function attached ([`InWorker::running`]), so both binaries check a pipeline alike.
 pub struct InWorker<S: Settings> {
     pub spec: OperatorSpec,
     pub worker: &'static str,
@@ -328,6 +329,15 @@ pub struct InWorker<S: Settings> {
     pub outline: fn(&S, &InputOutlines) -> Result<Outline, SettingError>,
     /// See [`Operator::footprint`].
     pub footprint: fn(&S, &InputOutlines) -> Option<Footprint>,
+    /// What runs an action: attached in the worker only.
+    pub run: Option<fn(&S, &mut Context) -> anyhow::Result<Outcome>>,
+}
+
+impl<S: Settings> InWorker<S> {
+    /// The operator as its worker registers it, running actions with `run`.
+    pub fn running(self, run: fn(&S, &mut Context) -> anyhow::Result<Outcome>) -> InWorker<S> {
+        InWorker { run: Some(run), ..self }
+    }
 }
 
 impl<S: Settings> Operator for InWorker<S> {
@@ -353,8 +363,11 @@ impl<S: Settings> Operator for InWorker<S> {
         (self.footprint)(settings, inputs)
     }
 
-    fn run(&self, _: &S, _: &mut Context) -> anyhow::Result<Outcome> {
-        anyhow::bail!("operator `{}` runs in the `{}` binary, not in this one", self.spec.name, self.worker)
+    fn run(&self, settings: &S, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        match self.run {
+            Some(run) => run(settings, ctx),
+            None => anyhow::bail!("operator `{}` runs in the `{}` binary, not in this one", self.spec.name, self.worker),
+        }
     }
 }
 

@@ -11,11 +11,12 @@ use rlmflow_stages::{Catalog, Registry};
 
 fn registry() -> Registry {
     let mut registry = Registry::new(Catalog::paper());
-    registry.add(rlmflow_pretrain_torch::Clip);
-    registry.add(rlmflow_probe_torch::Linear);
-    registry.add(rlmflow_probe_torch::Clipcap);
-    registry.add(rlmflow_segment_torch::Pup);
-    registry.add(rlmflow_segment_torch::Unet);
+    // The operators `rlmflow` plans, each defined once in its light crate, with its training.
+    registry.add(rlmflow_pretrain::operator().running(rlmflow_pretrain_torch::clip));
+    registry.add(rlmflow_probe::linear().running(rlmflow_probe_torch::linear));
+    registry.add(rlmflow_probe::clipcap().running(rlmflow_probe_torch::clipcap));
+    registry.add(rlmflow_segment::pup().running(rlmflow_segment_torch::pup));
+    registry.add(rlmflow_segment::unet().running(rlmflow_segment_torch::unet));
     // tch 0.24's build accepts exactly this libtorch (python/libtorch.lock pins its wheel).
     registry.add_library("libtorch 2.11.0");
     registry

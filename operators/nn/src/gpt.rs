@@ -2,12 +2,8 @@
 //! embedding to `prefix` embeddings, and a GPT-2-style causal decoder that continues them with
 //! caption tokens. The decoder's tensors are named as Hugging Face's `GPT2Model` at the ends
 //! (`wte`, `wpe`, `ln_f`; the head is tied to `wte`) and as open_clip's blocks in between
-//! (`transformer.resblocks.N`); [`Gpt::load_gpt2`] maps GPT-2 weights onto them.
+//! (`transformer.resblocks.N`); [`crate::start::GPT2`] maps GPT-2 weights onto them.
 
-use std::collections::HashMap;
-use std::path::Path;
-
-use anyhow::{Context as _, bail};
 use tch::nn::{self, Module};
 use tch::{Kind, Tensor};
 
@@ -69,61 +65,6 @@ impl Gpt {
     fn head(&self, x: &Tensor) -> Tensor {
         self.ln_f.forward(x).matmul(&self.wte.tr())
     }
-
-    /// Copies GPT-2 weights (Hugging Face `GPT2Model` or `GPT2LMHeadModel` names, with or
-    /// without the `transformer.` prefix) into `vs`, whose root holds this decoder under
-    /// `prefix`. GPT-2's Conv1D kernels are (in, out) and are transposed; the token and
-    /// position tables are kept only where their shapes fit (GPT-2's vocabulary is not ours).
-    /// Returns how many tensors were loaded.
-    pub fn load_gpt2(vs: &nn::VarStore, prefix: &str, path: &Path) -> anyhow::Result<usize> {
-        let source: HashMap<String, Tensor> =
-            Tensor::read_safetensors(path).with_context(|| format!("reading GPT-2 weights from {}", path.display()))?.into_iter().collect();
-        let get = |k: &str| source.get(k).or_else(|| source.get(&format!("transformer.{k}"))).map(Tensor::shallow_clone);
-        let mut loaded = 0;
-        tch::no_grad(|| -> anyhow::Result<()> {
-            for (name, mut var) in vs.variables() {
-                let Some(rest) = name.strip_prefix(prefix) else { continue };
-                let Some(found) = gpt2_source(rest, &get) else { continue };
-                if found.size() != var.size() {
-                    if rest == "wte.weight" || rest == "wpe.weight" {
-                        continue;
-                    }
-                    bail!("{}: the tensor for `{name}` has shape {:?}, the decoder needs {:?}", path.display(), found.size(), var.size());
-                }
-                var.copy_(&found.to_kind(var.kind()));
-                loaded += 1;
-            }
-            Ok(())
-        })?;
-        if loaded == 0 {
-            bail!("{}: no tensor with GPT-2 names (h.N.attn.c_attn.weight, ln_f.weight, ...)", path.display());
-        }
-        Ok(loaded)
-    }
-}
-
-/// The GPT-2 tensor for our decoder's `rest`, transposed to our layout.
-fn gpt2_source(rest: &str, get: &dyn Fn(&str) -> Option<Tensor>) -> Option<Tensor> {
-    match rest {
-        "wte.weight" | "wpe.weight" | "ln_f.weight" | "ln_f.bias" => get(rest),
-        _ => {
-            let (i, key) = rest.strip_prefix("transformer.resblocks.")?.split_once('.')?;
-            let h = |k: &str| get(&format!("h.{i}.{k}"));
-            match key {
-                "attn.in_proj_weight" => h("attn.c_attn.weight").map(|t| t.tr()),
-                "attn.in_proj_bias" => h("attn.c_attn.bias"),
-                "attn.out_proj.weight" => h("attn.c_proj.weight").map(|t| t.tr()),
-                "attn.out_proj.bias" => h("attn.c_proj.bias"),
-                "mlp.c_fc.weight" => h("mlp.c_fc.weight").map(|t| t.tr()),
-                "mlp.c_fc.bias" => h("mlp.c_fc.bias"),
-                "mlp.c_proj.weight" => h("mlp.c_proj.weight").map(|t| t.tr()),
-                "mlp.c_proj.bias" => h("mlp.c_proj.bias"),
-                "ln_1.weight" | "ln_1.bias" | "ln_2.weight" | "ln_2.bias" => h(key),
-                _ => None,
-            }
-        }
-    }
-    .map(|t| t.contiguous())
 }
 
 /// ClipCap's transformer mapper: the embedding linearly mapped to `prefix` tokens, followed by
@@ -267,8 +208,8 @@ mod tests {
         let file = dir.join("gpt2.safetensors");
         Tensor::write_safetensors(&tensors, &file).unwrap();
         let total = vs.variables().len();
-        assert_eq!(Gpt::load_gpt2(&vs, "gpt.", &file).unwrap(), total - 1, "everything but the foreign token table");
-        let source: HashMap<String, Tensor> = tensors.into_iter().collect();
+        assert_eq!(crate::start::load(&vs, "gpt.", &file, &crate::start::GPT2).unwrap(), total - 1, "everything but the foreign token table");
+        let source: std::collections::HashMap<String, Tensor> = tensors.into_iter().collect();
         let ours = vs.variables();
         assert!(ours["gpt.transformer.resblocks.1.attn.in_proj_weight"].equal(&source["transformer.h.1.attn.c_attn.weight"].tr()));
         assert!(ours["gpt.transformer.resblocks.0.mlp.c_proj.weight"].equal(&source["transformer.h.0.mlp.c_proj.weight"].tr()));
@@ -277,10 +218,10 @@ mod tests {
 
         let wrong = vec![("h.0.ln_1.weight".to_owned(), ramp(&[768], 0.0))];
         Tensor::write_safetensors(&wrong, &file).unwrap();
-        let err = Gpt::load_gpt2(&vs, "gpt.", &file).unwrap_err().to_string();
-        assert!(err.contains("`gpt.transformer.resblocks.0.ln_1.weight` has shape [768], the decoder needs [8]"), "{err}");
+        let err = crate::start::load(&vs, "gpt.", &file, &crate::start::GPT2).unwrap_err().to_string();
+        assert!(err.contains("`gpt.transformer.resblocks.0.ln_1.weight` has shape [768], the model needs [8]"), "{err}");
         Tensor::write_safetensors(&[("unrelated".to_owned(), ramp(&[2], 0.0))], &file).unwrap();
-        assert!(Gpt::load_gpt2(&vs, "gpt.", &file).unwrap_err().to_string().contains("no tensor with GPT-2 names"));
+        assert!(crate::start::load(&vs, "gpt.", &file, &crate::start::GPT2).unwrap_err().to_string().contains("no tensor with GPT-2 names"));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

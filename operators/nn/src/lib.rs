@@ -6,7 +6,7 @@
 //! state, clipping, the learning-rate schedule), [`segment`] (the PUP decoder, the U-Net, Dice +
 //! BCE), [`data`] (the frames every operator trains on, in memory), [`train`] (the one training
 //! loop, `fit`: schedule, clipping, resume, checkpoints, device choice), [`gpt`] and [`decode`]
-//! (ClipCap's mapper and decoder, greedy and beam search). Tensor names follow open_clip's CLIP layout, so
+//! (ClipCap's mapper and decoder, greedy and beam search), [`start`] (published start weights, CLIP's vision tower and GPT-2, onto them). Tensor names follow open_clip's CLIP layout, so
 //! a Python user can map the weights onto it.
 
 pub mod clip;
@@ -17,6 +17,7 @@ pub mod loss;
 pub mod optim;
 pub mod projection;
 pub mod segment;
+pub mod start;
 pub mod text;
 pub mod train;
 pub mod transformer;

@@ -169,7 +169,7 @@ impl Settings for ClipSettings {
     }
 }
 
-pub fn spec() -> OperatorSpec {
+fn spec() -> OperatorSpec {
     OperatorSpec {
         name: "clip",
         kind: "pretrain",
@@ -179,7 +179,7 @@ pub fn spec() -> OperatorSpec {
     }
 }
 
-pub fn resources(s: &ClipSettings) -> Resources {
+fn resources(s: &ClipSettings) -> Resources {
     s.training.resources()
 }
 
@@ -225,7 +225,7 @@ fn footprint(s: &ClipSettings, inputs: &InputOutlines) -> Option<Footprint> {
 
 /// The operator as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn operator() -> InWorker<ClipSettings> {
-    InWorker { spec: spec(), worker: WORKER, resources, outline, footprint }
+    InWorker { spec: spec(), worker: WORKER, resources, outline, footprint, run: None }
 }
 
 /// The model the settings name, for images of `image` pixels and the tokens stage's `context`,

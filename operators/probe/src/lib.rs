@@ -210,7 +210,7 @@ fn clipcap_footprint(s: &ClipcapSettings, inputs: &InputOutlines) -> Option<Foot
     Some(Footprint { parameters: encoder.parameters + trained, peak_bytes, lower_with: memory::LOWER_BY_ACCUMULATING })
 }
 
-pub fn clipcap_spec() -> OperatorSpec {
+fn clipcap_spec() -> OperatorSpec {
     OperatorSpec {
         name: "clipcap",
         kind: "probe",
@@ -220,11 +220,11 @@ pub fn clipcap_spec() -> OperatorSpec {
     }
 }
 
-pub fn clipcap_resources(s: &ClipcapSettings) -> Resources {
+fn clipcap_resources(s: &ClipcapSettings) -> Resources {
     s.training.resources()
 }
 
-/// `clipcap` as `rlmflow` registers it.
+/// `clipcap` as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn clipcap() -> InWorker<ClipcapSettings> {
     InWorker {
         spec: clipcap_spec(),
@@ -232,10 +232,11 @@ pub fn clipcap() -> InWorker<ClipcapSettings> {
         resources: clipcap_resources,
         outline: |s, inputs| s.training.outline(inputs),
         footprint: clipcap_footprint,
+        run: None,
     }
 }
 
-pub fn linear_spec() -> OperatorSpec {
+fn linear_spec() -> OperatorSpec {
     OperatorSpec {
         name: "linear",
         kind: "probe",
@@ -245,14 +246,14 @@ pub fn linear_spec() -> OperatorSpec {
     }
 }
 
-pub fn linear_resources(s: &LinearSettings) -> Resources {
+fn linear_resources(s: &LinearSettings) -> Resources {
     // Features come from the encoder on the run's device (`auto`: CUDA where there is one).
     Resources { threads: s.threads, kernels: Some(Kernels { numerics: s.numerics, device: Device::Auto }), ..Resources::default() }
 }
 
 /// `linear` as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn linear() -> InWorker<LinearSettings> {
-    InWorker { spec: linear_spec(), worker: WORKER, resources: linear_resources, outline: Outline::pass_on, footprint: |_, _| None }
+    InWorker { spec: linear_spec(), worker: WORKER, resources: linear_resources, outline: Outline::pass_on, footprint: |_, _| None, run: None }
 }
 
 #[cfg(test)]

@@ -109,7 +109,7 @@ impl Settings for UnetSettings {
     }
 }
 
-pub fn pup_spec() -> OperatorSpec {
+fn pup_spec() -> OperatorSpec {
     OperatorSpec {
         name: "pup",
         kind: "segment",
@@ -119,7 +119,7 @@ pub fn pup_spec() -> OperatorSpec {
     }
 }
 
-pub fn unet_spec() -> OperatorSpec {
+fn unet_spec() -> OperatorSpec {
     OperatorSpec {
         name: "unet",
         kind: "segment",
@@ -130,11 +130,11 @@ pub fn unet_spec() -> OperatorSpec {
     }
 }
 
-pub fn pup_resources(s: &PupSettings) -> Resources {
+fn pup_resources(s: &PupSettings) -> Resources {
     s.training.resources()
 }
 
-pub fn unet_resources(s: &UnetSettings) -> Resources {
+fn unet_resources(s: &UnetSettings) -> Resources {
     s.training.resources()
 }
 
@@ -224,12 +224,19 @@ fn unet_footprint(s: &UnetSettings, inputs: &InputOutlines) -> Option<Footprint>
 
 /// `pup` as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn pup() -> InWorker<PupSettings> {
-    InWorker { spec: pup_spec(), worker: WORKER, resources: pup_resources, outline: |s, inputs| s.training.outline(inputs), footprint: pup_footprint }
+    InWorker {
+        spec: pup_spec(),
+        worker: WORKER,
+        resources: pup_resources,
+        outline: |s, inputs| s.training.outline(inputs),
+        footprint: pup_footprint,
+        run: None,
+    }
 }
 
 /// `unet` as `rlmflow` registers it.
 pub fn unet() -> InWorker<UnetSettings> {
-    InWorker { spec: unet_spec(), worker: WORKER, resources: unet_resources, outline: unet_outline, footprint: unet_footprint }
+    InWorker { spec: unet_spec(), worker: WORKER, resources: unet_resources, outline: unet_outline, footprint: unet_footprint, run: None }
 }
 
 #[cfg(test)]

@@ -3,6 +3,7 @@
 
 mod common;
 mod numerics;
+mod operators;
 mod pretrain;
 mod probe;
 mod segment;

@@ -8,42 +8,22 @@
 //! weights as an uninterrupted one. Test-split radar->text retrieval (each test frame's first
 //! caption) is measured after every epoch.
 
-use std::collections::HashMap;
-use std::path::Path;
-
-use anyhow::{Context as _, bail};
+use anyhow::Context as _;
 use rand::RngExt;
 use rlmflow_nn::clip::{Clip as Model, cached_contrastive, logits};
 use rlmflow_nn::data::{Frames, Need, Splits};
-use rlmflow_nn::loss;
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
 use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Loss, Step, fit, resolve_device, write_weights};
+use rlmflow_nn::{loss, start};
 use rlmflow_pretrain::{ClipSettings, Objective};
 use rlmflow_stages::encoder::{self, ModelConfig};
 use rlmflow_stages::identity::FrameSet;
 use rlmflow_stages::tokens;
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settings};
+use rlmflow_stages::{Context, Outcome, Settings};
 use serde_json::{Value, json};
 
-pub struct Clip;
-
-impl Operator for Clip {
-    type Settings = ClipSettings;
-
-    fn spec(&self) -> OperatorSpec {
-        rlmflow_pretrain::spec()
-    }
-
-    fn resources(&self, s: &ClipSettings) -> Resources {
-        rlmflow_pretrain::resources(s)
-    }
-
-    fn run(&self, s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-        train(s, ctx)
-    }
-}
-
-fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+/// `clip`'s training, attached by the worker to `rlmflow_pretrain::operator()`.
+pub fn clip(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     tch::set_num_threads(s.training.threads as i32);
     let device = resolve_device(s.training.device, ctx.device)?;
     let text = s.objective != Objective::Counts;
@@ -58,7 +38,7 @@ fn train(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     let vs = nn::VarStore::new(device);
     let model = Model::new(&vs.root(), &config, s.tau, s.learn_tau);
     if let Some(init) = ctx.tracked_file("init")? {
-        load_clip_vision(&vs, &init)?;
+        start::load(&vs, "visual.", &init, &start::CLIP_VISION)?;
     }
 
     let chunked = s.chunk > 0 && s.chunk < s.training.batch;
@@ -180,85 +160,6 @@ fn write_artifact(
     Ok(Outcome { metrics: json!({"last": last, "steps": steps, "chance_top1": 1.0 / n}), summary: format!("{epochs} epochs, {steps} steps; {text}") })
 }
 
-/// Starts the radar tower from a CLIP ViT-B/16 safetensors file with open_clip names
-/// (`visual.conv1.weight`, `visual.transformer.resblocks.N...`) or Hugging Face names
-/// (`vision_model.embeddings.patch_embedding.weight`, `vision_model.encoder.layers.N...`). The
-/// RGB patch kernel is summed over its colour channels for the one radar channel; the
-/// projection is kept only where its shape fits.
-pub fn load_clip_vision(vs: &nn::VarStore, path: &Path) -> anyhow::Result<usize> {
-    let source: HashMap<String, Tensor> =
-        Tensor::read_safetensors(path).with_context(|| format!("reading CLIP weights from {}", path.display()))?.into_iter().collect();
-    let ours = vs.variables();
-    let mut loaded = 0;
-    tch::no_grad(|| -> anyhow::Result<()> {
-        for (name, mut var) in ours {
-            let Some(rest) = name.strip_prefix("visual.") else { continue };
-            let Some(found) = clip_source(&source, rest) else { continue };
-            let found = if rest == "conv1.weight" && found.size().get(1) == Some(&3) {
-                found.sum_dim_intlist([1].as_slice(), true, found.kind())
-            } else {
-                found
-            };
-            if found.size() != var.size() {
-                if rest == "proj" {
-                    continue;
-                }
-                bail!("{}: `{name}` has shape {:?}, the model needs {:?}", path.display(), found.size(), var.size());
-            }
-            var.copy_(&found.to_kind(var.kind()));
-            loaded += 1;
-        }
-        Ok(())
-    })?;
-    if loaded == 0 {
-        bail!("{}: no tensor with open_clip (visual.*) or Hugging Face (vision_model.*) CLIP names", path.display());
-    }
-    Ok(loaded)
-}
-
-/// The tensor of `source` for our `visual.<rest>`, under either naming.
-fn clip_source(source: &HashMap<String, Tensor>, rest: &str) -> Option<Tensor> {
-    if let Some(t) = source.get(&format!("visual.{rest}")) {
-        return Some(t.shallow_clone());
-    }
-    let hf = |k: &str| source.get(&format!("vision_model.{k}")).map(Tensor::shallow_clone);
-    let layer = |i: &str, k: &str| format!("encoder.layers.{i}.{k}");
-    match rest {
-        "conv1.weight" => hf("embeddings.patch_embedding.weight"),
-        "class_embedding" => hf("embeddings.class_embedding"),
-        "positional_embedding" => hf("embeddings.position_embedding.weight"),
-        "ln_pre.weight" => hf("pre_layrnorm.weight"),
-        "ln_pre.bias" => hf("pre_layrnorm.bias"),
-        "ln_post.weight" => hf("post_layernorm.weight"),
-        "ln_post.bias" => hf("post_layernorm.bias"),
-        "proj" => source.get("visual_projection.weight").map(|t| t.tr()),
-        _ => {
-            let rest = rest.strip_prefix("transformer.resblocks.")?;
-            let (i, key) = rest.split_once('.')?;
-            let qkv = |suffix: &str| -> Option<Tensor> {
-                let parts: Option<Vec<Tensor>> =
-                    ["q_proj", "k_proj", "v_proj"].iter().map(|p| hf(&layer(i, &format!("self_attn.{p}.{suffix}")))).collect();
-                parts.map(|p| Tensor::cat(&p, 0))
-            };
-            match key {
-                "attn.in_proj_weight" => qkv("weight"),
-                "attn.in_proj_bias" => qkv("bias"),
-                "attn.out_proj.weight" => hf(&layer(i, "self_attn.out_proj.weight")),
-                "attn.out_proj.bias" => hf(&layer(i, "self_attn.out_proj.bias")),
-                "ln_1.weight" => hf(&layer(i, "layer_norm1.weight")),
-                "ln_1.bias" => hf(&layer(i, "layer_norm1.bias")),
-                "ln_2.weight" => hf(&layer(i, "layer_norm2.weight")),
-                "ln_2.bias" => hf(&layer(i, "layer_norm2.bias")),
-                "mlp.c_fc.weight" => hf(&layer(i, "mlp.fc1.weight")),
-                "mlp.c_fc.bias" => hf(&layer(i, "mlp.fc1.bias")),
-                "mlp.c_proj.weight" => hf(&layer(i, "mlp.fc2.weight")),
-                "mlp.c_proj.bias" => hf(&layer(i, "mlp.fc2.bias")),
-                _ => None,
-            }
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use rlmflow_stages::encoder::{Head, Stem, VisionConfig};
@@ -320,8 +221,8 @@ mod tests {
         Tensor::write_safetensors(&hf, &file).unwrap();
         let (vs, _model) = tiny();
         let visual = vs.variables().keys().filter(|k| k.starts_with("visual.")).count();
-        assert_eq!(load_clip_vision(&vs, &file).unwrap(), visual, "every radar-tower tensor has a source");
-        let source: HashMap<String, Tensor> = hf.into_iter().collect();
+        assert_eq!(start::load(&vs, "visual.", &file, &start::CLIP_VISION).unwrap(), visual, "every radar-tower tensor has a source");
+        let source: std::collections::HashMap<String, Tensor> = hf.into_iter().collect();
         let same = |a: &Tensor, b: &Tensor| (a - b).abs().max().double_value(&[]) < 1e-6;
         assert!(same(
             &var(&vs, "visual.conv1.weight"),
@@ -337,13 +238,13 @@ mod tests {
         let file = dir.join("open_clip.safetensors");
         Tensor::write_safetensors(&open_clip, &file).unwrap();
         let (vs, _model) = tiny();
-        assert_eq!(load_clip_vision(&vs, &file).unwrap(), 2);
+        assert_eq!(start::load(&vs, "visual.", &file, &start::CLIP_VISION).unwrap(), 2);
         assert!(same(&var(&vs, "visual.ln_post.bias"), &open_clip[1].1));
         let wrong = vec![("visual.class_embedding".to_owned(), ramp(&[768], 0.0))];
         Tensor::write_safetensors(&wrong, &file).unwrap();
-        let err = load_clip_vision(&tiny().0, &file).unwrap_err().to_string();
+        let err = start::load(&tiny().0, "visual.", &file, &start::CLIP_VISION).unwrap_err().to_string();
         assert!(err.contains("`visual.class_embedding` has shape [768], the model needs [16]"), "{err}");
         Tensor::write_safetensors(&[("unrelated".to_owned(), ramp(&[2], 0.0))], &file).unwrap();
-        assert!(load_clip_vision(&tiny().0, &file).unwrap_err().to_string().contains("no tensor with open_clip"));
+        assert!(start::load(&tiny().0, "visual.", &file, &start::CLIP_VISION).unwrap_err().to_string().contains("no tensor with CLIP names"));
     }
 }

@@ -7,18 +7,18 @@
 use std::time::Instant;
 
 use rand::RngExt;
-use rlmflow_nn::clip;
 use rlmflow_nn::data::{Captions, Frames, Need, Splits};
 use rlmflow_nn::decode::{beam_search, greedy};
 use rlmflow_nn::gpt::{Gpt, GptConfig, Mapper, Steps, caption_loss};
 use rlmflow_nn::tch::{self, Tensor, nn};
 use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
+use rlmflow_nn::{clip, start};
 use rlmflow_probe::{ClipcapSettings, Decode};
 use rlmflow_stages::grid::{CELLS, Grid};
 use rlmflow_stages::identity::Split;
 use rlmflow_stages::probe::{self, Row, Scores, Summary, score};
 use rlmflow_stages::tokens;
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settings};
+use rlmflow_stages::{Context, Outcome, Settings};
 use serde_json::{Value, json};
 use tokenizers::Tokenizer;
 
@@ -28,24 +28,6 @@ const CHUNK: usize = 64;
 const LENGTH_GROUPS: usize = 4;
 /// The captioner's weights in the artifact.
 pub const WEIGHTS: &str = "clipcap.safetensors";
-
-pub struct Clipcap;
-
-impl Operator for Clipcap {
-    type Settings = ClipcapSettings;
-
-    fn spec(&self) -> OperatorSpec {
-        rlmflow_probe::clipcap_spec()
-    }
-
-    fn resources(&self, s: &ClipcapSettings) -> Resources {
-        rlmflow_probe::clipcap_resources(s)
-    }
-
-    fn run(&self, s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-        run(s, ctx)
-    }
-}
 
 /// The decoder a preset names.
 fn decoder_config(s: &ClipcapSettings, vocab: i64, context: i64) -> GptConfig {
@@ -101,7 +83,8 @@ fn load(s: &ClipcapSettings, ctx: &Context, device: tch::Device) -> anyhow::Resu
     Ok((Data { frames, embeddings: Tensor::cat(&parts, 0), split, hygiene }, encoder.config))
 }
 
-fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+/// `clipcap`'s training, attached by the worker to `rlmflow_probe::clipcap()`.
+pub fn clipcap(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     tch::set_num_threads(s.training.threads as i32);
     let device = resolve_device(s.training.device, ctx.device)?;
     let (data, encoder) = load(s, ctx, device)?;
@@ -117,7 +100,7 @@ fn run(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     let mapper = Mapper::new(&(vs.root() / "mapper"), encoder.embed, config.width, s.prefix, s.mapper_layers, config.heads);
     let gpt = Gpt::new(&(vs.root() / "gpt"), &config);
     if let Some(init) = ctx.tracked_file("init")? {
-        let loaded = Gpt::load_gpt2(&vs, "gpt.", &init)?;
+        let loaded = start::load(&vs, "gpt.", &init, &start::GPT2)?;
         ctx.event("init", json!({"path": s.init, "tensors": loaded}));
     }
 

@@ -19,76 +19,46 @@ use rlmflow_segment::{PupSettings, TOKEN_CACHE_BYTES, UnetSettings, pup_widths};
 use rlmflow_stages::identity::Split;
 use rlmflow_stages::npy::{Dtype, NpyWriter};
 use rlmflow_stages::segment::{self, PixelCounts, SegMetrics};
-use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, Resources, Settings, Training};
+use rlmflow_stages::{Context, Outcome, Settings, Training};
 use serde_json::{Value, json};
 
 /// Frozen-encoder tokens up to this size are computed once for every frame.
 /// Frames per forward pass when scoring or encoding.
 const CHUNK: usize = 256;
 
-pub struct Pup;
-
-impl Operator for Pup {
-    type Settings = PupSettings;
-
-    fn spec(&self) -> OperatorSpec {
-        rlmflow_segment::pup_spec()
-    }
-
-    fn resources(&self, s: &PupSettings) -> Resources {
-        rlmflow_segment::pup_resources(s)
-    }
-
-    fn run(&self, s: &PupSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-        let (device, data) = prepare(&s.training, ctx, s.allow_test_overlap)?;
-        let (_encoder_vs, encoder) = clip::load(ctx.input("encoder")?, device, data.frames.side)?;
-        let vision = &encoder.config.vision;
-        let widths = if s.channels.is_empty() { pup_widths(vision.grid(), data.frames.side) } else { s.channels.clone() };
-        let vs = nn::VarStore::new(device);
-        tch::manual_seed(ctx.seed as i64);
-        let head = PupHead::new(&vs.root(), vision.width, &widths, data.frames.side);
-        let tokens = Tokens::new(&encoder, &data.frames, device, ctx);
-        let blocks: Vec<usize> = {
-            let layers = vision.layers as usize;
-            let take = if s.rollout_layers == 0 { layers } else { s.rollout_layers.min(layers) };
-            (layers - take..layers).collect()
-        };
-        let segmenter =
-            Segmenter { name: "pup", vs, forward: Box::new(move |frames: &[usize], train: bool| head.forward_t(&tokens.get(frames), train)) };
-        let rollout = |frames: &[usize]| tch::no_grad(|| encoder.visual.attention_rollout(&data.frames.images(frames, device), blocks.len()));
-        let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: s.result_settings() };
-        train(&s.training, &segmentation, ctx, &data, device, segmenter, Some((&blocks, &rollout)))
-    }
+/// `pup`'s training, attached by the worker to `rlmflow_segment::pup()`.
+pub fn pup(s: &PupSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+    let (device, data) = prepare(&s.training, ctx, s.allow_test_overlap)?;
+    let (_encoder_vs, encoder) = clip::load(ctx.input("encoder")?, device, data.frames.side)?;
+    let vision = &encoder.config.vision;
+    let widths = if s.channels.is_empty() { pup_widths(vision.grid(), data.frames.side) } else { s.channels.clone() };
+    let vs = nn::VarStore::new(device);
+    tch::manual_seed(ctx.seed as i64);
+    let head = PupHead::new(&vs.root(), vision.width, &widths, data.frames.side);
+    let tokens = Tokens::new(&encoder, &data.frames, device, ctx);
+    let blocks: Vec<usize> = {
+        let layers = vision.layers as usize;
+        let take = if s.rollout_layers == 0 { layers } else { s.rollout_layers.min(layers) };
+        (layers - take..layers).collect()
+    };
+    let segmenter = Segmenter { name: "pup", vs, forward: Box::new(move |frames: &[usize], train: bool| head.forward_t(&tokens.get(frames), train)) };
+    let rollout = |frames: &[usize]| tch::no_grad(|| encoder.visual.attention_rollout(&data.frames.images(frames, device), blocks.len()));
+    let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: s.result_settings() };
+    train(&s.training, &segmentation, ctx, &data, device, segmenter, Some((&blocks, &rollout)))
 }
 
-pub struct Unet;
-
-impl Operator for Unet {
-    type Settings = UnetSettings;
-
-    fn spec(&self) -> OperatorSpec {
-        rlmflow_segment::unet_spec()
-    }
-
-    fn resources(&self, s: &UnetSettings) -> Resources {
-        rlmflow_segment::unet_resources(s)
-    }
-
-    fn run(&self, s: &UnetSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-        let (device, data) = prepare(&s.training, ctx, false)?;
-        s.check_depth(data.frames.side as u64)?;
-        let vs = nn::VarStore::new(device);
-        tch::manual_seed(ctx.seed as i64);
-        let unet = UNet::new(&vs.root(), &s.channels);
-        let frames = &data.frames;
-        let segmenter = Segmenter {
-            name: "unet",
-            vs,
-            forward: Box::new(move |batch: &[usize], train: bool| unet.forward_t(&frames.images(batch, device), train)),
-        };
-        let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: s.result_settings() };
-        train(&s.training, &segmentation, ctx, &data, device, segmenter, None)
-    }
+/// `unet`'s training, attached by the worker to `rlmflow_segment::unet()`.
+pub fn unet(s: &UnetSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+    let (device, data) = prepare(&s.training, ctx, false)?;
+    s.check_depth(data.frames.side as u64)?;
+    let vs = nn::VarStore::new(device);
+    tch::manual_seed(ctx.seed as i64);
+    let unet = UNet::new(&vs.root(), &s.channels);
+    let frames = &data.frames;
+    let segmenter =
+        Segmenter { name: "unet", vs, forward: Box::new(move |batch: &[usize], train: bool| unet.forward_t(&frames.images(batch, device), train)) };
+    let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: s.result_settings() };
+    train(&s.training, &segmentation, ctx, &data, device, segmenter, None)
 }
 
 /// Share of the training split held out as the validation slice the per-epoch log scores.
