@@ -4,17 +4,19 @@ use std::process::{Command, Output};
 
 use serde_json::Value;
 
-/// A scratch directory with a pipeline file, a trace file and the store beside them.
+pub use rlmflow_test_support::cli::output_dir;
+
+/// A scratch directory (removed when its test passes) with a pipeline file, a trace file and the
+/// store beside them.
 pub struct Scratch {
     pub dir: PathBuf,
+    _removed_when_passed: rlmflow_test_support::Scratch,
 }
 
 impl Scratch {
     pub fn new(name: &str) -> Scratch {
-        let dir = std::env::temp_dir().join(format!("rlmflow-e2e-{name}-{}", std::process::id()));
-        let _ = fs::remove_dir_all(&dir);
-        fs::create_dir_all(&dir).unwrap();
-        Scratch { dir }
+        let scratch = rlmflow_test_support::Scratch::new(&format!("e2e-{name}"));
+        Scratch { dir: scratch.to_path_buf(), _removed_when_passed: scratch }
     }
 
     pub fn pipeline(&self, text: &str) -> &Self {
@@ -55,15 +57,6 @@ impl Scratch {
 
     pub fn clear_trace(&self) {
         let _ = fs::remove_file(self.dir.join("trace.txt"));
-    }
-}
-
-/// A passing test leaves nothing behind; a failing one keeps its directory for a look.
-impl Drop for Scratch {
-    fn drop(&mut self) {
-        if !std::thread::panicking() {
-            let _ = fs::remove_dir_all(&self.dir);
-        }
     }
 }
 
@@ -121,14 +114,6 @@ pub fn snapshot(dir: &Path) -> Vec<(PathBuf, u64, std::time::SystemTime)> {
     }
     out.sort();
     out
-}
-
-/// The output directory of the stage instance `label`, through the store's refs.
-pub fn output_dir(store: &Path, pipeline: &str, label: &str) -> PathBuf {
-    let store = rlmflow_cache::Store::open_existing(store).unwrap().unwrap();
-    let key = store.last_keys(pipeline).unwrap()[label];
-    let record = store.record(&key).unwrap().unwrap();
-    store.object_dir(&record.output)
 }
 
 pub const CHAIN: &str = r#"

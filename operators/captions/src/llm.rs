@@ -725,9 +725,9 @@ fn server_message(text: &str) -> String {
 #[cfg(test)]
 mod tests {
     use std::collections::HashMap;
-    use std::io::{BufRead, BufReader, Read, Write};
-    use std::net::{TcpListener, TcpStream};
     use std::sync::Arc;
+
+    use rlmflow_test_support::openai::{FakeOpenAi, Response};
 
     use rlmflow_stages::captions::{self, Captions};
     use rlmflow_stages::context::Silent;
@@ -760,92 +760,38 @@ mod tests {
         Always,
     }
 
-    /// A chat-completions endpoint on localhost. It reads the grid back out of the prompt and
-    /// answers with template captions of it; `script(request number, prompt, n)` picks the reply.
-    struct FakeLlm {
-        url: String,
-        requests: Arc<AtomicUsize>,
-        bodies: Arc<Mutex<Vec<Value>>>,
-    }
-
     type Script = dyn Fn(usize, &str, usize) -> Reply + Send + Sync;
 
-    impl FakeLlm {
-        fn start(script: Box<Script>, wrong: Wrong) -> FakeLlm {
-            let listener = TcpListener::bind("127.0.0.1:0").unwrap();
-            let url = format!("http://{}/v1", listener.local_addr().unwrap());
-            let requests = Arc::new(AtomicUsize::new(0));
-            let bodies = Arc::new(Mutex::new(Vec::new()));
-            let (r, b) = (requests.clone(), bodies.clone());
-            let script: Arc<Script> = script.into();
-            let answered = Arc::new(Mutex::new(std::collections::HashSet::new()));
-            std::thread::spawn(move || {
-                for stream in listener.incoming() {
-                    let (r, b, script, answered) = (r.clone(), b.clone(), script.clone(), answered.clone());
-                    std::thread::spawn(move || {
-                        serve(stream.unwrap(), &r, &b, &*script, &|prompt: &str| match wrong {
-                            Wrong::Never => false,
-                            Wrong::Always => true,
-                            Wrong::FirstAnswer => answered.lock().unwrap().insert(prompt.to_owned()),
-                        })
-                    });
-                }
-            });
-            FakeLlm { url, requests, bodies }
-        }
-    }
-
-    /// `wrong(prompt)` says whether this answer starts with a wrong caption.
-    fn serve(mut stream: TcpStream, requests: &AtomicUsize, bodies: &Mutex<Vec<Value>>, script: &Script, wrong: &dyn Fn(&str) -> bool) {
-        let mut reader = BufReader::new(stream.try_clone().unwrap());
-        loop {
-            let mut length = 0;
-            let mut auth = String::new();
-            loop {
-                let mut line = String::new();
-                if reader.read_line(&mut line).unwrap_or(0) == 0 {
-                    return;
-                }
-                let line = line.trim_end();
-                if line.is_empty() {
-                    break;
-                }
-                let lower = line.to_ascii_lowercase();
-                if let Some(v) = lower.strip_prefix("content-length:") {
-                    length = v.trim().parse().unwrap();
-                }
-                if lower.starts_with("authorization:") {
-                    auth = line["authorization:".len()..].trim().to_owned();
-                }
-            }
-            let mut body = vec![0; length];
-            reader.read_exact(&mut body).unwrap();
-            let body: Value = serde_json::from_slice(&body).unwrap();
-            let number = requests.fetch_add(1, Ordering::SeqCst);
-            let prompt = body["messages"][1]["content"].as_str().unwrap().to_owned();
-            let n = body["n"].as_u64().unwrap() as usize;
-            bodies.lock().unwrap().push(body);
-            let (status, text, retry_after) = match script(number, &prompt, n) {
-                _ if auth != "Bearer sk-test" => (401, r#"{"error": {"message": "Incorrect API key provided"}}"#.to_owned(), ""),
-                Reply::Captions(k) => (200, answer(&prompt, k, wrong(&prompt)), ""),
+    /// A chat-completions endpoint on localhost. It reads the grid back out of the prompt and
+    /// answers with template captions of it; `script(request number, prompt, n)` picks the reply,
+    /// `wrong` which answers start with a caption of another grid.
+    fn fake_llm(script: Box<Script>, wrong: Wrong) -> FakeOpenAi {
+        let answered = Mutex::new(std::collections::HashSet::new());
+        FakeOpenAi::start(move |request| {
+            let (prompt, n) = (request.prompt(), request.n());
+            // Asked only of an answer with captions: a failed request answers nothing.
+            let wrong_first = || match wrong {
+                Wrong::Never => false,
+                Wrong::Always => true,
+                Wrong::FirstAnswer => answered.lock().unwrap().insert(prompt.to_owned()),
+            };
+            match script(request.number, prompt, n) {
+                _ if request.authorization != "Bearer sk-test" => Response::error(401, "Incorrect API key provided"),
+                Reply::Captions(k) => Response::json(&answer(prompt, k, wrong_first())),
                 Reply::CutOff(k) => {
-                    let mut cut: Value = serde_json::from_str(&answer(&prompt, k, false)).unwrap();
+                    let mut cut = answer(prompt, k, false);
                     cut["choices"].as_array_mut().unwrap().iter_mut().for_each(|c| c["finish_reason"] = json!("length"));
-                    (200, cut.to_string(), "")
+                    Response::json(&cut)
                 }
-                Reply::Status(code, message) => (code, format!(r#"{{"error": {{"message": "{message}"}}}}"#), "Retry-After: 0\r\n"),
-                Reply::Malformed => (200, r#"{"choices": [{"message": "#.to_owned(), ""),
+                Reply::Status(code, message) => Response::error(code, message),
+                Reply::Malformed => Response { status: 200, body: r#"{"choices": [{"message": "#.to_owned(), retry_after: false },
                 Reply::Slow(d) => {
                     // Past the client's timeout: nobody reads this answer.
                     std::thread::sleep(d);
-                    (200, answer(&prompt, n, false), "")
+                    Response::json(&answer(prompt, n, false))
                 }
-            };
-            let head = format!("HTTP/1.1 {status} X\r\nContent-Type: application/json\r\nContent-Length: {}\r\n{retry_after}\r\n", text.len());
-            if stream.write_all(head.as_bytes()).and_then(|()| stream.write_all(text.as_bytes())).is_err() {
-                return;
             }
-        }
+        })
     }
 
     /// The grid in a prompt's JSON, numbers read back from words.
@@ -864,7 +810,7 @@ mod tests {
         Grid::from_json(&value).unwrap()
     }
 
-    fn answer(prompt: &str, k: usize, wrong_first: bool) -> String {
+    fn answer(prompt: &str, k: usize, wrong_first: bool) -> Value {
         let grid = prompt_grid(prompt);
         let mut rng = ChaCha8Rng::seed_from_u64(prompt.len() as u64);
         let no_numbers = prompt.contains(NO_NUMBERS);
@@ -877,7 +823,7 @@ mod tests {
                 json!({"index": i, "message": {"role": "assistant", "content": crate::caption(&g, !no_numbers, &mut rng)}})
             })
             .collect();
-        json!({"choices": choices, "usage": {"prompt_tokens": 700, "completion_tokens": 150 * k}}).to_string()
+        json!({"choices": choices, "usage": {"prompt_tokens": 700, "completion_tokens": 150 * k}})
     }
 
     fn scratch(name: &str) -> PathBuf {
@@ -940,7 +886,7 @@ mod tests {
         grids
     }
 
-    fn settings(server: &FakeLlm, root: &Path) -> LlmSettings {
+    fn settings(server: &FakeOpenAi, root: &Path) -> LlmSettings {
         LlmSettings {
             base_url: server.url.clone(),
             model: "fake".into(),
@@ -968,7 +914,7 @@ mod tests {
     fn failures_are_retried_wrong_captions_regenerated_and_answers_never_asked_twice() {
         let root = scratch("main");
         let grids = write_labels(&root, 12);
-        let server = FakeLlm::start(
+        let server = fake_llm(
             Box::new(|number, _, n| match number {
                 0 => Reply::Status(429, "Rate limit reached"),
                 1 => Reply::Status(500, "The server had an error"),
@@ -999,9 +945,9 @@ mod tests {
         // The same run again asks nothing: every answer comes from the response cache, and the
         // artifact, which records what the answers cost rather than what this run sent, is
         // the same bytes.
-        let sent = server.requests.load(Ordering::SeqCst);
+        let sent = server.requests();
         let again = run(&root, &s).unwrap();
-        assert_eq!(server.requests.load(Ordering::SeqCst), sent);
+        assert_eq!(server.requests(), sent);
         assert_eq!(again.metrics["requests"]["from_cache"], 24);
         assert_eq!(std::fs::read(root.join("out/captions.jsonl")).unwrap(), captions_bytes(&captions));
         assert_eq!(std::fs::read(root.join("out/captions.json")).unwrap(), summary);
@@ -1020,7 +966,7 @@ mod tests {
     fn shares_joined_by_concat_captions_are_the_bytes_of_the_unsharded_stage() {
         let root = scratch("shares");
         write_labels(&root, 10);
-        let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::FirstAnswer);
+        let server = fake_llm(Box::new(|_, _, n| Reply::Captions(n)), Wrong::FirstAnswer);
         let s = settings(&server, &root);
         // Shares first, so they ask the endpoint and the whole reads every answer from the cache.
         let mut inputs = Vec::new();
@@ -1032,9 +978,9 @@ mod tests {
             assert_eq!(frames, Share { index, of: 3 }.range(10).count() as u64);
             inputs.push(Input::new(format!("{index:020}"), root.join(dir)));
         }
-        let sent = server.requests.load(Ordering::SeqCst);
+        let sent = server.requests();
         let whole = run_into(&root, &s, "whole");
-        assert_eq!(server.requests.load(Ordering::SeqCst), sent, "the shares asked every question the whole asks");
+        assert_eq!(server.requests(), sent, "the shares asked every question the whole asks");
 
         let ckpt = root.join("ckpt");
         let mut ctx = Context::new(
@@ -1116,20 +1062,20 @@ mod tests {
     fn a_damaged_stored_answer_is_set_aside_and_asked_for_once() {
         let root = scratch("damaged");
         write_labels(&root, 4);
-        let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Never);
+        let server = fake_llm(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Never);
         let s = settings(&server, &root);
         run(&root, &s).unwrap();
         let cache = root.join("cache");
         let stored: Vec<PathBuf> = std::fs::read_dir(&cache).unwrap().map(|e| e.unwrap().path()).collect();
         std::fs::write(&stored[0], b"{\"choices\": [{\"mess").unwrap();
-        let sent = server.requests.load(Ordering::SeqCst);
+        let sent = server.requests();
         let again = run(&root, &s).unwrap();
-        assert_eq!(server.requests.load(Ordering::SeqCst), sent + 1, "the damaged answer's request, once");
+        assert_eq!(server.requests(), sent + 1, "the damaged answer's request, once");
         assert_eq!(again.metrics["requests"]["repaired"], 1, "{}", again.metrics);
         assert!(Answer::parse(&std::fs::read_to_string(&stored[0]).unwrap()).is_ok(), "replaced by a whole answer");
         assert_eq!(std::fs::read(stored[0].with_extension("damaged")).unwrap(), b"{\"choices\": [{\"mess", "kept aside");
         run(&root, &s).unwrap();
-        assert_eq!(server.requests.load(Ordering::SeqCst), sent + 1, "repaired once, not asked again");
+        assert_eq!(server.requests(), sent + 1, "repaired once, not asked again");
         // Two answers racing for a damaged file: the one stored replaces it.
         let path = cache.join("race.json");
         std::fs::write(&path, "not json").unwrap();
@@ -1153,13 +1099,13 @@ mod tests {
         let root = scratch("ignores-n");
         write_labels(&root, 4);
         // llama.cpp's server answers one choice whatever `n` asks.
-        let server = FakeLlm::start(Box::new(|_, _, _| Reply::Captions(1)), Wrong::Never);
+        let server = fake_llm(Box::new(|_, _, _| Reply::Captions(1)), Wrong::Never);
         let s = LlmSettings { regenerate: 0, ..settings(&server, &root) };
         let m = run(&root, &s).unwrap().metrics;
         // Per frame: 3 asked, 1 came; 2 asked, 1 came; 1 asked, 1 came.
         assert_eq!((m["captions"].as_u64(), m["requested"].as_u64(), m["received"].as_u64()), (Some(12), Some(24), Some(12)), "{m}");
         assert_eq!(m["requests"]["sent"], 12, "{m}");
-        let bodies: Vec<u64> = server.bodies.lock().unwrap().iter().map(|b| b["n"].as_u64().unwrap()).collect();
+        let bodies: Vec<u64> = server.bodies().iter().map(|b| b["n"].as_u64().unwrap()).collect();
         assert_eq!(bodies.iter().filter(|&&n| n == 3).count(), 4);
         // A rerun asks nothing: each of a frame's requests has its own cached answer.
         let again = run(&root, &s).unwrap().metrics;
@@ -1173,7 +1119,7 @@ mod tests {
         write_labels(&root, 3);
         // The first answer to each prompt is cut off.
         let seen = Mutex::new(std::collections::HashSet::new());
-        let server = FakeLlm::start(
+        let server = fake_llm(
             Box::new(move |_, prompt, n| if seen.lock().unwrap().insert(prompt.to_owned()) { Reply::CutOff(n) } else { Reply::Captions(n) }),
             Wrong::Never,
         );
@@ -1190,7 +1136,7 @@ mod tests {
     fn frames_left_without_captions_fail_the_stage_unless_drops_are_allowed() {
         let root = scratch("none-kept");
         write_labels(&root, 4);
-        let server = FakeLlm::start(Box::new(|_, _, n| Reply::CutOff(n)), Wrong::Never);
+        let server = fake_llm(Box::new(|_, _, n| Reply::CutOff(n)), Wrong::Never);
         let s = LlmSettings { regenerate: 1, ..settings(&server, &root) };
         let e = run(&root, &s).unwrap_err().to_string();
         assert!(e.starts_with("4 of 4 frames kept no caption (0 of 12 answers faithful on first asking, 24 cut off at max_tokens = 400"), "{e}");
@@ -1210,7 +1156,7 @@ mod tests {
     fn settings_the_key_leaves_out_leave_the_bytes_alone() {
         let root = scratch("non-result");
         write_labels(&root, 5);
-        let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::FirstAnswer);
+        let server = fake_llm(Box::new(|_, _, n| Reply::Captions(n)), Wrong::FirstAnswer);
         let s = settings(&server, &root);
         let one = run_into(&root, &LlmSettings { concurrency: 1, retries: 2, timeout_s: 5.0, backoff_s: 0.5, ..s.clone() }, "one");
         let other = LlmSettings { concurrency: 4, retries: 9, api_key_env: "RLMFLOW_TEST_LLM_KEY".into(), ..s };
@@ -1226,7 +1172,7 @@ mod tests {
     fn unfaithful_captions_are_dropped_or_kept_as_configured() {
         let root = scratch("mismatch");
         write_labels(&root, 4);
-        let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Always);
+        let server = fake_llm(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Always);
         let s = LlmSettings { regenerate: 1, ..settings(&server, &root) };
         let dropped = run(&root, &s).unwrap().metrics;
         assert_eq!(dropped["frames_without_captions"], 0, "{dropped}");
@@ -1242,14 +1188,14 @@ mod tests {
     fn client_errors_stop_the_stage_with_the_servers_message() {
         let root = scratch("4xx");
         write_labels(&root, 2);
-        let server = FakeLlm::start(Box::new(|_, _, _| Reply::Status(400, "Invalid value for 'top_p'")), Wrong::Never);
+        let server = fake_llm(Box::new(|_, _, _| Reply::Status(400, "Invalid value for 'top_p'")), Wrong::Never);
         let e = run(&root, &settings(&server, &root)).unwrap_err();
         assert!(format!("{e:#}").contains("answered 400: Invalid value for 'top_p'"), "{e:#}");
         let s = LlmSettings { retries: 2, ..settings(&server, &root) };
-        let server = FakeLlm::start(Box::new(|_, _, _| Reply::Status(503, "overloaded")), Wrong::Never);
+        let server = fake_llm(Box::new(|_, _, _| Reply::Status(503, "overloaded")), Wrong::Never);
         let e = run(&root, &LlmSettings { base_url: server.url.clone(), concurrency: 1, ..s }).unwrap_err();
         assert!(format!("{e:#}").contains("gave up after 3 tries: 503: overloaded"), "{e:#}");
-        assert_eq!(server.requests.load(Ordering::SeqCst), 3);
+        assert_eq!(server.requests(), 3);
         std::fs::remove_dir_all(&root).unwrap();
     }
 
@@ -1257,7 +1203,7 @@ mod tests {
     fn a_missing_or_wrong_key_is_named() {
         let root = scratch("key");
         write_labels(&root, 1);
-        let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Never);
+        let server = fake_llm(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Never);
         let s = LlmSettings { api_key_env: "RLMFLOW_TEST_UNSET_KEY".into(), ..settings(&server, &root) };
         let e = run(&root, &s).unwrap_err().to_string();
         assert!(e.contains("RLMFLOW_TEST_UNSET_KEY (stages.captions.api_key_env)"), "{e}");
@@ -1270,9 +1216,9 @@ mod tests {
     fn requests_carry_the_papers_prompts_and_sampling_settings() {
         let root = scratch("prompt");
         write_labels(&root, 6);
-        let server = FakeLlm::start(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Never);
+        let server = fake_llm(Box::new(|_, _, n| Reply::Captions(n)), Wrong::Never);
         run(&root, &LlmSettings { no_distance_numbers: 1.0, ..settings(&server, &root) }).unwrap();
-        let bodies = server.bodies.lock().unwrap();
+        let bodies = server.bodies();
         assert_eq!(bodies.len(), 6);
         for body in bodies.iter() {
             assert_eq!(

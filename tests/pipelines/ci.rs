@@ -1,0 +1,251 @@
+//! `examples/ci.toml` end to end, twice: the second run reuses every stage. Its results then
+//! hold up elsewhere: pulled into a fresh store, recomputed on a HyperQueue cluster, and read
+//! from outside (a stock MCAP reader, `rlmflow parse`, Python's `tokenizers`, the report).
+
+use super::*;
+
+#[test]
+fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
+    let dir = Scratch::new("ci-pipeline");
+    std::fs::copy(root().join("examples/ci.toml"), dir.join("ci.toml")).unwrap();
+    let (ok, first) = rlmflow(&dir, &["run", "ci.toml", "--json"]);
+    assert!(ok, "{first}");
+    let finished =
+        |log: &str, status: &str| log.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains(&format!("\"status\":\"{status}\""))).count();
+    let stages = finished(&first, "ran");
+    assert!(stages >= 1, "{first}");
+    let (ok, second) = rlmflow(&dir, &["run", "ci.toml", "--json"]);
+    assert!(ok, "{second}");
+    assert_eq!((finished(&second, "reused"), finished(&second, "ran")), (stages, 0), "{second}");
+    let (ok, verify) = rlmflow(&dir, &["verify", "ci.toml"]);
+    assert!(ok, "{verify}");
+    // The caption probes, greedy and beam, the report (its Rerun recording included) and the
+    // scenes mix give the same bytes in fresh processes.
+    let checked = ["clipcap", "clipcap-beam", "report", "mixed"];
+    let args: Vec<&str> = ["run", "ci.toml"].into_iter().chain(checked.iter().flat_map(|s| ["--check-determinism", s])).collect();
+    let (ok, check) = rlmflow(&dir, &args);
+    assert!(ok && check.matches("same bytes").count() == 6, "{check}");
+    let objects = dir.join(".rlmflow/objects");
+    the_report_holds_every_probe(&objects);
+    a_local_hyperqueue_cluster_gives_the_same_keys_and_bytes(&dir, stages);
+    a_fresh_store_pulls_every_stage_from_a_remote_and_computes_nothing(&dir, &first);
+
+    // One probe setting changed: only that probe's instances and the report run again.
+    let edited =
+        std::fs::read_to_string(dir.join("ci.toml")).unwrap().replacen("source = \"pixels\"", "source = \"pixels\"\nlambdas = [0.1, 10.0]", 1);
+    std::fs::write(dir.join("ci.toml"), edited).unwrap();
+    let (ok, third) = rlmflow(&dir, &["run", "ci.toml", "--json"]);
+    assert!(ok, "{third}");
+    let ran: Vec<String> = third
+        .lines()
+        .filter(|l| l.contains("\"stage_finished\"") && l.contains("\"status\":\"ran\""))
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["stage"].as_str().unwrap().to_owned())
+        .collect();
+    assert_eq!(ran, ["pixels", "report"], "{third}");
+    let scenes = artifacts(&objects, "scenes.mcap");
+    assert_eq!(scenes.len(), 6, "one per scenes stage and shard, and the mix: {scenes:?}");
+    for artifact in scenes {
+        a_stock_mcap_reader_agrees(&artifact);
+    }
+    let [labels, captions, tokens] = ["labels.jsonl", "captions.jsonl", "tokenizer.json"].map(|file| {
+        let found = artifacts(&objects, file);
+        assert_eq!(found.len(), 1, "{file}: {found:?}");
+        found[0].clone()
+    });
+    every_caption_parses_to_its_labels(&labels, &captions);
+    python_tokenizers_gives_the_same_ids(&captions, &tokens);
+}
+
+/// `rlmflow push` of the CI pipeline's results to a directory remote; a fresh store beside it
+/// then computes nothing: every stage is pulled, with the output digests of the run that
+/// computed them.
+fn a_fresh_store_pulls_every_stage_from_a_remote_and_computes_nothing(local: &Path, computed: &str) {
+    let remote = format!("file://{}", local.with_extension("remote").display());
+    let (ok, out) = rlmflow(local, &["push", "ci.toml", "--remote", &remote]);
+    assert!(ok, "{out}");
+    let fresh = local.with_extension("pulled");
+    let _ = std::fs::remove_dir_all(&fresh);
+    std::fs::create_dir_all(&fresh).unwrap();
+    std::fs::copy(local.join("ci.toml"), fresh.join("ci.toml")).unwrap();
+    let (ok, pulled) = rlmflow(&fresh, &["run", "ci.toml", "--json", "--remote", &remote]);
+    assert!(ok, "{pulled}");
+    let outputs = |log: &str, status: &str| -> Vec<(String, String)> {
+        let mut v: Vec<(String, String)> = log
+            .lines()
+            .filter(|l| l.contains("\"stage_finished\"") && l.contains(&format!("\"status\":\"{status}\"")))
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .map(|e| (e["stage"].as_str().unwrap().to_owned(), e["output"].as_str().unwrap().to_owned()))
+            .collect();
+        v.sort();
+        v
+    };
+    assert_eq!(outputs(&pulled, "pulled"), outputs(computed, "ran"), "pulled everything, the same digests: {pulled}");
+    let (ok, verify) = rlmflow(&fresh, &["verify", "ci.toml"]);
+    assert!(ok, "{verify}");
+    std::fs::remove_dir_all(&fresh).unwrap();
+}
+
+/// `examples/ci.toml` run in `local` (by the local executor) again through a local HyperQueue
+/// cluster into a store of its own: every action has the same key and output digest, and a second
+/// run reuses everything and starts no cluster.
+fn a_local_hyperqueue_cluster_gives_the_same_keys_and_bytes(local: &Path, stages: usize) {
+    let dir = local.with_extension("hyperqueue");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::copy(local.join("ci.toml"), dir.join("ci.toml")).unwrap();
+    let (ok, first) = rlmflow(&dir, &["run", "ci.toml", "--json", "--executor", "hyperqueue"]);
+    assert!(ok, "{first}");
+    assert!(first.contains("\"executor\":\"hyperqueue (local cluster"), "{first}");
+    let actions = |dir: &Path| {
+        let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
+        let keys = store.last_keys("ci").unwrap();
+        keys.into_iter().map(|(label, key)| (label, key, store.record(&key).unwrap().unwrap().output)).collect::<Vec<_>>()
+    };
+    let (through_hq, locally) = (actions(&dir), actions(local));
+    assert_eq!(through_hq.len(), stages);
+    assert_eq!(through_hq, locally);
+    let (ok, second) = rlmflow(&dir, &["run", "ci.toml", "--json", "--executor", "hyperqueue"]);
+    assert!(ok, "{second}");
+    assert_eq!(second.matches("\"status\":\"reused\"").count(), stages, "{second}");
+    let run = second.lines().find(|l| l.contains("\"run_started\"")).unwrap();
+    let run = serde_json::from_str::<serde_json::Value>(run).unwrap()["run"].as_str().unwrap().to_owned();
+    assert!(!dir.join(".rlmflow/runs").join(run).join("hyperqueue/server").exists(), "a warm run starts no cluster");
+}
+
+/// The report reads every probe and segmenter instance: its tables name them, `metrics.json`
+/// holds their numbers, and the Python `rerun` package reads its recording's entities.
+fn the_report_holds_every_probe(objects: &Path) {
+    let reports = artifacts(objects, "report.html");
+    assert_eq!(reports.len(), 1, "{reports:?}");
+    let report = &reports[0];
+    let html = std::fs::read_to_string(report.join("report.html")).unwrap();
+    let markdown = std::fs::read_to_string(report.join("report.md")).unwrap();
+    let metrics: serde_json::Value = serde_json::from_slice(&std::fs::read(report.join("metrics.json")).unwrap()).unwrap();
+    let captioning = metrics["captioning"].as_object().unwrap();
+    for row in [
+        "clipcap · clip",
+        "clipcap · random",
+        "clipcap-beam · clip",
+        "linear · clip (cls)",
+        "linear · random (mean-patch)",
+        "linear · clip (patches)",
+        "pixels (pixels)",
+    ] {
+        assert!(captioning.contains_key(row), "captioning row {row}: {:?}", captioning.keys());
+        assert!(html.contains(row) && markdown.contains(row), "{row} not in the report");
+    }
+    assert_eq!(captioning["clipcap · random"]["row"], "random init (sanity)");
+    assert_eq!(captioning["pixels (pixels)"]["row"], "pixels (baseline)");
+    // Every probe and segmenter on an encoder counted its test frames among the encoder's
+    // training frames and each tokenizer's: all zero, shown in the hygiene table.
+    let hygiene = metrics["hygiene"].as_array().unwrap();
+    let checked: std::collections::BTreeSet<&str> = hygiene.iter().map(|r| r["instance"].as_str().unwrap()).collect();
+    for instance in ["clipcap[clip]", "clipcap-beam[random]", "linear[clip]", "pup[random]"] {
+        assert!(checked.contains(instance), "{instance} not in {checked:?}");
+    }
+    assert!(hygiene.iter().all(|r| r["check"]["overlap"] == 0), "{hygiene:?}");
+    let trained_on = |r: &&serde_json::Value| r["check"]["against"] == "encoder training" && r["check"]["frames"].as_u64().unwrap() > 0;
+    assert!(hygiene.iter().filter(trained_on).all(|r| r["instance"].as_str().unwrap().contains("[clip]")), "an untrained encoder trained on nothing");
+    assert!(hygiene.iter().filter(trained_on).count() >= 4, "{hygiene:?}");
+    assert!(markdown.contains("# Data hygiene") && markdown.contains("Every count is zero"), "no hygiene table");
+    let segmentation = metrics["segmentation"].as_object().unwrap();
+    assert_eq!(segmentation.keys().collect::<Vec<_>>(), ["pup · clip", "pup · random", "unet"]);
+    assert_eq!(segmentation["unet"]["paper"][2], 0.489, "the paper's U-Net IoU stands beside ours");
+    for figure in ["vehicles-per-frame.svg", "pretrain-loss.svg", "iou-threshold.svg"] {
+        assert!(report.join("figures").join(figure).exists(), "{figure}");
+    }
+    assert!(html.contains("<svg") && html.contains("data:image/png;base64,"), "figures inline");
+    const ENTITIES: &str = r#"
+import sys, warnings
+warnings.simplefilter("ignore")
+from rerun.chunk import RrdReader
+print("\n".join(sorted({c.entity_path for c in RrdReader(sys.argv[1]).stream()})))
+"#;
+    let env = rlmflow_python::ensure(&mut |_| {}).unwrap();
+    let out = Command::new(&env.python).arg("-c").arg(ENTITIES).arg(report.join("report.rrd")).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let entities: Vec<String> = String::from_utf8_lossy(&out.stdout).lines().map(str::to_owned).collect();
+    for entity in [
+        "/radar/heatmap",
+        "/radar/truth",
+        "/radar/actors",
+        "/radar/predicted/pup/clip",
+        "/radar/predicted/unet",
+        "/captions/true",
+        "/captions/clipcap/clip",
+        "/train/pretrain/clip/loss",
+    ] {
+        assert!(entities.contains(&entity.to_string()), "{entity} not in {entities:?}");
+    }
+}
+
+fn every_caption_parses_to_its_labels(labels: &Path, captions_dir: &Path) {
+    let labels = rlmflow_stages::labels::Labels::open(labels).unwrap();
+    let captions = rlmflow_stages::captions::Captions::open(captions_dir).unwrap();
+    let (ok, out) = rlmflow(&root(), &["parse", captions_dir.join("captions.jsonl").to_str().unwrap()]);
+    assert!(ok, "{out}");
+    let grids: Vec<&str> = out.lines().collect();
+    assert_eq!(grids.len(), captions.captions.len());
+    for (caption, parsed) in captions.captions.iter().zip(grids) {
+        assert_eq!(parsed, labels.frames[caption.frame as usize].grid.to_json(), "{}", caption.caption);
+    }
+}
+
+fn python_tokenizers_gives_the_same_ids(captions: &Path, tokens: &Path) {
+    const ENCODE: &str = r#"
+import json, sys
+import numpy as np
+from tokenizers import Tokenizer
+tokenizer = Tokenizer.from_file(sys.argv[1] + "/tokenizer.json")
+ids = np.load(sys.argv[1] + "/tokens.npy")
+captions = [json.loads(l)["caption"] for l in open(sys.argv[2] + "/captions.jsonl")]
+assert ids.shape[0] == len(captions), (ids.shape, len(captions))
+for row, caption in zip(ids, captions):
+    assert tokenizer.encode(caption).ids == row.tolist(), caption
+print(len(captions))
+"#;
+    let env = rlmflow_python::ensure(&mut |_| {}).unwrap();
+    let out = Command::new(&env.python).arg("-c").arg(ENCODE).arg(tokens).arg(captions).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let checked: usize = String::from_utf8_lossy(&out.stdout).trim().parse().unwrap();
+    assert!(checked > 0);
+}
+
+/// Reads `scenes.mcap` with the Python `mcap` package (protobuf decoding from
+/// `mcap-protobuf-support`) in the managed environment and compares every message with what
+/// rlmflow's reader returns through `scenes.index`.
+fn a_stock_mcap_reader_agrees(artifact: &Path) {
+    const READ: &str = r#"
+import json, sys
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+out = {"actors": [], "images": {}}
+protobuf = DecoderFactory()
+with open(sys.argv[1], "rb") as f:
+    for schema, channel, message in make_reader(f).iter_messages():
+        if channel.topic == "/actors":
+            assert channel.message_encoding == "json"
+            out["actors"].append(json.loads(message.data))
+        else:
+            decoded = protobuf.decoder_for(channel.message_encoding, schema)(message.data)
+            assert schema.name == "foxglove.RawImage" and decoded.encoding == "mono8"
+            out["images"].setdefault(channel.topic, []).append([decoded.width, decoded.height, list(decoded.data)])
+json.dump(out, sys.stdout)
+"#;
+    let env = rlmflow_python::ensure(&mut |_| {}).unwrap();
+    let out = Command::new(&env.python).arg("-c").arg(READ).arg(artifact.join("scenes.mcap")).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let read: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let scenes = rlmflow_stages::scenes::Scenes::open(artifact).unwrap();
+    let frames = scenes.frames().unwrap();
+    assert_eq!(read["actors"], serde_json::to_value(&frames).unwrap(), "{}", artifact.display());
+    for (k, image) in scenes.summary.images.iter().enumerate() {
+        let decoded = read["images"][&image.topic].as_array().unwrap();
+        assert_eq!(decoded.len() as u64, scenes.len());
+        for (i, d) in decoded.iter().enumerate() {
+            assert_eq!(d[0], image.size);
+            assert_eq!(d[1], image.size);
+            assert_eq!(d[2], serde_json::to_value(scenes.image(k, i as u64).unwrap()).unwrap(), "{} frame {i}", image.topic);
+        }
+    }
+}

@@ -1,0 +1,28 @@
+//! Running the real binaries as a user would, and finding what a run stored.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// The binary `name` built beside `exe` (a test's `CARGO_BIN_EXE_*`): `rlmflow` beside the
+/// worker, say.
+pub fn beside(exe: &str, name: &str) -> PathBuf {
+    let path = Path::new(exe).with_file_name(name);
+    assert!(path.is_file(), "{} is missing: build the workspace (`cargo xtask test` does)", path.display());
+    path
+}
+
+/// Runs `exe ARGS` in `dir`: whether it succeeded, and everything it printed (stdout, then
+/// stderr).
+pub fn run(exe: &Path, dir: &Path, args: &[&str]) -> (bool, String) {
+    let out = Command::new(exe).current_dir(dir).args(args).output().unwrap_or_else(|e| panic!("running {}: {e}", exe.display()));
+    (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
+}
+
+/// The output directory of stage instance `label` of pipeline `pipeline` in the store at
+/// `store`, through the store's refs to its last run.
+pub fn output_dir(store: &Path, pipeline: &str, label: &str) -> PathBuf {
+    let store = rlmflow_cache::Store::open_existing(store).unwrap().unwrap_or_else(|| panic!("no store at {}", store.display()));
+    let key = store.last_keys(pipeline).unwrap()[label];
+    let record = store.record(&key).unwrap().unwrap();
+    store.object_dir(&record.output)
+}

@@ -1,0 +1,88 @@
+//! A scratch directory per test: removed when the test passes, kept (and named on stderr) when
+//! it fails, for a look at what it left.
+
+use std::path::{Path, PathBuf};
+
+pub struct Scratch {
+    dir: PathBuf,
+}
+
+impl Scratch {
+    /// A fresh, empty `rlmflow-NAME-PID` in the system's temporary directory (a leftover of the
+    /// same name is removed first).
+    pub fn new(name: &str) -> Scratch {
+        let dir = std::env::temp_dir().join(format!("rlmflow-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("creating {}: {e}", dir.display()));
+        Scratch { dir }
+    }
+
+    /// A fresh scratch directory holding `p.toml` with `pipeline`.
+    pub fn with_pipeline(name: &str, pipeline: &str) -> Scratch {
+        let scratch = Scratch::new(name);
+        scratch.write("p.toml", pipeline);
+        scratch
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Writes `text` to `name` inside, creating its parents.
+    pub fn write(&self, name: &str, text: &str) -> PathBuf {
+        let path = self.dir.join(name);
+        std::fs::create_dir_all(path.parent().expect("inside the scratch directory")).unwrap();
+        std::fs::write(&path, text).unwrap_or_else(|e| panic!("writing {}: {e}", path.display()));
+        path
+    }
+}
+
+impl std::ops::Deref for Scratch {
+    type Target = Path;
+
+    fn deref(&self) -> &Path {
+        &self.dir
+    }
+}
+
+impl AsRef<Path> for Scratch {
+    fn as_ref(&self) -> &Path {
+        &self.dir
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            eprintln!("kept for a look: {}", self.dir.display());
+        } else {
+            let _ = std::fs::remove_dir_all(&self.dir);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Scratch;
+
+    #[test]
+    fn a_passing_test_leaves_nothing_and_a_failing_one_keeps_its_directory() {
+        let passed = Scratch::new("scratch-passes");
+        passed.write("a/b.txt", "x");
+        let path = passed.to_path_buf();
+        drop(passed);
+        assert!(!path.exists());
+
+        let kept = std::thread::spawn(|| {
+            let failed = Scratch::new("scratch-fails");
+            failed.write("left.txt", "y");
+            let path = failed.to_path_buf();
+            std::panic::panic_any(path);
+        })
+        .join()
+        .unwrap_err();
+        let kept = kept.downcast::<std::path::PathBuf>().unwrap();
+        assert!(kept.join("left.txt").is_file(), "a failing test's directory stays");
+        std::fs::remove_dir_all(*kept).unwrap();
+    }
+}
