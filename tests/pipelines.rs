@@ -2,7 +2,8 @@
 //! the shipped pipelines validate and refuse what cannot run (`shipped`), the CI pipeline end to
 //! end and its results read from outside (`ci`), the caption parser and setup on the command line
 //! (`commands`), sharded real operators (`shards`), highway-env's determinism (`highway`),
-//! evaluation hygiene (`hygiene`), every setting's effect on the key (`settings`), dataset
+//! evaluation hygiene (`hygiene`), every setting's effect on the key (`settings`), the generated
+//! operator reference (`reference`), dataset
 //! imports (`import`, `datasets`) and mutated inputs (`fuzz`).
 
 use std::path::{Path, PathBuf};
@@ -26,6 +27,8 @@ mod highway;
 mod hygiene;
 #[path = "pipelines/import.rs"]
 mod import;
+#[path = "pipelines/reference.rs"]
+mod reference;
 #[path = "pipelines/settings.rs"]
 mod settings;
 #[path = "pipelines/shards.rs"]

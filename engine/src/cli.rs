@@ -529,7 +529,18 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 for op in registry.operators_of(kind.name) {
                     let spec = op.spec();
                     let defaults = op.defaults();
-                    let line = serde_json::json!({"name": spec.name, "kind": spec.kind, "version": spec.version, "defaults": defaults, "non_result": op.non_result_keys(), "tracked": op.tracked_keys()});
+                    let reads = spec.inputs.map_or_else(|| kind.inputs.iter().map(|s| s.name).collect(), <[&str]>::to_vec);
+                    let inputs: serde_json::Map<String, serde_json::Value> = kind
+                        .inputs
+                        .iter()
+                        .filter(|slot| reads.contains(&slot.name))
+                        .map(|slot| (slot.name.to_owned(), serde_json::json!(slot.artifact.to_string())))
+                        .collect();
+                    let line = serde_json::json!({
+                        "name": spec.name, "kind": spec.kind, "version": spec.version, "summary": spec.summary,
+                        "inputs": inputs, "produces": kind.produces.to_string(), "merge": op.merge(),
+                        "defaults": defaults, "non_result": op.non_result_keys(), "tracked": op.tracked_keys()
+                    });
                     println!("{line}");
                 }
             }
