@@ -73,7 +73,7 @@ impl Catalog {
         self.kinds.iter().find(|k| k.name == name)
     }
 
-    /// The stage kinds of the paper's pipeline (the README's "What a stage produces" describes each).
+    /// The stage kinds of the paper's pipeline (docs/reference/artifacts.md describes each).
     pub fn paper() -> Catalog {
         Catalog { kinds: PAPER_KINDS.to_vec(), markers: PAPER_MARKERS.to_vec() }
     }

@@ -13,7 +13,7 @@ pub struct Expected<'a> {
     /// For messages: `CLIP ViT-B/16 (open_clip or Hugging Face names)`.
     pub model: &'a str,
     pub names: &'a [&'a str],
-    /// Where such a file comes from, for the error: "README: Paper scale".
+    /// Where such a file comes from, for the error: "docs/guide/paper-scale.md".
     pub source: &'a str,
 }
 

@@ -24,8 +24,9 @@ fn render(operators: &[serde_json::Value]) -> String {
          <!-- Generated from `rlmflow operators --json` by tests/pipelines/reference.rs; do not edit. Regenerate with\n     \
          RLMFLOW_BLESS=1 cargo xtask test -p rlmflow --test pipelines -- operator_reference -->\n\n\
          Every operator the `rlmflow` binary ships, with every setting a stage of it may set in `pipeline.toml` and its\n\
-         default. A setting marked *not in the key* cannot change the result (threads, progress, a shard's size), so changing\n\
-         it reuses what is cached; a *tracked* path enters the key by the content of the files it names, not by its text.\n\
+         default. A setting marked *not in the key* cannot change the result (how many frames are rendered at once, an\n\
+         endpoint's retries and timeouts), so changing it reuses what is cached; a *tracked* path enters the key by the\n\
+         content of the files it names, not by its text.\n\
          Nested tables are written here as dotted keys (`radar.image`); in `pipeline.toml` they are TOML tables\n\
          (`radar = { image = 32 }`).\n",
     );

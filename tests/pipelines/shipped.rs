@@ -37,7 +37,7 @@ fn write_safetensors(path: &Path, names: &[&str]) {
 }
 
 /// `examples/paper.toml` starts from the public checkpoints: without them it says which setting
-/// names which file and where the README converts it; with files of the right models where its
+/// names which file and where docs/guide/paper-scale.md converts it; with files of the right models where its
 /// `init` lines point, it validates and shows each training stage's size and memory.
 #[test]
 fn the_paper_pipeline_names_its_checkpoints_and_shows_what_each_stage_costs() {

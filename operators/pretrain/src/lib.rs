@@ -35,7 +35,7 @@ pub const TEXTS: [&str; 2] = ["tiny", "paper"];
 const CLIP_WEIGHTS: Expected = Expected {
     model: "CLIP ViT-B/16 (open_clip `visual.*` or Hugging Face `vision_model.*` names)",
     names: &["visual.conv1.weight", "vision_model.embeddings.patch_embedding.weight"],
-    source: "the README's \"Pretrained weights\" converts OpenAI's in a few lines of Python",
+    source: "docs/guide/paper-scale.md (\"Pretrained weights\") converts OpenAI's in a few lines of Python",
 };
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

@@ -103,7 +103,7 @@ pub enum Decode {
 const GPT2_WEIGHTS: Expected = Expected {
     model: "GPT-2 (Hugging Face names)",
     names: &["h.0.attn.c_attn.weight", "transformer.h.0.attn.c_attn.weight"],
-    source: "the README's \"Pretrained weights\" fetches Hugging Face's `model.safetensors`",
+    source: "docs/guide/paper-scale.md (\"Pretrained weights\") fetches Hugging Face's `model.safetensors`",
 };
 
 /// Decoder sizes: `tiny` (laptop) and `gpt2` (GPT-2 small, which `init` weights fit).
