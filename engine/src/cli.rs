@@ -577,8 +577,8 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let code = match (remote, store, scratch) {
                 (Some(url), store, _) => {
                     let timeout = std::time::Duration::from_secs_f64(remote_timeout);
-                    let remote = crate::exec::TaskRemote { url, timeout, transcript: transcript.expect("clap requires it"), replace };
-                    crate::exec::exec_task(store.as_deref(), key, threads, device, remote)?
+                    let remote = crate::task::TaskRemote { url, timeout, transcript: transcript.expect("clap requires it"), replace };
+                    crate::task::exec_task(store.as_deref(), key, threads, device, remote)?
                 }
                 (None, Some(store), Some(dir)) => crate::exec::exec_scratch(registry, &store, key, threads, device, &dir)?,
                 (None, Some(store), None) => crate::exec::exec(registry, &store, key, threads, device)?,
