@@ -53,8 +53,7 @@ fn scratch(name: &str, pipeline: &str) -> Scratch {
 
 /// The output digest of stage `label` of `pipeline` in the store beside `dir`'s pipeline.
 fn output_digest(dir: &Path, pipeline: &str, label: &str) -> rlmflow_cache::Digest {
-    let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
-    store.record(&store.last_keys(pipeline).unwrap()[label]).unwrap().unwrap().output
+    rlmflow_test_support::cli::output_digest(&dir.join(".rlmflow"), pipeline, label)
 }
 
 /// An OpenAI-compatible endpoint answering every request with `n` copies of one caption per

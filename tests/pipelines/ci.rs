@@ -56,15 +56,14 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     python_tokenizers_gives_the_same_ids(&captions, &tokens);
 }
 
-/// `rlmflow push` of the CI pipeline's results to a directory remote; a fresh store beside it
+/// `rlmflow push` of the CI pipeline's results to a directory remote; a fresh store in a folder of its own
 /// then computes nothing: every stage is pulled, with the output digests of the run that
 /// computed them.
 fn a_fresh_store_pulls_every_stage_from_a_remote_and_computes_nothing(local: &Path, computed: &str) {
-    let remote = format!("file://{}", local.with_extension("remote").display());
+    let remote = format!("file://{}", local.join("remote").display());
     let (ok, out) = rlmflow(local, &["push", "ci.toml", "--remote", &remote]);
     assert!(ok, "{out}");
-    let fresh = local.with_extension("pulled");
-    let _ = std::fs::remove_dir_all(&fresh);
+    let fresh = local.join("pulled");
     std::fs::create_dir_all(&fresh).unwrap();
     std::fs::copy(local.join("ci.toml"), fresh.join("ci.toml")).unwrap();
     let (ok, pulled) = rlmflow(&fresh, &["run", "ci.toml", "--json", "--remote", &remote]);
@@ -82,15 +81,13 @@ fn a_fresh_store_pulls_every_stage_from_a_remote_and_computes_nothing(local: &Pa
     assert_eq!(outputs(&pulled, "pulled"), outputs(computed, "ran"), "pulled everything, the same digests: {pulled}");
     let (ok, verify) = rlmflow(&fresh, &["verify", "ci.toml"]);
     assert!(ok, "{verify}");
-    std::fs::remove_dir_all(&fresh).unwrap();
 }
 
 /// `examples/ci.toml` run in `local` (by the local executor) again through a local HyperQueue
 /// cluster into a store of its own: every action has the same key and output digest, and a second
 /// run reuses everything and starts no cluster.
 fn a_local_hyperqueue_cluster_gives_the_same_keys_and_bytes(local: &Path, stages: usize) {
-    let dir = local.with_extension("hyperqueue");
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = local.join("hyperqueue");
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::copy(local.join("ci.toml"), dir.join("ci.toml")).unwrap();
     let (ok, first) = rlmflow(&dir, &["run", "ci.toml", "--json", "--executor", "hyperqueue"]);

@@ -64,7 +64,6 @@ fn imports_on_returns(name: &str, format: &str, write: fn(&Path) -> Vec<Vec<Plac
     // Same key, same bytes: the import twice more, each in a fresh process.
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--check-determinism", "scenes"]);
     assert!(ok && out.contains("same bytes"), "{out}");
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 #[test]
@@ -196,7 +195,6 @@ fn bad_dataset_input_is_named_and_leaves_nothing() {
         assert!(!out.contains("panicked"), "{out}");
         let objects = dir.join(".rlmflow/objects");
         assert!(!objects.exists() || artifacts(&objects, "scenes.json").is_empty(), "{format} {name}: an artifact was left");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }
 
@@ -213,7 +211,6 @@ fn unknown_classes_can_be_counted_and_skipped() {
     edit(&path, |t| t.replace("\"bus\"", "\"tram\""));
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok && out.contains("3 frames from radiate") && out.contains("skipped objects of unknown classes:") && out.contains(" tram"), "{out}");
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 /// `examples/radiate.toml` at tiny scale on a RADIATE fixture of ten sequences: the simulated
@@ -254,5 +251,4 @@ fn the_radiate_example_runs_through_the_report_on_a_fixture() {
         .filter(|l| l["split"]["groups"].as_u64() == Some(10))
         .collect();
     assert_eq!(radiate_labels.len(), 1, "RADIATE's labels split its ten sequences");
-    std::fs::remove_dir_all(&dir).unwrap();
 }

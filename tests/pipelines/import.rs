@@ -65,11 +65,12 @@ fn write_recording(dir: &Path) {
     std::fs::write(dir.join("manifest.jsonl"), manifest).unwrap();
 }
 
-/// A recording written once per test process, for tests that only need one to exist.
+/// A recording written once per test process, for tests that only need one to exist: under the
+/// build's scratch space (`CARGO_TARGET_TMPDIR`), where the next test process replaces it.
 pub(super) fn walk_recording() -> std::path::PathBuf {
     static DIR: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
     DIR.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("rlmflow-walk-recording-{}", std::process::id()));
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("walk-recording");
         let _ = std::fs::remove_dir_all(&dir);
         write_recording_into(&dir);
         dir
@@ -117,7 +118,6 @@ fn a_recording_imports_labels_captions_and_trains_through_the_example() {
     assert_eq!(grid_only["grid"]["10-20m"]["in_lane_front_side"], 1, "{grid_only}");
     assert_eq!(grid_only["episode"], "e03");
     assert!(!artifacts(&dir.join(".rlmflow/objects"), "report.md").is_empty());
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 const IMPORT_AND_LABELS: &str = "[pipeline]\nname = \"imp\"\nseed = 1\n\
@@ -155,7 +155,6 @@ fn an_edited_image_reruns_the_import_and_is_named_and_a_touched_one_reruns_nothi
     // Same key, same bytes: the import twice more, each in a fresh process.
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--check-determinism", "scenes"]);
     assert!(ok && out.contains("same bytes"), "{out}");
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 /// Frames labelled by their grid alone have no vehicle positions: a segmentation stage on them
@@ -171,7 +170,6 @@ fn segmentation_refuses_frames_imported_without_positions() {
         !ok && out.contains("2 of the 36 frames were imported with a grid but no actors") && out.contains("segmentation needs actors with positions"),
         "{out}"
     );
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 /// The import of a Scenes artifact's own `scenes.mcap` gives frames whose labels are the
@@ -193,7 +191,6 @@ fn importing_a_procedural_stages_mcap_gives_byte_identical_labels() {
     assert!(ok && out.contains("ran      scenes") && out.contains("labels"), "{out}");
     let labels = artifacts(&dir.join(".rlmflow/objects"), "labels.jsonl");
     assert_eq!(labels, original, "one labels artifact: the import's labels are the same bytes as the original's");
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 /// Each bad recording: an error naming the file and line (or frame) and what is valid, and no
@@ -299,7 +296,6 @@ fn each_bad_recording_says_what_is_wrong_and_leaves_no_artifact() {
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(!ok && out.contains("stages.scenes.axes.azimuth_span_deg: must be in (0, 360]"), "{out}");
     assert!(!dir.join(".rlmflow").exists(), "nothing ran");
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 fn append(recording: &Path, line: &str) {

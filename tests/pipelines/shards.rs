@@ -26,7 +26,7 @@ fn a_sharded_procedural_stage_gives_the_bytes_of_the_unsharded_one() {
 fn a_sharded_llm_stage_gives_the_bytes_of_the_unsharded_one() {
     let llm = fake_llm();
     let url = &llm.url;
-    let dir = std::env::temp_dir().join(format!("rlmflow-llm-shards-{}", std::process::id()));
+    let dir = Scratch::new("llm-shards");
     let stage = |name: &str, split: &str| {
         format!(
             "\n[stages.{name}]\nkind = \"captions\"\noperator = \"llm\"\nbase_url = \"{url}\"\nmodel = \"fake\"\napi_key_env = \"\"\nn = 2\nregenerate = 0\non_mismatch = \"keep\"\nresponse_cache = \"{}\"\n{split}\n",
@@ -38,7 +38,7 @@ fn a_sharded_llm_stage_gives_the_bytes_of_the_unsharded_one() {
         stage("whole", ""),
         stage("three", "shards = 3")
     );
-    let dir = scratch("llm-shards", &pipeline);
+    dir.write("p.toml", &pipeline);
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
     let whole = output_digest(&dir, "llm-shards", "whole");

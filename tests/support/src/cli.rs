@@ -18,11 +18,20 @@ pub fn run(exe: &Path, dir: &Path, args: &[&str]) -> (bool, String) {
     (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
 }
 
-/// The output directory of stage instance `label` of pipeline `pipeline` in the store at
-/// `store`, through the store's refs to its last run.
-pub fn output_dir(store: &Path, pipeline: &str, label: &str) -> PathBuf {
-    let store = rlmflow_cache::Store::open_existing(store).unwrap().unwrap_or_else(|| panic!("no store at {}", store.display()));
+/// The output digest of stage instance `label` of pipeline `pipeline` in the store at `store`,
+/// through the store's refs to its last run.
+pub fn output_digest(store: &Path, pipeline: &str, label: &str) -> rlmflow_cache::Digest {
+    let store = open(store);
     let key = store.last_keys(pipeline).unwrap()[label];
-    let record = store.record(&key).unwrap().unwrap();
-    store.object_dir(&record.output)
+    store.record(&key).unwrap().unwrap().output
+}
+
+/// The output directory of stage instance `label` of pipeline `pipeline` in the store at
+/// `store` (see [`output_digest`]).
+pub fn output_dir(store: &Path, pipeline: &str, label: &str) -> PathBuf {
+    open(store).object_dir(&output_digest(store, pipeline, label))
+}
+
+fn open(store: &Path) -> rlmflow_cache::Store {
+    rlmflow_cache::Store::open_existing(store).unwrap().unwrap_or_else(|| panic!("no store at {}", store.display()))
 }

@@ -47,9 +47,7 @@ pub fn scratch_alone(name: &str, pipeline: &str) -> Scratch {
 
 /// The output directory of stage instance `label` of pipeline `name` run in `dir`.
 pub fn output(dir: &Path, name: &str, label: &str) -> PathBuf {
-    let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
-    let record = store.record(&store.last_keys(name).unwrap()[label]).unwrap().unwrap();
-    store.object_dir(&record.output)
+    rlmflow_test_support::cli::output_dir(&dir.join(".rlmflow"), name, label)
 }
 
 /// Pipeline `name`'s data stages, the same in every test so the shared store computes them once:
