@@ -177,7 +177,8 @@ enum Command {
     /// List stage kinds and operators with their default settings, and the settings that cannot
     /// change a result (left out of the key).
     Operators {
-        /// One JSON object per operator: name, kind, version, defaults, non_result.
+        /// One JSON object per line, per operator: name, kind, version, summary, inputs, produces,
+        /// merge (the operator joining its shards, or null), defaults, non_result, tracked.
         #[arg(long)]
         json: bool,
     },
@@ -339,6 +340,13 @@ fn store_root(pipeline: &Pipeline, arg: &StoreArg) -> PathBuf {
 }
 
 fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
+    if matches!(command, Command::Operators { .. } | Command::Status { .. } | Command::Explain { .. } | Command::Show { .. }) {
+        // These only read and print: a reader that stops early (`| head`) ends them quietly, as
+        // it ends `ls`, where a failed write would panic. The others start processes or write
+        // the store, and keep Rust's default (a closed pipe is an error where it is written).
+        // SAFETY: before any thread is started; SIG_DFL is a valid disposition for SIGPIPE.
+        unsafe { libc::signal(libc::SIGPIPE, libc::SIG_DFL) };
+    }
     match command {
         Command::Run { pipeline, dry_run, only, jobs, executor, json, device, verify_inputs, check_determinism, store, remote } => {
             let mut p = config::load(&pipeline, registry)?;

@@ -1,6 +1,6 @@
 //! The rlmflow engine: pipeline files ([`config`]), plans ([`plan`]), why an instance runs
 //! ([`reason`]), what a run establishes before it starts ([`preflight`], with the memory check,
-//! [`footprint`]), the executor ([`run`]), the numeric platform class a model action's key
+//! [`footprint`]), the executor ([`run`]) with its pulls from the remote cache (`pulls`), the numeric platform class a model action's key
 //! carries ([`platform`]), how it starts actions ([`dispatch`]: child processes or HyperQueue
 //! tasks) and talks to them ([`protocol`]), the child-process entry point ([`exec`]) and the
 //! cluster task with a store of its own ([`task`]), the determinism check ([`determinism`]),
@@ -19,6 +19,7 @@ pub mod plan;
 pub mod platform;
 pub mod preflight;
 pub mod protocol;
+mod pulls;
 pub mod reason;
 pub mod run;
 pub mod task;

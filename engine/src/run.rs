@@ -20,6 +20,7 @@ use crate::config::{Executor as ExecutorKind, RemoteSettings};
 use crate::dispatch::{Dispatch, Exit, Launch, Local, Report};
 use crate::plan::Plan;
 use crate::protocol::{EXIT_CORRUPT_INPUT, Message};
+use crate::pulls::{Ask, Pulls};
 use crate::reason::why;
 use crate::ui::Ui;
 
@@ -86,18 +87,9 @@ struct Executor<'a> {
     /// Outputs re-hashed this run (`verify_inputs`).
     verified: std::collections::BTreeSet<Digest>,
     dispatch: Box<dyn Dispatch>,
-    /// The remote cache, opened on the first local miss (a warm run never contacts it).
-    remote: std::cell::OnceCell<Option<Arc<Remote>>>,
-    /// Pulls under way, each on a thread of its own beside the running stages.
-    pulling: usize,
-    /// Instances the remote cache was asked for already this run (a miss is not asked again).
-    asked_remote: Vec<bool>,
-    /// Actions whose remote copy was found corrupt: a push replaces their object and record.
-    corrupt_remote: std::collections::BTreeSet<Digest>,
+    /// Pulls from the remote cache, each on a thread of its own beside the running stages.
+    pulls: Pulls<'a>,
 }
-
-/// The most pulls from the remote cache under way at once.
-const MAX_PULLS: usize = 4;
 
 /// Runs the plan; returns its summary.
 pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], opts: &RunOptions) -> anyhow::Result<Summary> {
@@ -125,10 +117,7 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
         last: store.last_keys(&plan.pipeline.name)?,
         verified: Default::default(),
         dispatch,
-        remote: Default::default(),
-        pulling: 0,
-        asked_remote: vec![false; n],
-        corrupt_remote: Default::default(),
+        pulls: Pulls::new(opts.remote.as_ref(), n),
     };
     ex.execute()?;
     Ok(ex.summary())
@@ -217,13 +206,13 @@ impl Executor<'_> {
                 bars.insert(i, self.ui.bar(&label));
                 self.start(i, exe, key, threads, wants.gpu, tx.clone())?;
             }
-            if started.is_empty() && self.pulling == 0 {
+            if started.is_empty() && !self.pulls.any_under_way() {
                 break;
             }
             let (i, report) = rx.recv().expect("a running child always reports its exit, a pull its end");
             match report {
                 Report::Pulled(pulled) => {
-                    self.pulling -= 1;
+                    self.pulls.ended();
                     self.pulled(i, pulled?)?;
                 }
                 Report::Message(Message::Progress { position, length, message }) => {
@@ -376,17 +365,14 @@ impl Executor<'_> {
                 self.ui.say(format!("  reused   {}  ({:.1}s saved)", inst.label, record.duration_s));
                 continue;
             }
-            // A remote that went down answers every pull at once with a miss: not asked again.
-            if !self.asked_remote[i]
-                && let Some(remote) = self.remote().filter(|r| r.down().is_none()).cloned()
-            {
-                if self.pulling < MAX_PULLS {
-                    self.asked_remote[i] = true;
-                    self.pulling += 1;
+            match self.pulls.ask(i, &self.ui) {
+                Ask::Now(remote) => {
                     self.states[i] = State::Pulling { key };
                     self.start_pull(i, key, remote, tx.clone());
+                    continue;
                 }
-                continue;
+                Ask::Later => continue,
+                Ask::No => {}
             }
             let inst = &self.plan.instances[i];
             let stage = &self.plan.pipeline.stages[inst.stage];
@@ -403,25 +389,6 @@ impl Executor<'_> {
             self.states[i] = State::Ready { key };
         }
         Ok(())
-    }
-
-    /// The remote cache, opened once; `None` when there is none or it cannot be opened (which
-    /// warns once).
-    fn remote(&self) -> Option<&Arc<Remote>> {
-        self.remote
-            .get_or_init(|| match self.opts.remote.as_ref()?.open() {
-                Ok(remote) => {
-                    if !remote.verified() {
-                        self.ui.say(format!("  note     remote cache {}: its records are used unverified (no `remote_trusted_keys`)", remote.url()));
-                    }
-                    Some(Arc::new(remote))
-                }
-                Err(e) => {
-                    self.ui.say(format!("  warning  remote cache not used: {e:#}"));
-                    None
-                }
-            })
-            .as_ref()
     }
 
     /// Asks the remote cache for `key` after a local miss, on a thread of its own (stages that
@@ -443,7 +410,7 @@ impl Executor<'_> {
     fn pulled(&mut self, i: usize, pulled: Pulled) -> anyhow::Result<()> {
         let State::Pulling { key } = self.states[i] else { unreachable!("a pull ended for an instance not pulling") };
         let label = self.plan.instances[i].label.clone();
-        if let Some(why) = self.remote().and_then(|r| r.newly_down()) {
+        if let Some(why) = self.pulls.remote(&self.ui).and_then(|r| r.newly_down()) {
             self.warn_remote_down(&why)?;
         }
         self.states[i] = State::Waiting;
@@ -461,20 +428,20 @@ impl Executor<'_> {
             Pulled::Corrupt { why } => {
                 self.events.write("remote_corrupt", json!({"stage": label, "key": key, "why": why}))?;
                 self.ui.say(format!("  warning  {label}: the remote cache's copy is corrupt ({why}); not used, recomputing"));
-                self.corrupt_remote.insert(key);
+                self.pulls.replace(key);
             }
             // Replaced by this run's own signed record when it pushes, like a corrupt copy.
             Pulled::Untrusted { why } => {
                 self.events.write("remote_untrusted", json!({"stage": label, "key": key, "why": why}))?;
                 self.ui.say(format!("  warning  {label}: the remote cache's record is not trusted ({why}); not used, recomputing"));
-                self.corrupt_remote.insert(key);
+                self.pulls.replace(key);
             }
         }
         Ok(())
     }
 
     fn warn_remote_down(&mut self, why: &str) -> anyhow::Result<()> {
-        let url = self.remote().map(|r| r.url().to_owned()).unwrap_or_default();
+        let url = self.pulls.remote(&self.ui).map(|r| r.url().to_owned()).unwrap_or_default();
         self.events.write("remote_down", json!({"remote": url, "why": why}))?;
         self.ui.say(format!("  warning  remote cache {url} not used for the rest of the run: {why}"));
         Ok(())
@@ -482,8 +449,8 @@ impl Executor<'_> {
 
     /// Uploads a finished action's result when the remote cache takes pushes.
     fn push(&mut self, label: &str, record: &ActionRecord) -> anyhow::Result<()> {
-        let Some(remote) = self.remote().filter(|r| r.push) else { return Ok(()) };
-        let replace = self.corrupt_remote.contains(&record.key);
+        let Some(remote) = self.pulls.remote(&self.ui).filter(|r| r.push).cloned() else { return Ok(()) };
+        let replace = self.pulls.replaces(&record.key);
         let clock = Instant::now();
         let mut bar = self.ui.transfer(label, "pushing");
         let pushed = remote.push(self.store, record, replace, &mut |done, total| bar.moved(done, total))?;
@@ -559,7 +526,7 @@ impl Executor<'_> {
             .chain(["--device".to_owned(), self.opts.device.to_string()])
             .collect();
         let log = self.log_path(&label);
-        let (store, device, replace_remote) = (self.store.root().to_path_buf(), self.opts.device, self.corrupt_remote.contains(&key));
+        let (store, device, replace_remote) = (self.store.root().to_path_buf(), self.opts.device, self.pulls.replaces(&key));
         self.dispatch.start(i, Launch { exe, args, key, store, device, replace_remote, label, threads, gpu, log }, tx)
     }
 

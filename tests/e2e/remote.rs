@@ -667,52 +667,68 @@ fn a_64_mb_artifact_crosses_a_1_mb_per_s_link_with_a_2_s_timeout_and_a_stalled_l
     let pusher = Scratch::new("remote-throttled-pusher");
     pusher.pipeline(pipeline);
     let computed = pusher.run();
-
-    // Up and down through 1 MB/s: each takes a minute, thirty times the timeout, and completes;
-    // neither holds the artifact in memory.
-    let slow = s3_env(&format!("http://127.0.0.1:{}", throttled_proxy(s3, 1_000_000, None)));
-    let t0 = Instant::now();
-    let log = pusher.dir.join("push.err");
-    let (status, peak) = peak_memory(pusher.command(&["push", "p.toml", "--remote", "s3://rlmflow/slow"]).envs(slow.clone()), &log);
-    let up = t0.elapsed();
-    assert!(status.success(), "the push completes: {}", fs::read_to_string(&log).unwrap());
-    assert!(up > Duration::from_secs(40), "64 MB really went through the 1 MB/s link: {up:?}");
-    assert!(peak < 32_000_000, "push: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
-    println!("push of 64 MB at 1 MB/s: {:.1} s, peak anonymous memory {:.1} MB", up.as_secs_f64(), peak as f64 / 1e6);
-    let reader = Scratch::new("remote-throttled-reader");
-    reader.pipeline(pipeline);
-    let t0 = Instant::now();
-    let log = reader.dir.join("pull.err");
-    let (status, peak) = peak_memory(reader.command(&["pull", "p.toml", "--remote", "s3://rlmflow/slow"]).envs(slow.clone()), &log);
-    let down = t0.elapsed();
-    assert!(status.success(), "the pull completes: {}", fs::read_to_string(&log).unwrap());
-    assert!(down > Duration::from_secs(40), "64 MB really came through the 1 MB/s link: {down:?}");
-    assert!(peak < 32_000_000, "pull: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
-    println!("pull of 64 MB at 1 MB/s: {:.1} s, peak anonymous memory {:.1} MB", down.as_secs_f64(), peak as f64 / 1e6);
-    assert_eq!(outputs(&reader.run()), vec![("source".to_owned(), outputs(&computed)[0].1.clone())], "pulled whole");
-
-    // A link that stops after 3 MB, either way: cut 2 s after its last bytes, the run goes on
-    // without the remote (one warning) and computes the result itself.
+    // The pulls read a copy pushed over the fast link, so the four transfers below (each over a
+    // proxy of its own) go at once: the test takes the longest of them, not their sum.
+    let direct = s3_env(&format!("http://127.0.0.1:{s3}"));
+    let out = pusher.command(&["push", "p.toml", "--remote", "s3://rlmflow/fast"]).envs(direct).output().unwrap();
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let throttled = || s3_env(&format!("http://127.0.0.1:{}", throttled_proxy(s3, 1_000_000, None)));
+    // A link that stops after 3 MB, either way.
     let stalling = || s3_env(&format!("http://127.0.0.1:{}", throttled_proxy(s3, 1_000_000, Some(3_000_000))));
-    let stalled_push = Scratch::new("remote-stalled-push");
-    stalled_push.pipeline(pipeline);
-    let t0 = Instant::now();
-    let out = stalled_push.command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/stalled", "--push"]).envs(stalling()).output().unwrap();
-    assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
-    let events = crate::harness::Events::parse(&out.stdout);
-    let down = events.of("remote_down");
-    assert_eq!(down.len(), 1, "{:?}", events.0);
-    assert!(down[0]["why"].as_str().unwrap().contains("nothing arrived or left for 2 s"), "{:?}", down[0]);
-    assert!(t0.elapsed() < Duration::from_secs(20), "cut at the timeout, not at the end of the transfer: {:?}", t0.elapsed());
-    let stalled_pull = Scratch::new("remote-stalled-pull");
-    stalled_pull.pipeline(pipeline);
-    let t0 = Instant::now();
-    let out = stalled_pull.command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/slow"]).envs(stalling()).output().unwrap();
-    assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
-    let events = crate::harness::Events::parse(&out.stdout);
-    assert_eq!(events.of("remote_down").len(), 1, "{:?}", events.0);
-    assert_eq!(events.with_status("ran"), ["source"], "computed here after the cut");
-    assert!(t0.elapsed() < Duration::from_secs(20), "cut at the timeout: {:?}", t0.elapsed());
+
+    std::thread::scope(|scope| {
+        // Up and down through 1 MB/s: each takes a minute, thirty times the timeout, and
+        // completes; neither holds the artifact in memory.
+        scope.spawn(|| {
+            let t0 = Instant::now();
+            let log = pusher.dir.join("push.err");
+            let (status, peak) = peak_memory(pusher.command(&["push", "p.toml", "--remote", "s3://rlmflow/slow"]).envs(throttled()), &log);
+            let up = t0.elapsed();
+            assert!(status.success(), "the push completes: {}", fs::read_to_string(&log).unwrap());
+            assert!(up > Duration::from_secs(40), "64 MB really went through the 1 MB/s link: {up:?}");
+            assert!(peak < 32_000_000, "push: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
+            println!("push of 64 MB at 1 MB/s: {:.1} s, peak anonymous memory {:.1} MB", up.as_secs_f64(), peak as f64 / 1e6);
+        });
+        scope.spawn(|| {
+            let reader = Scratch::new("remote-throttled-reader");
+            reader.pipeline(pipeline);
+            let t0 = Instant::now();
+            let log = reader.dir.join("pull.err");
+            let (status, peak) = peak_memory(reader.command(&["pull", "p.toml", "--remote", "s3://rlmflow/fast"]).envs(throttled()), &log);
+            let down = t0.elapsed();
+            assert!(status.success(), "the pull completes: {}", fs::read_to_string(&log).unwrap());
+            assert!(down > Duration::from_secs(40), "64 MB really came through the 1 MB/s link: {down:?}");
+            assert!(peak < 32_000_000, "pull: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
+            println!("pull of 64 MB at 1 MB/s: {:.1} s, peak anonymous memory {:.1} MB", down.as_secs_f64(), peak as f64 / 1e6);
+            assert_eq!(outputs(&reader.run()), vec![("source".to_owned(), outputs(&computed)[0].1.clone())], "pulled whole");
+        });
+        // Stalled: cut 2 s after its last bytes, the run goes on without the remote (one warning)
+        // and computes the result itself.
+        scope.spawn(|| {
+            let stalled_push = Scratch::new("remote-stalled-push");
+            stalled_push.pipeline(pipeline);
+            let t0 = Instant::now();
+            let out =
+                stalled_push.command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/stalled", "--push"]).envs(stalling()).output().unwrap();
+            assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
+            let events = crate::harness::Events::parse(&out.stdout);
+            let down = events.of("remote_down");
+            assert_eq!(down.len(), 1, "{:?}", events.0);
+            assert!(down[0]["why"].as_str().unwrap().contains("nothing arrived or left for 2 s"), "{:?}", down[0]);
+            assert!(t0.elapsed() < Duration::from_secs(20), "cut at the timeout, not at the end of the transfer: {:?}", t0.elapsed());
+        });
+        scope.spawn(|| {
+            let stalled_pull = Scratch::new("remote-stalled-pull");
+            stalled_pull.pipeline(pipeline);
+            let t0 = Instant::now();
+            let out = stalled_pull.command(&["run", "p.toml", "--json", "--remote", "s3://rlmflow/fast"]).envs(stalling()).output().unwrap();
+            assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
+            let events = crate::harness::Events::parse(&out.stdout);
+            assert_eq!(events.of("remote_down").len(), 1, "{:?}", events.0);
+            assert_eq!(events.with_status("ran"), ["source"], "computed here after the cut");
+            assert!(t0.elapsed() < Duration::from_secs(20), "cut at the timeout: {:?}", t0.elapsed());
+        });
+    });
 }
 
 #[test]

@@ -1,120 +1,150 @@
-//! `examples/ci.toml` end to end, twice: the second run reuses every stage. Its results then
-//! hold up elsewhere: pulled into a fresh store, recomputed on a HyperQueue cluster, and read
-//! from outside (a stock MCAP reader, `rlmflow parse`, Python's `tokenizers`, the report).
+//! `examples/ci.toml` end to end, run once per test process ([`ci_run`]), and what that run
+//! must hold, one test each: a second run reuses every stage; a changed probe setting reruns only
+//! what it touches; a fresh store pulls every result from a remote; a local HyperQueue cluster
+//! computes the same keys and bytes in fresh processes; and the results read from outside as from
+//! inside (the report's tables and Rerun recording, a stock MCAP reader, `rlmflow parse`,
+//! Python's `tokenizers`).
+
+use std::sync::OnceLock;
 
 use super::*;
 
-#[test]
-fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
-    let dir = Scratch::new("ci-pipeline");
-    std::fs::copy(root().join("examples/ci.toml"), dir.join("ci.toml")).unwrap();
-    let (ok, first) = rlmflow(&dir, &["run", "ci.toml", "--json"]);
-    assert!(ok, "{first}");
-    let finished =
-        |log: &str, status: &str| log.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains(&format!("\"status\":\"{status}\""))).count();
-    let stages = finished(&first, "ran");
-    assert!(stages >= 1, "{first}");
-    let (ok, second) = rlmflow(&dir, &["run", "ci.toml", "--json"]);
-    assert!(ok, "{second}");
-    assert_eq!((finished(&second, "reused"), finished(&second, "ran")), (stages, 0), "{second}");
-    let (ok, verify) = rlmflow(&dir, &["verify", "ci.toml"]);
-    assert!(ok, "{verify}");
-    // The caption probes, greedy and beam, the report (its Rerun recording included) and the
-    // scenes mix give the same bytes in fresh processes.
-    let checked = ["clipcap", "clipcap-beam", "report", "mixed"];
-    let args: Vec<&str> = ["run", "ci.toml"].into_iter().chain(checked.iter().flat_map(|s| ["--check-determinism", s])).collect();
-    let (ok, check) = rlmflow(&dir, &args);
-    assert!(ok && check.matches("same bytes").count() == 6, "{check}");
-    let objects = dir.join(".rlmflow/objects");
-    the_report_holds_every_probe(&objects);
-    a_local_hyperqueue_cluster_gives_the_same_keys_and_bytes(&dir, stages);
-    a_fresh_store_pulls_every_stage_from_a_remote_and_computes_nothing(&dir, &first);
-
-    // One probe setting changed: only that probe's instances and the report run again.
-    let edited =
-        std::fs::read_to_string(dir.join("ci.toml")).unwrap().replacen("source = \"pixels\"", "source = \"pixels\"\nlambdas = [0.1, 10.0]", 1);
-    std::fs::write(dir.join("ci.toml"), edited).unwrap();
-    let (ok, third) = rlmflow(&dir, &["run", "ci.toml", "--json"]);
-    assert!(ok, "{third}");
-    let ran: Vec<String> = third
-        .lines()
-        .filter(|l| l.contains("\"stage_finished\"") && l.contains("\"status\":\"ran\""))
-        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["stage"].as_str().unwrap().to_owned())
-        .collect();
-    assert_eq!(ran, ["pixels", "report"], "{third}");
-    let scenes = artifacts(&objects, "scenes.mcap");
-    assert_eq!(scenes.len(), 6, "one per scenes stage and shard, and the mix: {scenes:?}");
-    for artifact in scenes {
-        a_stock_mcap_reader_agrees(&artifact);
-    }
-    let [labels, captions, tokens] = ["labels.jsonl", "captions.jsonl", "tokenizer.json"].map(|file| {
-        let found = artifacts(&objects, file);
-        assert_eq!(found.len(), 1, "{file}: {found:?}");
-        found[0].clone()
-    });
-    every_caption_parses_to_its_labels(&labels, &captions);
-    python_tokenizers_gives_the_same_ids(&captions, &tokens);
+/// The first run of `examples/ci.toml` that the tests of this process share.
+struct CiRun {
+    dir: PathBuf,
+    /// Its `--json` event log.
+    events: String,
 }
 
-/// `rlmflow push` of the CI pipeline's results to a directory remote; a fresh store in a folder of its own
-/// then computes nothing: every stage is pulled, with the output digests of the run that
+impl CiRun {
+    fn store(&self) -> PathBuf {
+        self.dir.join(".rlmflow")
+    }
+
+    /// The output directory of stage instance `label`.
+    fn output(&self, label: &str) -> PathBuf {
+        rlmflow_test_support::cli::output_dir(&self.store(), "ci", label)
+    }
+
+    /// How many stage instances the run ran.
+    fn stages(&self) -> usize {
+        finished(&self.events, "ran").len()
+    }
+}
+
+/// `examples/ci.toml` run once, by whichever test asks first, in a directory under the build's
+/// scratch space that the next test process replaces. A failed run fails every test that reads
+/// it, with its output.
+fn ci_run() -> &'static CiRun {
+    static RUN: OnceLock<Result<CiRun, String>> = OnceLock::new();
+    let run = RUN.get_or_init(|| {
+        let dir = rlmflow_test_support::scratch::shared_dir(Path::new(env!("CARGO_TARGET_TMPDIR")), "ci-run");
+        std::fs::copy(root().join("examples/ci.toml"), dir.join("ci.toml")).unwrap();
+        let (ok, events) = rlmflow(&dir, &["run", "ci.toml", "--json"]);
+        if ok { Ok(CiRun { dir, events }) } else { Err(events) }
+    });
+    run.as_ref().unwrap_or_else(|events| panic!("examples/ci.toml failed: {events}"))
+}
+
+/// The `stage_finished` events of `log` with `status`: each instance's label and output digest,
+/// sorted.
+fn finished(log: &str, status: &str) -> Vec<(String, String)> {
+    let mut found: Vec<(String, String)> = log
+        .lines()
+        .filter(|l| l.contains("\"stage_finished\"") && l.contains(&format!("\"status\":\"{status}\"")))
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .map(|e| (e["stage"].as_str().unwrap().to_owned(), e["output"].as_str().unwrap().to_owned()))
+        .collect();
+    found.sort();
+    found
+}
+
+/// A directory beside the shared run holding `ci.toml` as given, with the run's store (a link)
+/// or a store of its own.
+fn beside_the_run(name: &str, pipeline: &str, share_store: bool) -> PathBuf {
+    let run = ci_run();
+    let dir = run.dir.join(name);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("ci.toml"), pipeline).unwrap();
+    if share_store {
+        std::os::unix::fs::symlink(run.store(), dir.join(".rlmflow")).unwrap();
+    }
+    dir
+}
+
+#[test]
+fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
+    let run = ci_run();
+    assert!(run.stages() >= 1, "{}", run.events);
+    let (ok, second) = rlmflow(&run.dir, &["run", "ci.toml", "--json"]);
+    assert!(ok, "{second}");
+    assert_eq!((finished(&second, "reused").len(), finished(&second, "ran").len()), (run.stages(), 0), "{second}");
+    let (ok, verify) = rlmflow(&run.dir, &["verify", "ci.toml"]);
+    assert!(ok, "{verify}");
+}
+
+/// One probe setting changed: only that probe's instances and the report run again.
+#[test]
+fn a_changed_probe_setting_reruns_only_that_probe_and_the_report() {
+    let text = std::fs::read_to_string(root().join("examples/ci.toml")).unwrap();
+    let edited =
+        text.replacen("source = \"pixels\"", "source = \"pixels\"\nlambdas = [0.1, 10.0]", 1).replacen("name = \"ci\"", "name = \"ci-edited\"", 1);
+    let dir = beside_the_run("edited", &edited, true);
+    let (ok, third) = rlmflow(&dir, &["run", "ci.toml", "--json"]);
+    assert!(ok, "{third}");
+    let ran: Vec<String> = finished(&third, "ran").into_iter().map(|(stage, _)| stage).collect();
+    assert_eq!(ran, ["pixels", "report"], "{third}");
+}
+
+/// `rlmflow push` of the CI pipeline's results to a directory remote; a fresh store in a folder of
+/// its own then computes nothing: every stage is pulled, with the output digests of the run that
 /// computed them.
-fn a_fresh_store_pulls_every_stage_from_a_remote_and_computes_nothing(local: &Path, computed: &str) {
-    let remote = format!("file://{}", local.join("remote").display());
-    let (ok, out) = rlmflow(local, &["push", "ci.toml", "--remote", &remote]);
+#[test]
+fn a_fresh_store_pulls_every_stage_from_a_remote_and_computes_nothing() {
+    let run = ci_run();
+    let remote = format!("file://{}", run.dir.join("remote").display());
+    let (ok, out) = rlmflow(&run.dir, &["push", "ci.toml", "--remote", &remote]);
     assert!(ok, "{out}");
-    let fresh = local.join("pulled");
-    std::fs::create_dir_all(&fresh).unwrap();
-    std::fs::copy(local.join("ci.toml"), fresh.join("ci.toml")).unwrap();
+    let fresh = beside_the_run("pulled", &std::fs::read_to_string(run.dir.join("ci.toml")).unwrap(), false);
     let (ok, pulled) = rlmflow(&fresh, &["run", "ci.toml", "--json", "--remote", &remote]);
     assert!(ok, "{pulled}");
-    let outputs = |log: &str, status: &str| -> Vec<(String, String)> {
-        let mut v: Vec<(String, String)> = log
-            .lines()
-            .filter(|l| l.contains("\"stage_finished\"") && l.contains(&format!("\"status\":\"{status}\"")))
-            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
-            .map(|e| (e["stage"].as_str().unwrap().to_owned(), e["output"].as_str().unwrap().to_owned()))
-            .collect();
-        v.sort();
-        v
-    };
-    assert_eq!(outputs(&pulled, "pulled"), outputs(computed, "ran"), "pulled everything, the same digests: {pulled}");
+    assert_eq!(finished(&pulled, "pulled"), finished(&run.events, "ran"), "pulled everything, the same digests: {pulled}");
     let (ok, verify) = rlmflow(&fresh, &["verify", "ci.toml"]);
     assert!(ok, "{verify}");
 }
 
-/// `examples/ci.toml` run in `local` (by the local executor) again through a local HyperQueue
-/// cluster into a store of its own: every action has the same key and output digest, and a second
-/// run reuses everything and starts no cluster.
-fn a_local_hyperqueue_cluster_gives_the_same_keys_and_bytes(local: &Path, stages: usize) {
-    let dir = local.join("hyperqueue");
-    std::fs::create_dir_all(&dir).unwrap();
-    std::fs::copy(local.join("ci.toml"), dir.join("ci.toml")).unwrap();
+/// `examples/ci.toml` run (by the local executor) again through a local HyperQueue cluster into a
+/// store of its own: every action has the same key and output digest, and a second run reuses
+/// everything and starts no cluster. So every stage (the models, the report and its Rerun
+/// recording, the scenes mix) gives the same bytes in fresh processes, on another executor.
+#[test]
+fn a_local_hyperqueue_cluster_gives_the_same_keys_and_bytes() {
+    let run = ci_run();
+    let dir = beside_the_run("hyperqueue", &std::fs::read_to_string(run.dir.join("ci.toml")).unwrap(), false);
     let (ok, first) = rlmflow(&dir, &["run", "ci.toml", "--json", "--executor", "hyperqueue"]);
     assert!(ok, "{first}");
     assert!(first.contains("\"executor\":\"hyperqueue (local cluster"), "{first}");
-    let actions = |dir: &Path| {
-        let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
+    let actions = |store: &Path| {
+        let store = rlmflow_cache::Store::open_existing(store).unwrap().unwrap();
         let keys = store.last_keys("ci").unwrap();
         keys.into_iter().map(|(label, key)| (label, key, store.record(&key).unwrap().unwrap().output)).collect::<Vec<_>>()
     };
-    let (through_hq, locally) = (actions(&dir), actions(local));
-    assert_eq!(through_hq.len(), stages);
+    let (through_hq, locally) = (actions(&dir.join(".rlmflow")), actions(&run.store()));
+    assert_eq!(through_hq.len(), run.stages());
     assert_eq!(through_hq, locally);
     let (ok, second) = rlmflow(&dir, &["run", "ci.toml", "--json", "--executor", "hyperqueue"]);
     assert!(ok, "{second}");
-    assert_eq!(second.matches("\"status\":\"reused\"").count(), stages, "{second}");
-    let run = second.lines().find(|l| l.contains("\"run_started\"")).unwrap();
-    let run = serde_json::from_str::<serde_json::Value>(run).unwrap()["run"].as_str().unwrap().to_owned();
-    assert!(!dir.join(".rlmflow/runs").join(run).join("hyperqueue/server").exists(), "a warm run starts no cluster");
+    assert_eq!(second.matches("\"status\":\"reused\"").count(), run.stages(), "{second}");
+    let id = second.lines().find(|l| l.contains("\"run_started\"")).unwrap();
+    let id = serde_json::from_str::<serde_json::Value>(id).unwrap()["run"].as_str().unwrap().to_owned();
+    assert!(!dir.join(".rlmflow/runs").join(id).join("hyperqueue/server").exists(), "a warm run starts no cluster");
 }
 
 /// The report reads every probe and segmenter instance: its tables name them, `metrics.json`
 /// holds their numbers, and the Python `rerun` package reads its recording's entities.
-fn the_report_holds_every_probe(objects: &Path) {
-    let reports = artifacts(objects, "report.html");
-    assert_eq!(reports.len(), 1, "{reports:?}");
-    let report = &reports[0];
+#[test]
+fn the_report_holds_every_probe_and_rerun_reads_its_recording() {
+    let report = &ci_run().output("report");
     let html = std::fs::read_to_string(report.join("report.html")).unwrap();
     let markdown = std::fs::read_to_string(report.join("report.md")).unwrap();
     let metrics: serde_json::Value = serde_json::from_slice(&std::fs::read(report.join("metrics.json")).unwrap()).unwrap();
@@ -176,8 +206,12 @@ print("\n".join(sorted({c.entity_path for c in RrdReader(sys.argv[1]).stream()})
     }
 }
 
-fn every_caption_parses_to_its_labels(labels: &Path, captions_dir: &Path) {
-    let labels = rlmflow_stages::labels::Labels::open(labels).unwrap();
+/// `rlmflow parse` reads every template caption back to the grid it was written from.
+#[test]
+fn every_caption_parses_to_its_labels() {
+    let run = ci_run();
+    let labels = rlmflow_stages::labels::Labels::open(&run.output("labels")).unwrap();
+    let captions_dir = &run.output("captions");
     let captions = rlmflow_stages::captions::Captions::open(captions_dir).unwrap();
     let (ok, out) = rlmflow(&root(), &["parse", captions_dir.join("captions.jsonl").to_str().unwrap()]);
     assert!(ok, "{out}");
@@ -188,7 +222,12 @@ fn every_caption_parses_to_its_labels(labels: &Path, captions_dir: &Path) {
     }
 }
 
-fn python_tokenizers_gives_the_same_ids(captions: &Path, tokens: &Path) {
+/// Python's `tokenizers` reads the stored `tokenizer.json` and encodes every caption to the ids
+/// rlmflow stored.
+#[test]
+fn python_tokenizers_gives_the_ids_rlmflow_stored() {
+    let run = ci_run();
+    let (captions, tokens) = (run.output("captions"), run.output("tokens"));
     const ENCODE: &str = r#"
 import json, sys
 import numpy as np
@@ -208,9 +247,21 @@ print(len(captions))
     assert!(checked > 0);
 }
 
-/// Reads `scenes.mcap` with the Python `mcap` package (protobuf decoding from
-/// `mcap-protobuf-support`) in the managed environment and compares every message with what
-/// rlmflow's reader returns through `scenes.index`.
+/// Reads each scenes artifact's `scenes.mcap` (one per scenes stage and shard, and the mix) with
+/// the Python `mcap` package (protobuf decoding from `mcap-protobuf-support`) in the managed
+/// environment and compares every message with what rlmflow's reader returns through
+/// `scenes.index`.
+#[test]
+fn a_stock_mcap_reader_reads_what_rlmflow_reads() {
+    let run = ci_run();
+    let scenes: Vec<PathBuf> =
+        finished(&run.events, "ran").iter().map(|(label, _)| run.output(label)).filter(|dir| dir.join("scenes.mcap").exists()).collect();
+    assert_eq!(scenes.len(), 6, "scenes, procedural, placed and its two shards, mixed: {scenes:?}");
+    for artifact in &scenes {
+        a_stock_mcap_reader_agrees(artifact);
+    }
+}
+
 fn a_stock_mcap_reader_agrees(artifact: &Path) {
     const READ: &str = r#"
 import json, sys

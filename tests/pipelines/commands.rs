@@ -1,4 +1,4 @@
-//! `rlmflow parse` and `rlmflow setup`.
+//! `rlmflow parse`, `rlmflow setup`, and the printing commands into a closed pipe.
 
 use super::*;
 
@@ -43,6 +43,29 @@ fn parse_into_a_reader_that_stops_early_is_not_an_error() {
     let out = child.wait_with_output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert_eq!(String::from_utf8_lossy(&out.stderr), "");
+}
+
+/// `rlmflow operators | head -0` and the like: the commands that only print end as `ls` would,
+/// by SIGPIPE, with nothing on stderr (no panic over a failed write).
+#[test]
+fn printing_commands_into_a_reader_that_stops_early_end_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    let dir = scratch("closed-pipe", "[pipeline]\nname = \"pipe\"\n[stages.scenes]\noperator = \"procedural\"\nframes = 4\n");
+    for args in [&["operators"][..], &["operators", "--json"], &["status", "p.toml"], &["explain", "p.toml", "scenes"], &["show", "p.toml", "scenes"]]
+    {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_rlmflow"))
+            .args(args)
+            .current_dir(&dir)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        drop(child.stdout.take());
+        let out = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success() || out.status.signal() == Some(libc::SIGPIPE), "{args:?}: {:?} {stderr}", out.status);
+        assert_eq!(stderr, "", "{args:?}");
+    }
 }
 
 #[test]

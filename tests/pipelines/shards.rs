@@ -3,49 +3,52 @@
 
 use super::*;
 
-/// The same placed frames as one action and as shards of several sizes: the same bytes.
+/// Every shipped operator that can be sharded (`procedural`'s placed frames, `llm`'s captions of
+/// labelled frames, joined by `concat-captions`) gives, as shards of several sizes, the bytes of
+/// its unsharded stage, so a consumer of either would be reused; a part holds only its own items.
+/// The engine's side of sharding (parts, merges, resharding, resuming) is `tests/e2e/shards.rs`.
 #[test]
-fn a_sharded_procedural_stage_gives_the_bytes_of_the_unsharded_one() {
-    let stage = |name: &str, split: &str| {
+fn every_shardable_operator_gives_the_bytes_of_its_unsharded_stage() {
+    let (ok, listed) = rlmflow(&root(), &["operators", "--json"]);
+    assert!(ok, "{listed}");
+    let listed: Vec<serde_json::Value> = listed.lines().map(|line| serde_json::from_str(line).unwrap()).collect();
+    let mut shardable: Vec<&str> = listed.iter().filter(|o| !o["merge"].is_null()).map(|o| o["name"].as_str().unwrap()).collect();
+    shardable.sort();
+    assert_eq!(shardable, ["llm", "procedural"], "a shardable operator this test does not shard");
+
+    let procedural = |name: &str, split: &str| {
         format!("\n[stages.{name}]\nkind = \"scenes\"\noperator = \"procedural\"\nframes = 30\nradar = {{ image = 32 }}\n{split}\n")
     };
-    let pipeline =
-        format!("[pipeline]\nname = \"shards\"\nseed = 3\n{}{}{}", stage("whole", ""), stage("four", "shards = 4"), stage("sized", "shard_size = 7"));
-    let dir = scratch("procedural-shards", &pipeline);
-    let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
-    assert!(ok, "{out}");
-    let whole = output_digest(&dir, "shards", "whole");
-    assert_eq!(output_digest(&dir, "shards", "four"), whole);
-    assert_eq!(output_digest(&dir, "shards", "sized"), whole);
-    assert_ne!(output_digest(&dir, "shards", "four#0"), whole, "a part holds only its own frames");
-}
-
-/// The same captions from one `llm` action and from three shares of its labelled frames joined
-/// by `concat-captions`: the same bytes, so a consumer of either would be reused.
-#[test]
-fn a_sharded_llm_stage_gives_the_bytes_of_the_unsharded_one() {
     let llm = fake_llm();
-    let url = &llm.url;
-    let dir = Scratch::new("llm-shards");
-    let stage = |name: &str, split: &str| {
+    let dir = Scratch::new("shards");
+    let captions = |name: &str, split: &str| {
         format!(
-            "\n[stages.{name}]\nkind = \"captions\"\noperator = \"llm\"\nbase_url = \"{url}\"\nmodel = \"fake\"\napi_key_env = \"\"\nn = 2\nregenerate = 0\non_mismatch = \"keep\"\nresponse_cache = \"{}\"\n{split}\n",
+            "\n[stages.{name}]\nkind = \"captions\"\noperator = \"llm\"\nbase_url = \"{}\"\nmodel = \"fake\"\napi_key_env = \"\"\nn = 2\nregenerate = 0\non_mismatch = \"keep\"\nresponse_cache = \"{}\"\n{split}\n",
+            llm.url,
             dir.join("answers").display()
         )
     };
     let pipeline = format!(
-        "[pipeline]\nname = \"llm-shards\"\nseed = 3\n[stages.scenes]\noperator = \"procedural\"\nframes = 10\nradar = {{ image = 32 }}\n[stages.labels]\noperator = \"ego-grid\"\ntest_fraction = 0.2\n{}{}",
-        stage("whole", ""),
-        stage("three", "shards = 3")
+        "[pipeline]\nname = \"shards\"\nseed = 3\n{}{}{}\n[stages.labels]\noperator = \"ego-grid\"\ninputs = {{ scenes = \"placed\" }}\ntest_fraction = 0.2\n{}{}",
+        procedural("placed", ""),
+        procedural("placed-four", "shards = 4"),
+        procedural("placed-sized", "shard_size = 7"),
+        captions("captions", ""),
+        captions("captions-three", "shards = 3"),
     );
     dir.write("p.toml", &pipeline);
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
-    let whole = output_digest(&dir, "llm-shards", "whole");
-    assert_eq!(output_digest(&dir, "llm-shards", "three"), whole);
-    assert_ne!(output_digest(&dir, "llm-shards", "three#1"), whole, "a share holds only its own frames");
+    for (whole, sharded, part) in
+        [("placed", "placed-four", "placed-four#0"), ("placed", "placed-sized", "placed-sized#2"), ("captions", "captions-three", "captions-three#1")]
+    {
+        let bytes = output_digest(&dir, "shards", whole);
+        assert_eq!(output_digest(&dir, "shards", sharded), bytes, "{sharded} against {whole}");
+        assert_ne!(output_digest(&dir, "shards", part), bytes, "{part} holds only its own items");
+    }
+    // An `llm` stage's shares are counted when its input is: the plan still names each.
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--dry-run"]);
-    assert!(ok && out.contains("three#2"), "{out}");
+    assert!(ok && out.contains("captions-three#2"), "{out}");
 }
 
 /// An `llm` stage keeps its answers in the store: `verify` quarantines a damaged one, and `gc

@@ -963,7 +963,10 @@ mod tests {
     }
 
     #[test]
-    fn shares_joined_by_concat_captions_are_the_bytes_of_the_unsharded_stage() {
+    /// A share captions its own frames and asks the endpoint what the whole stage would; shares
+    /// join only in order, and one alone is listed as a part. (That the joined shares are the
+    /// whole stage's bytes is checked through the binary, in `tests/pipelines/shards.rs`.)
+    fn shares_ask_the_whole_stages_questions_and_join_only_in_order() {
         let root = scratch("shares");
         write_labels(&root, 10);
         let server = fake_llm(Box::new(|_, _, n| Reply::Captions(n)), Wrong::FirstAnswer);
@@ -979,7 +982,7 @@ mod tests {
             inputs.push(Input::new(format!("{index:020}"), root.join(dir)));
         }
         let sent = server.requests();
-        let whole = run_into(&root, &s, "whole");
+        run_into(&root, &s, "whole");
         assert_eq!(server.requests(), sent, "the shares asked every question the whole asks");
 
         let ckpt = root.join("ckpt");
@@ -997,8 +1000,6 @@ mod tests {
         let outcome = Operator::run(&ConcatCaptions, &Default::default(), &mut ctx).unwrap();
         assert!(outcome.summary.contains("joined"), "{}", outcome.summary);
         let read = |f: &str| std::fs::read(root.join("out").join(f)).unwrap();
-        assert!(read(captions::SUMMARY) == whole.0, "{}", String::from_utf8_lossy(&read(captions::SUMMARY)));
-        assert!(read(captions::LINES) == whole.1);
 
         // Out of order, the shares are refused; one share alone is listed, not passed off as the whole.
         std::fs::remove_dir_all(root.join("out")).unwrap();

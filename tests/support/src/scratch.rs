@@ -37,6 +37,17 @@ impl Scratch {
     }
 }
 
+/// A directory the tests of one process share (a run several of them read): `name` under `root`,
+/// the test binary's `CARGO_TARGET_TMPDIR`. Shared state lives in a static, which is never
+/// dropped, so it cannot remove itself as a [`Scratch`] does: it replaces what the process before
+/// left there instead, and stays inside the build's scratch space.
+pub fn shared_dir(root: &Path, name: &str) -> PathBuf {
+    let dir = root.join(name);
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("creating {}: {e}", dir.display()));
+    dir
+}
+
 impl std::ops::Deref for Scratch {
     type Target = Path;
 

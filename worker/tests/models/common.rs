@@ -21,12 +21,7 @@ pub fn rlmflow(dir: &Path, args: &[&str]) -> (bool, String) {
 /// (`CARGO_TARGET_TMPDIR`): the one an earlier test process left is removed when the next starts.
 fn shared_store() -> &'static Path {
     static STORE: OnceLock<PathBuf> = OnceLock::new();
-    STORE.get_or_init(|| {
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("worker-store");
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
-        dir
-    })
+    STORE.get_or_init(|| rlmflow_test_support::scratch::shared_dir(Path::new(env!("CARGO_TARGET_TMPDIR")), "worker-store"))
 }
 
 /// A fresh directory holding `p.toml`, whose store (`.rlmflow`, a link) is the one every test of
