@@ -1,7 +1,7 @@
 //! Pretraining end to end through the real binaries: `rlmflow` plans and the `rlmflow-torch`
 //! worker beside it trains. On small data the test makes through the pipeline, the CI-size model
-//! learns (retrieval well above chance and above the same model untrained), a run killed
-//! between epochs resumes to the same weights, and two fresh processes give the same bytes.
+//! learns (retrieval well above chance and above the same model untrained) and a run killed
+//! between epochs resumes to the same weights. (Fresh processes give the stored bytes: `numerics.rs`.)
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -104,13 +104,4 @@ fn a_run_killed_between_epochs_resumes_to_the_weights_of_an_uninterrupted_one() 
     assert!(out.contains("\"name\":\"resumed\""), "the rerun resumed from the checkpoint: {out}");
     let resumed = std::fs::read(encoder(&dir, "resumes", "pretrain").join("model.safetensors")).unwrap();
     assert!(resumed == expected, "resumed after {done} epochs, the weights differ");
-}
-
-#[test]
-fn pretraining_gives_the_same_bytes_in_fresh_processes() {
-    let _turn = crate::common::one_at_a_time();
-    let dir = scratch("determinism", &pipeline("determinism", "epochs = 1\nwarmup_epochs = 0.5\nobjective = \"sg-clip\""));
-    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--check-determinism", "pretrain"]);
-    assert!(ok, "{out}");
-    assert!(out.contains("same bytes"), "{out}");
 }

@@ -2,7 +2,7 @@
 //! the pipeline, `pup` on a trained and on an untrained encoder and the `unet` baseline each
 //! learn (the loss falls; AP beats a constant predictor's, which equals the positive rate), the
 //! U-Net runs once rather than per encoder variant, the artifact holds the sample masks and
-//! the rollout maps, and every result is the same bytes in fresh processes.
+//! the rollout maps. (Fresh processes give the stored bytes: `numerics.rs`.)
 
 use crate::common::rlmflow;
 use rlmflow_stages::npy::Npy;
@@ -33,7 +33,7 @@ fn pipeline() -> String {
 }
 
 #[test]
-fn pup_and_unet_learn_keep_samples_and_rollouts_and_reproduce_in_fresh_processes() {
+fn pup_and_unet_learn_and_keep_samples_and_rollouts() {
     let _turn = crate::common::one_at_a_time();
     let dir = crate::common::scratch("segment", &pipeline());
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--json"]);
@@ -65,7 +65,4 @@ fn pup_and_unet_learn_keep_samples_and_rollouts_and_reproduce_in_fresh_processes
             }
         }
     }
-
-    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--check-determinism", "pup", "--check-determinism", "unet"]);
-    assert!(ok && out.contains("same bytes"), "{out}");
 }
