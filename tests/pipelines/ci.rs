@@ -10,14 +10,14 @@ use std::sync::OnceLock;
 use super::*;
 
 /// The first run of `examples/ci.toml` that the tests of this process share.
-struct CiRun {
+pub(super) struct CiRun {
     dir: PathBuf,
     /// Its `--json` event log.
     events: String,
 }
 
 impl CiRun {
-    fn store(&self) -> PathBuf {
+    pub(super) fn store(&self) -> PathBuf {
         self.dir.join(".rlmflow")
     }
 
@@ -35,7 +35,7 @@ impl CiRun {
 /// `examples/ci.toml` run once, by whichever test asks first, in a directory under the build's
 /// scratch space that the next test process replaces. A failed run fails every test that reads
 /// it, with its output.
-fn ci_run() -> &'static CiRun {
+pub(super) fn ci_run() -> &'static CiRun {
     static RUN: OnceLock<Result<CiRun, String>> = OnceLock::new();
     let run = RUN.get_or_init(|| {
         let dir = rlmflow_test_support::scratch::shared_dir(Path::new(env!("CARGO_TARGET_TMPDIR")), "ci-run");

@@ -62,8 +62,7 @@ fn every_setting_of_every_operator_enters_the_key_or_leaves_the_bytes_alone() {
     let llm = fake_llm();
     let llm = &llm.url;
 
-    // Stores in which every operator ran.
-    let ci = scratch("walk-ci", &std::fs::read_to_string(root().join("examples/ci.toml")).unwrap());
+    // Stores in which every operator ran: the CI pipeline's shared run, and an `llm` pipeline's.
     let llm_dir = scratch(
         "walk-llm",
         &format!(
@@ -75,10 +74,10 @@ fn every_setting_of_every_operator_enters_the_key_or_leaves_the_bytes_alone() {
         ),
     );
     let mut config_paths: std::collections::BTreeMap<String, Vec<(std::collections::BTreeSet<String>, serde_json::Value)>> = Default::default();
-    for dir in [&ci, &llm_dir] {
-        let (ok, out) = rlmflow(dir, &["run", "p.toml"]);
-        assert!(ok, "{out}");
-        let store = rlmflow_cache::Store::open_existing(&dir.join(".rlmflow")).unwrap().unwrap();
+    let (ok, out) = rlmflow(&llm_dir, &["run", "p.toml"]);
+    assert!(ok, "{out}");
+    for store in [ci::ci_run().store(), llm_dir.join(".rlmflow")] {
+        let store = rlmflow_cache::Store::open_existing(&store).unwrap().unwrap();
         for key in store.record_keys().unwrap() {
             let preimage = store.record(&key).unwrap().unwrap().preimage;
             let mut paths = Default::default();
