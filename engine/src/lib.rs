@@ -1,10 +1,11 @@
 //! The rlmflow engine: pipeline files ([`config`]), plans ([`plan`]), why an instance runs
 //! ([`reason`]), what a run establishes before it starts ([`preflight`], with the memory check,
-//! [`footprint`]), the executor ([`run`]) with its pulls from the remote cache (`pulls`), the numeric platform class a model action's key
-//! carries ([`platform`]), how it starts actions ([`dispatch`]: child processes or HyperQueue
-//! tasks) and talks to them ([`protocol`]), the child-process entry point ([`exec`]) and the
-//! cluster task with a store of its own ([`task`]), the determinism check ([`determinism`]),
-//! what a person sees (`ui`) and the command line ([`cli`]).
+//! [`footprint`]), the executor ([`run`]) and its use of the remote cache (`pulls`), the numeric
+//! platform class a model action's key carries ([`platform`]), how it starts actions
+//! ([`dispatch`]: child processes or HyperQueue tasks) and talks to them ([`protocol`]), the
+//! child-process entry point ([`exec`]) and the cluster task with a store of its own ([`task`]),
+//! the determinism check ([`determinism`]), what a person sees (`ui`) and the command line
+//! ([`cli`]).
 //! It knows no machine learning and depends on no operator: operators come from the registry a
 //! binary passes to [`cli::main`] (`rlmflow` registers the shipped ones, `rlmflow-torch` the
 //! libtorch ones, the end-to-end tests their own).

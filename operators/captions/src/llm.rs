@@ -962,10 +962,10 @@ mod tests {
         (read(captions::SUMMARY), read(captions::LINES))
     }
 
-    #[test]
     /// A share captions its own frames and asks the endpoint what the whole stage would; shares
     /// join only in order, and one alone is listed as a part. (That the joined shares are the
     /// whole stage's bytes is checked through the binary, in `tests/pipelines/shards.rs`.)
+    #[test]
     fn shares_ask_the_whole_stages_questions_and_join_only_in_order() {
         let root = scratch("shares");
         write_labels(&root, 10);

@@ -10,7 +10,7 @@ use crate::common::rlmflow_exe;
 
 /// Every model stage at the default `numerics` (portable), with an encoder of its own (SG-CLIP,
 /// whose soft targets are the longer path), on 300 of the shared data's frames (the bytes, not
-/// what is learnt, are under test). The suite's one check that model actions give the same
+/// what is learnt, are under test). The worker tests' one check that model actions give the same
 /// bytes in fresh processes.
 const MODELS: &str = r#"
 [stages.pretrain]

@@ -1,7 +1,8 @@
 //! Pretraining end to end through the real binaries: `rlmflow` plans and the `rlmflow-torch`
 //! worker beside it trains. On small data the test makes through the pipeline, the CI-size model
 //! learns (retrieval well above chance and above the same model untrained) and a run killed
-//! between epochs resumes to the same weights. (Fresh processes give the stored bytes: `numerics.rs`.)
+//! between epochs resumes to the same weights. (Fresh processes give the stored bytes:
+//! `numerics.rs`.)
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
