@@ -1,10 +1,10 @@
 //! The shipped pipelines and operators through the real `rlmflow` binary, one file per topic:
 //! the shipped pipelines validate and refuse what cannot run (`shipped`), the CI pipeline end to
 //! end and its results read from outside (`ci`), the caption parser and setup on the command line
-//! (`commands`), sharded real operators (`shards`), highway-env's determinism (`highway`),
-//! evaluation hygiene (`hygiene`), every setting's effect on the key (`settings`), the generated
-//! operator reference (`reference`), dataset
-//! imports (`import`, `datasets`) and mutated inputs (`fuzz`).
+//! (`commands`), the plan drawn (`dag`), sharded real operators (`shards`), highway-env's
+//! determinism (`highway`), evaluation hygiene (`hygiene`), every setting's effect on the key
+//! (`settings`), the generated operator reference (`reference`), dataset imports (`import`,
+//! `datasets`) and mutated inputs (`fuzz`).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -17,6 +17,8 @@ use rlmflow_test_support::openai::{FakeOpenAi, Response};
 mod ci;
 #[path = "pipelines/commands.rs"]
 mod commands;
+#[path = "pipelines/dag.rs"]
+mod dag;
 #[path = "pipelines/datasets.rs"]
 mod datasets;
 #[path = "pipelines/fuzz.rs"]

@@ -117,6 +117,16 @@ enum Command {
         #[command(flatten)]
         remote: RemoteArg,
     },
+    /// Draw the plan: each stage instance coloured by its state (cached, will run, pending) with
+    /// the reason in its tooltip, and the artifacts between them; Mermaid (GitHub renders it) or
+    /// Graphviz DOT.
+    Dag {
+        pipeline: PathBuf,
+        #[arg(long, value_enum, default_value = "mermaid")]
+        format: crate::dag::Format,
+        #[command(flatten)]
+        store: StoreArg,
+    },
     /// Upload every cached result of a pipeline (or of `--only` stages) to the remote cache.
     Push(Transfer),
     /// Download from the remote cache every result of a pipeline (or of `--only` stages and
@@ -340,7 +350,7 @@ fn store_root(pipeline: &Pipeline, arg: &StoreArg) -> PathBuf {
 }
 
 fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
-    if matches!(command, Command::Operators { .. } | Command::Status { .. } | Command::Explain { .. } | Command::Show { .. }) {
+    if matches!(command, Command::Operators { .. } | Command::Status { .. } | Command::Dag { .. } | Command::Explain { .. } | Command::Show { .. }) {
         // These only read and print: a reader that stops early (`| head`) ends them quietly, as
         // it ends `ls`, where a failed write would panic. The others start processes or write
         // the store, and keep Rust's default (a closed pipe is an error where it is written).
@@ -391,6 +401,12 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 eprintln!("warning: remote cache {} not asked: {why}", remote.as_ref().map_or("", |r| r.url()));
             }
             print_store_warnings(pre.store.as_ref());
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Dag { pipeline, format, store } => {
+            let p = config::load(&pipeline, registry)?;
+            let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &[])?;
+            print!("{}", crate::dag::draw(&pre.plan, &pre.states, format));
             Ok(ExitCode::SUCCESS)
         }
         Command::Push(Transfer { pipeline, only, store, remote }) => {

@@ -4,14 +4,15 @@
 //! platform class a model action's key carries ([`platform`]), how it starts actions
 //! ([`dispatch`]: child processes or HyperQueue tasks) and talks to them ([`protocol`]), the
 //! child-process entry point ([`exec`]) and the cluster task with a store of its own ([`task`]),
-//! the determinism check ([`determinism`]), what a person sees (`ui`) and the command line
-//! ([`cli`]).
+//! the determinism check ([`determinism`]), the plan drawn ([`dag`]), what a person sees (`ui`)
+//! and the command line ([`cli`]).
 //! It knows no machine learning and depends on no operator: operators come from the registry a
 //! binary passes to [`cli::main`] (`rlmflow` registers the shipped ones, `rlmflow-torch` the
 //! libtorch ones, the end-to-end tests their own).
 
 pub mod cli;
 pub mod config;
+pub mod dag;
 pub mod determinism;
 pub mod dispatch;
 pub mod exec;

@@ -51,8 +51,14 @@ fn parse_into_a_reader_that_stops_early_is_not_an_error() {
 fn printing_commands_into_a_reader_that_stops_early_end_quietly() {
     use std::os::unix::process::ExitStatusExt;
     let dir = scratch("closed-pipe", "[pipeline]\nname = \"pipe\"\n[stages.scenes]\noperator = \"procedural\"\nframes = 4\n");
-    for args in [&["operators"][..], &["operators", "--json"], &["status", "p.toml"], &["explain", "p.toml", "scenes"], &["show", "p.toml", "scenes"]]
-    {
+    for args in [
+        &["operators"][..],
+        &["operators", "--json"],
+        &["status", "p.toml"],
+        &["dag", "p.toml"],
+        &["explain", "p.toml", "scenes"],
+        &["show", "p.toml", "scenes"],
+    ] {
         let mut child = Command::new(env!("CARGO_BIN_EXE_rlmflow"))
             .args(args)
             .current_dir(&dir)

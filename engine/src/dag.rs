@@ -1,0 +1,90 @@
+//! `rlmflow dag`: the plan drawn as Mermaid (which GitHub renders) or Graphviz DOT. Each stage
+//! instance is a node coloured by its freshness (cached, will run, pending) with the reason in
+//! its tooltip; each instance's output artifact is a node of its own, with an edge to every
+//! instance that reads it, labelled with the input slot.
+
+use std::fmt::Write as _;
+
+use crate::plan::{Freshness, Plan};
+use crate::ui::words;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Format {
+    Mermaid,
+    Dot,
+}
+
+/// The three states a node is coloured by: (name, fill, stroke).
+const STATES: [(&str, &str, &str); 3] = [("cached", "#d8f0d8", "#2e7d32"), ("run", "#fff1c9", "#b58900"), ("pending", "#e8e8e8", "#777777")];
+
+/// The state a node is coloured by, and its tooltip.
+fn state(freshness: &Freshness) -> (&'static str, String) {
+    match freshness {
+        Freshness::Cached(r) => ("cached", format!("cached: ran {:.1}s at {}", r.duration_s, r.started)),
+        Freshness::Stale { reasons, .. } => ("run", format!("will run: {}", words(reasons))),
+        Freshness::Pending(waiting) => ("pending", format!("pending: {waiting}")),
+    }
+}
+
+/// The edges of the drawing: (provider, slot, consumer), providers in plan order.
+fn edges(plan: &Plan) -> Vec<(usize, &'static str, usize)> {
+    let mut edges = Vec::new();
+    for (consumer, inst) in plan.instances.iter().enumerate() {
+        for input in &inst.inputs {
+            edges.extend(input.providers.iter().map(|&provider| (provider, input.slot, consumer)));
+        }
+    }
+    edges
+}
+
+/// The plan with every instance's freshness (`states`, in plan order) in `format`.
+pub fn draw(plan: &Plan, states: &[Freshness], format: Format) -> String {
+    match format {
+        Format::Mermaid => mermaid(plan, states),
+        Format::Dot => dot(plan, states),
+    }
+}
+
+fn mermaid(plan: &Plan, states: &[Freshness]) -> String {
+    // Mermaid has no escape for `"` inside a quoted label but its `#quot;` entity.
+    let text = |s: &str| s.replace('"', "#quot;");
+    let mut out = String::from("flowchart LR\n");
+    for (name, fill, stroke) in STATES {
+        let _ = writeln!(out, "  classDef {name} fill:{fill},stroke:{stroke}");
+    }
+    for (i, inst) in plan.instances.iter().enumerate() {
+        let (class, tooltip) = state(&states[i]);
+        let produces = plan.pipeline.stages[inst.stage].kind.produces;
+        let _ = writeln!(out, "  s{i}[\"{}\"]:::{class}", text(&inst.label));
+        let _ = writeln!(out, "  a{i}[/\"{produces}\"/]");
+        let _ = writeln!(out, "  s{i} --> a{i}");
+        let _ = writeln!(out, "  click s{i} callback \"{}\"", text(&tooltip));
+    }
+    for (provider, slot, consumer) in edges(plan) {
+        let _ = writeln!(out, "  a{provider} -->|{slot}| s{consumer}");
+    }
+    out
+}
+
+fn dot(plan: &Plan, states: &[Freshness]) -> String {
+    let text = |s: &str| s.replace('\\', "\\\\").replace('"', "\\\"");
+    let mut out = format!("digraph \"{}\" {{\n  rankdir=LR;\n  node [fontname=\"sans-serif\"];\n", text(&plan.pipeline.name));
+    for (i, inst) in plan.instances.iter().enumerate() {
+        let (class, tooltip) = state(&states[i]);
+        let (_, fill, stroke) = STATES.iter().find(|(name, ..)| *name == class).expect("every state has colours");
+        let produces = plan.pipeline.stages[inst.stage].kind.produces;
+        let _ = writeln!(
+            out,
+            "  s{i} [label=\"{}\", shape=box, style=filled, fillcolor=\"{fill}\", color=\"{stroke}\", tooltip=\"{}\"];",
+            text(&inst.label),
+            text(&tooltip)
+        );
+        let _ = writeln!(out, "  a{i} [label=\"{produces}\", shape=note];");
+        let _ = writeln!(out, "  s{i} -> a{i};");
+    }
+    for (provider, slot, consumer) in edges(plan) {
+        let _ = writeln!(out, "  a{provider} -> s{consumer} [label=\"{slot}\"];");
+    }
+    out.push_str("}\n");
+    out
+}
