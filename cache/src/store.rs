@@ -97,6 +97,10 @@ pub struct RunPlan {
     pub run: String,
     pub pipeline: String,
     pub started: String,
+    /// The command line's `--set STAGE.KEY=VALUE`s the run was started with, so it can be
+    /// repeated (absent when there were none).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub overrides: Vec<String>,
     pub instances: Vec<PlanEntry>,
 }
 

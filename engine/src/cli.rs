@@ -28,6 +28,16 @@ struct StoreArg {
     cache: Option<PathBuf>,
 }
 
+/// `--set STAGE.KEY=VALUE`, repeatable.
+#[derive(clap::Args)]
+struct SetArg {
+    /// Override a setting of the pipeline file (repeatable): STAGE.KEY=VALUE, the value in TOML,
+    /// dotted keys into tables and variants (pretrain.alpha=2,
+    /// pretrain.variants.alpha4.epochs=20); checked exactly as the file is.
+    #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
+    set: Vec<String>,
+}
+
 #[derive(clap::Args)]
 struct RemoteArg {
     /// The remote cache, overriding `[pipeline] remote`: s3://bucket/prefix (the standard AWS_*
@@ -102,6 +112,8 @@ enum Command {
         #[arg(long, value_name = "STAGE")]
         check_determinism: Vec<String>,
         #[command(flatten)]
+        set: SetArg,
+        #[command(flatten)]
         store: StoreArg,
         #[command(flatten)]
         remote: RemoteArg,
@@ -112,6 +124,8 @@ enum Command {
         pipeline: PathBuf,
         #[arg(long)]
         json: bool,
+        #[command(flatten)]
+        set: SetArg,
         #[command(flatten)]
         store: StoreArg,
         #[command(flatten)]
@@ -125,6 +139,8 @@ enum Command {
         #[arg(long, value_enum, default_value = "mermaid")]
         format: crate::dag::Format,
         #[command(flatten)]
+        set: SetArg,
+        #[command(flatten)]
         store: StoreArg,
     },
     /// Upload every cached result of a pipeline (or of `--only` stages) to the remote cache.
@@ -136,6 +152,8 @@ enum Command {
     Explain {
         pipeline: PathBuf,
         stage: String,
+        #[command(flatten)]
+        set: SetArg,
         #[command(flatten)]
         store: StoreArg,
     },
@@ -358,8 +376,8 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         unsafe { libc::signal(libc::SIGPIPE, libc::SIG_DFL) };
     }
     match command {
-        Command::Run { pipeline, dry_run, only, jobs, executor, json, device, verify_inputs, check_determinism, store, remote } => {
-            let mut p = config::load(&pipeline, registry)?;
+        Command::Run { pipeline, dry_run, only, jobs, executor, json, device, verify_inputs, check_determinism, set, store, remote } => {
+            let mut p = config::load_with(&pipeline, &set.set, registry)?;
             if let Some(name) = executor {
                 p.executor = config::Executor::parse(&name)
                     .with_context(|| format!("unknown executor `{name}` for --executor; valid: {}", config::Executor::NAMES.join(", ")))?;
@@ -392,8 +410,8 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             print_store_warnings(Some(&store));
             Ok(if summary.failed > 0 { ExitCode::FAILURE } else { ExitCode::SUCCESS })
         }
-        Command::Status { pipeline, json, store, remote } => {
-            let p = config::load(&pipeline, registry)?;
+        Command::Status { pipeline, json, set, store, remote } => {
+            let p = config::load_with(&pipeline, &set.set, registry)?;
             let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &[])?;
             let remote = remote.settings(&p)?.map(|r| open_remote(&r)).transpose()?;
             print_status(&pre.plan, &pre.states, &pre.selected, &pre.fits, remote.as_ref(), json);
@@ -403,8 +421,8 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             print_store_warnings(pre.store.as_ref());
             Ok(ExitCode::SUCCESS)
         }
-        Command::Dag { pipeline, format, store } => {
-            let p = config::load(&pipeline, registry)?;
+        Command::Dag { pipeline, format, set, store } => {
+            let p = config::load_with(&pipeline, &set.set, registry)?;
             let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &[])?;
             print!("{}", crate::dag::draw(&pre.plan, &pre.states, format));
             Ok(ExitCode::SUCCESS)
@@ -448,7 +466,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             println!("pull: {pulled} results downloaded ({:.1} MB) from {}", bytes as f64 / 1e6, remote.url());
             Ok(ExitCode::SUCCESS)
         }
-        Command::Explain { pipeline, stage, store } => explain(registry, &pipeline, &stage, &store),
+        Command::Explain { pipeline, stage, set, store } => explain(registry, &pipeline, &set.set, &stage, &store),
         Command::Show { pipeline, stage, store } => show(registry, &pipeline, &stage, &store),
         Command::Gc { pipeline, dry_run, keep_runs, responses, store } => {
             let store = existing_store(registry, pipeline.as_deref(), &store)?;
@@ -653,8 +671,8 @@ fn instances_of(plan: &crate::plan::Plan, stage: &str) -> anyhow::Result<Vec<usi
     Ok((0..plan.instances.len()).filter(|&i| plan.instances[i].stage == s).collect())
 }
 
-fn explain(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
-    let p = config::load(file, registry)?;
+fn explain(registry: &Registry, file: &Path, overrides: &[String], stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
+    let p = config::load_with(file, overrides, registry)?;
     let store = Store::open_existing(&store_root(&p, arg))?;
     let plan = planned(&p, store.as_ref(), Device::Cpu)?;
     let states = assess(&plan, registry, store.as_ref())?;

@@ -11,6 +11,7 @@ mod checker;
 mod graph;
 mod header;
 mod hyperqueue;
+mod overrides;
 mod stages;
 
 pub use checker::{ConfigError, Diagnostic};
@@ -20,6 +21,7 @@ pub use hyperqueue::{HyperQueueSettings, WorkerStore};
 
 use checker::{Checker, MAX_DEPTH, line_starts, to_json_table, too_deep};
 use header::PIPELINE_KEYS;
+pub use overrides::Override;
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -47,6 +49,8 @@ pub struct Pipeline {
     pub stages: Vec<Stage>,
     /// The line of every key the file spells out, for errors found after validation.
     pub lines: KeyLines,
+    /// The command line's `--set STAGE.KEY=VALUE`s, applied over the file in order.
+    pub overrides: Vec<Override>,
 }
 
 /// The line of each key of a pipeline file, by dotted path.
@@ -147,6 +151,12 @@ pub const MAX_NAME: usize = 128;
 
 /// Reads and validates a pipeline file.
 pub fn load(file: &Path, registry: &Registry) -> anyhow::Result<Pipeline> {
+    load_with(file, &[], registry)
+}
+
+/// Reads a pipeline file, applies `overrides` (`STAGE.KEY=VALUE`, the value in TOML) over it and
+/// validates the result as if the file said so; an error in an overridden key names the override.
+pub fn load_with(file: &Path, overrides: &[String], registry: &Registry) -> anyhow::Result<Pipeline> {
     let bytes = std::fs::read(file).map_err(|e| anyhow::anyhow!("cannot read pipeline {}: {e}", file.display()))?;
     let text = match String::from_utf8(bytes) {
         Ok(text) => text,
@@ -156,12 +166,15 @@ pub fn load(file: &Path, registry: &Registry) -> anyhow::Result<Pipeline> {
             let line = 1 + bytes[..at].iter().filter(|&&b| b == b'\n').count();
             let column = 1 + at - bytes[..at].iter().rposition(|&b| b == b'\n').map_or(0, |p| p + 1);
             let message = format!("not UTF-8 text: byte 0x{:02X} at column {column}; a pipeline file must be UTF-8", bytes[at]);
-            return Err(
-                ConfigError { file: file.to_path_buf(), diagnostics: vec![Diagnostic { line, key: String::new(), message, help: None }] }.into()
-            );
+            return Err(ConfigError {
+                file: file.to_path_buf(),
+                diagnostics: vec![Diagnostic { line, key: String::new(), message, help: None }],
+                overrides: Vec::new(),
+            }
+            .into());
         }
     };
-    parse(file, &text, registry).map_err(anyhow::Error::new)
+    parse_with(file, &text, overrides, registry).map_err(anyhow::Error::new)
 }
 
 /// Checks a pipeline, stage, variant or pin name; the error says what is wrong.
@@ -177,6 +190,25 @@ pub fn check_name(name: &str) -> Result<(), String> {
 
 /// Validates pipeline text; `file` is used for messages and to resolve the cache path.
 pub fn parse(file: &Path, text: &str, registry: &Registry) -> Result<Pipeline, ConfigError> {
+    parse_with(file, text, &[], registry)
+}
+
+/// [`parse`] with `overrides` applied over the text (see [`load_with`]).
+pub fn parse_with(file: &Path, text: &str, overrides: &[String], registry: &Registry) -> Result<Pipeline, ConfigError> {
+    let applied = overrides.iter().map(|o| Override::parse(o)).collect::<Result<Vec<_>, _>>();
+    let applied = match applied {
+        Ok(applied) => applied,
+        Err(diagnostic) => return Err(ConfigError { file: file.to_path_buf(), diagnostics: vec![diagnostic], overrides: Vec::new() }),
+    };
+    let mut pipeline = parse_overridden(file, text, &applied, registry).map_err(|mut e| {
+        e.overrides = applied.clone();
+        e
+    })?;
+    pipeline.overrides = applied;
+    Ok(pipeline)
+}
+
+fn parse_overridden(file: &Path, text: &str, overrides: &[Override], registry: &Registry) -> Result<Pipeline, ConfigError> {
     let mut cx = Checker { lines: KeyLines::default(), line_starts: line_starts(text), errors: Vec::new() };
     if let Some((line, depth)) = too_deep(text) {
         cx.error(line, "", format!("nested more than {MAX_DEPTH} levels deep (at least {depth}); at most {MAX_DEPTH}"), None);
@@ -191,7 +223,16 @@ pub fn parse(file: &Path, text: &str, registry: &Registry) -> Result<Pipeline, C
         }
     };
     cx.index(&mut Vec::new(), root.get_ref());
-    let root = to_json_table(root.get_ref());
+    let mut root = to_json_table(root.get_ref());
+    for o in overrides {
+        match o.apply(&root) {
+            Ok(overridden) => root = overridden,
+            Err(message) => cx.error(0, &format!("--set {}", o.text), message, None),
+        }
+    }
+    if !cx.errors.is_empty() {
+        return Err(cx.into_error(file));
+    }
     let pipeline = cx.check(file, &root, registry);
     match pipeline {
         Some(p) if cx.errors.is_empty() => Ok(p),
@@ -316,6 +357,7 @@ impl Checker {
             remote,
             stages,
             lines: std::mem::take(&mut self.lines),
+            overrides: Vec::new(),
         })
     }
 }

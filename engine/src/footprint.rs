@@ -116,5 +116,5 @@ pub fn refuse_oversized(plan: &Plan, fits: &[Option<Fit>]) -> anyhow::Result<()>
     if diagnostics.is_empty() {
         return Ok(());
     }
-    Err(ConfigError { file: plan.pipeline.file.clone(), diagnostics }.into())
+    Err(ConfigError { file: plan.pipeline.file.clone(), diagnostics, overrides: plan.pipeline.overrides.clone() }.into())
 }

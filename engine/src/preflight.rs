@@ -96,5 +96,5 @@ fn refuse_cuda_stages(plan: &Plan, registry: &Registry, runs: &[bool]) -> anyhow
             }
         })
         .collect();
-    Err(ConfigError { file: plan.pipeline.file.clone(), diagnostics }.into())
+    Err(ConfigError { file: plan.pipeline.file.clone(), diagnostics, overrides: plan.pipeline.overrides.clone() }.into())
 }

@@ -271,13 +271,19 @@ impl Executor<'_> {
     fn write_provenance(&self, wall: f64, executor: &str) -> anyhow::Result<PathBuf> {
         let p = self.plan.pipeline;
         let mut md = format!(
-            "# Run {}\n\n`{}` (pipeline `{}`), {executor}, {wall:.1} s, planned on {} ({}). Seconds are this run's for an instance that ran, the original computation's for one reused. A model action's numeric platform is the class of machines that compute its bytes (`rlmflow show` prints the CPU, kernels and libraries it ran with).\n\n| instance | status | seconds | key | output | platform |\n|---|---|---|---|---|---|\n",
+            "# Run {}\n\n`{}` (pipeline `{}`), {executor}, {wall:.1} s, planned on {} ({}). Seconds are this run's for an instance that ran, the original computation's for one reused. A model action's numeric platform is the class of machines that compute its bytes (`rlmflow show` prints the CPU, kernels and libraries it ran with).\n\n",
             self.run,
             p.file.display(),
             p.name,
             self.plan.platform.cpu().model,
             self.plan.platform.cpu().extensions.join(" "),
         );
+        if !p.overrides.is_empty() {
+            // So the run can be repeated from this file alone.
+            let set: Vec<String> = p.overrides.iter().map(|o| format!("`--set {}`", o.text)).collect();
+            md += &format!("Overrides over the file, in order: {}.\n\n", set.join(", "));
+        }
+        md += "| instance | status | seconds | key | output | platform |\n|---|---|---|---|---|---|\n";
         for (i, inst) in self.plan.instances.iter().enumerate() {
             let Some((outcome, secs)) = self.results[i] else { continue };
             let status = match outcome {
@@ -505,7 +511,14 @@ impl Executor<'_> {
             .filter(|(i, _)| !matches!(self.states[*i], State::Excluded))
             .map(|(i, inst)| PlanEntry { label: inst.label.clone(), stage: self.plan.pipeline.stages[inst.stage].name.clone(), key: self.keys[i] })
             .collect();
-        self.store.write_plan(&RunPlan { run: self.run.clone(), pipeline: self.plan.pipeline.name.clone(), started: now_rfc3339(), instances })?;
+        let overrides = self.plan.pipeline.overrides.iter().map(|o| o.text.clone()).collect();
+        self.store.write_plan(&RunPlan {
+            run: self.run.clone(),
+            pipeline: self.plan.pipeline.name.clone(),
+            started: now_rfc3339(),
+            overrides,
+            instances,
+        })?;
         // Recorded as soon as known, so a killed run still tells `status` what it was doing.
         let resolved: BTreeMap<String, Digest> =
             self.keys.iter().enumerate().filter_map(|(i, k)| k.map(|k| (self.plan.instances[i].label.clone(), k))).collect();

@@ -7,6 +7,7 @@ mod engine;
 mod harness;
 mod hyperqueue;
 mod numerics;
+mod overrides;
 mod remote;
 mod shards;
 mod store_repair;

@@ -23,6 +23,8 @@ pub struct Diagnostic {
 pub struct ConfigError {
     pub file: PathBuf,
     pub diagnostics: Vec<Diagnostic>,
+    /// The command line's overrides: a problem in a key one of them set is located at it.
+    pub overrides: Vec<super::overrides::Override>,
 }
 
 impl fmt::Display for ConfigError {
@@ -31,7 +33,13 @@ impl fmt::Display for ConfigError {
             if i > 0 {
                 writeln!(f)?;
             }
-            write!(f, "{}:{}: ", self.file.display(), d.line)?;
+            let set_by = self.overrides.iter().rev().find(|o| d.key == o.path || d.key.starts_with(&format!("{}.", o.path)));
+            match set_by {
+                Some(o) => write!(f, "{} with --set {}: ", self.file.display(), o.text)?,
+                // Line 0: the command line's (a malformed override names itself in the key).
+                None if d.line == 0 => write!(f, "{}: ", self.file.display())?,
+                None => write!(f, "{}:{}: ", self.file.display(), d.line)?,
+            }
             if !d.key.is_empty() {
                 write!(f, "{}: ", d.key)?;
             }
@@ -124,7 +132,7 @@ pub(super) struct Checker {
 impl Checker {
     pub(super) fn into_error(mut self, file: &Path) -> ConfigError {
         self.errors.sort_by_key(|d| d.line);
-        ConfigError { file: file.to_path_buf(), diagnostics: self.errors }
+        ConfigError { file: file.to_path_buf(), diagnostics: self.errors, overrides: Vec::new() }
     }
 
     pub(super) fn error(&mut self, line: usize, key: &str, message: String, help: Option<String>) {
