@@ -194,7 +194,7 @@ pub fn parse(file: &Path, text: &str, registry: &Registry) -> Result<Pipeline, C
 }
 
 /// [`parse`] with `overrides` applied over the text (see [`load_with`]).
-pub fn parse_with(file: &Path, text: &str, overrides: &[String], registry: &Registry) -> Result<Pipeline, ConfigError> {
+fn parse_with(file: &Path, text: &str, overrides: &[String], registry: &Registry) -> Result<Pipeline, ConfigError> {
     let applied = overrides.iter().map(|o| Override::parse(o)).collect::<Result<Vec<_>, _>>();
     let applied = match applied {
         Ok(applied) => applied,
