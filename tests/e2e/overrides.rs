@@ -51,7 +51,9 @@ fn an_override_reruns_exactly_what_status_says_and_the_run_records_it() {
 fn a_bad_override_is_a_config_error_that_names_it_and_creates_no_store() {
     let s = Scratch::new("override-bad");
     s.pipeline(CHAIN);
+    let deep = format!("map.suffix={}{}", "[".repeat(20_000), "]".repeat(20_000));
     for (set, says) in [
+        (deep.as_str(), "nested more than 32 levels deep"),
         ("mapp.suffix=\"?\"", "no stage `mapp`; the stages are collect, map, measure, other, source; did you mean `map`?"),
         ("map.suffix=?", "`?` is not a TOML value"),
         ("map.suffix=\"a\"\nother = 1", "is not one TOML value"),

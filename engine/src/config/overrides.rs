@@ -3,7 +3,7 @@
 
 use serde_json::{Map, Value};
 
-use super::checker::Diagnostic;
+use super::checker::{Diagnostic, MAX_DEPTH, too_deep};
 
 #[derive(Clone, Debug)]
 pub struct Override {
@@ -25,9 +25,13 @@ impl Override {
         if key.split('.').count() < 2 || key.split('.').any(|part| part.trim().is_empty()) {
             return Err(bad(format!("`{key}` is not STAGE.KEY")));
         }
-        // One TOML value, alone: a value that smuggles in a second key is refused.
-        let mut table: toml::Table =
-            toml::from_str(&format!("v = {value}")).map_err(|e| bad(format!("`{value}` is not a TOML value: {}", e.message().trim())))?;
+        // One TOML value, alone: a value that smuggles in a second key is refused, and one nested
+        // past the file's bound is refused before the parser recurses into it.
+        let line = format!("v = {value}");
+        if let Some((_, depth)) = too_deep(&line) {
+            return Err(bad(format!("nested more than {MAX_DEPTH} levels deep (at least {depth}); at most {MAX_DEPTH}")));
+        }
+        let mut table: toml::Table = toml::from_str(&line).map_err(|e| bad(format!("`{value}` is not a TOML value: {}", e.message().trim())))?;
         let value = match (table.remove("v"), table.is_empty()) {
             (Some(parsed), true) => serde_json::to_value(parsed).map_err(|e| bad(format!("`{value}`: {e}")))?,
             _ => return Err(bad(format!("`{value}` is not one TOML value"))),
