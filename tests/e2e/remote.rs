@@ -676,30 +676,24 @@ fn a_64_mb_artifact_crosses_a_1_mb_per_s_link_with_a_2_s_timeout_and_a_stalled_l
     // A link that stops after 3 MB, either way.
     let stalling = || s3_env(&format!("http://127.0.0.1:{}", throttled_proxy(s3, 1_000_000, Some(3_000_000))));
 
+    // `verb` (push or pull) in `dir` through a 1 MB/s link: it takes a minute, thirty times the
+    // timeout, and completes without holding the artifact in memory.
+    let through_the_link = |dir: &Scratch, verb: &str, bucket: &str| {
+        let t0 = Instant::now();
+        let log = dir.dir.join(format!("{verb}.err"));
+        let (status, peak) = peak_memory(dir.command(&[verb, "p.toml", "--remote", bucket]).envs(throttled()), &log);
+        let took = t0.elapsed();
+        assert!(status.success(), "the {verb} completes: {}", fs::read_to_string(&log).unwrap());
+        assert!(took > Duration::from_secs(40), "{verb}: 64 MB really went through the 1 MB/s link: {took:?}");
+        assert!(peak < 32_000_000, "{verb}: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
+        println!("{verb} of 64 MB at 1 MB/s: {:.1} s, peak anonymous memory {:.1} MB", took.as_secs_f64(), peak as f64 / 1e6);
+    };
     std::thread::scope(|scope| {
-        // Up and down through 1 MB/s: each takes a minute, thirty times the timeout, and
-        // completes; neither holds the artifact in memory.
-        scope.spawn(|| {
-            let t0 = Instant::now();
-            let log = pusher.dir.join("push.err");
-            let (status, peak) = peak_memory(pusher.command(&["push", "p.toml", "--remote", "s3://rlmflow/slow"]).envs(throttled()), &log);
-            let up = t0.elapsed();
-            assert!(status.success(), "the push completes: {}", fs::read_to_string(&log).unwrap());
-            assert!(up > Duration::from_secs(40), "64 MB really went through the 1 MB/s link: {up:?}");
-            assert!(peak < 32_000_000, "push: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
-            println!("push of 64 MB at 1 MB/s: {:.1} s, peak anonymous memory {:.1} MB", up.as_secs_f64(), peak as f64 / 1e6);
-        });
+        scope.spawn(|| through_the_link(&pusher, "push", "s3://rlmflow/slow"));
         scope.spawn(|| {
             let reader = Scratch::new("remote-throttled-reader");
             reader.pipeline(pipeline);
-            let t0 = Instant::now();
-            let log = reader.dir.join("pull.err");
-            let (status, peak) = peak_memory(reader.command(&["pull", "p.toml", "--remote", "s3://rlmflow/fast"]).envs(throttled()), &log);
-            let down = t0.elapsed();
-            assert!(status.success(), "the pull completes: {}", fs::read_to_string(&log).unwrap());
-            assert!(down > Duration::from_secs(40), "64 MB really came through the 1 MB/s link: {down:?}");
-            assert!(peak < 32_000_000, "pull: peak anonymous memory {:.1} MB for a 64 MB artifact", peak as f64 / 1e6);
-            println!("pull of 64 MB at 1 MB/s: {:.1} s, peak anonymous memory {:.1} MB", down.as_secs_f64(), peak as f64 / 1e6);
+            through_the_link(&reader, "pull", "s3://rlmflow/fast");
             assert_eq!(outputs(&reader.run()), vec![("source".to_owned(), outputs(&computed)[0].1.clone())], "pulled whole");
         });
         // Stalled: cut 2 s after its last bytes, the run goes on without the remote (one warning)
