@@ -2,14 +2,16 @@
 //!
 //! Roots are the keys named in `refs/` (the latest key of every stage instance of every
 //! pipeline, and pins) and in the plans of the newest `keep_runs` runs. A live key keeps its
-//! record, request and checkpoint, its output object and its input objects.
+//! record, request and checkpoint, its output object and its input objects. Links outside the
+//! store (`results/`) are no roots and are never followed; one whose object was collected is
+//! pointed at a note saying so (`links.rs`).
 
 use std::collections::BTreeSet;
 use std::fs;
 use std::path::{Path, PathBuf};
 
 use crate::digest::Digest;
-use crate::store::{RESPONSES, Store, read_dir_sorted, remove_tree};
+use crate::store::{RESPONSES, Store, now_rfc3339, read_dir_sorted, remove_tree};
 
 /// What `gc` removed (or would remove, with `dry_run`).
 #[derive(Debug, Default)]
@@ -79,12 +81,14 @@ impl Store {
             }
         }
         let mut kept_objects = 0;
+        let mut collected = Vec::new();
         for digest in self.objects()? {
             if live_objects.contains(&digest) {
                 kept_objects += 1;
             } else {
                 remove("object", self.object_dir(&digest))?;
                 remove("object manifest", self.manifest_path(&digest))?;
+                collected.push(digest);
             }
         }
         for dir in read_dir_sorted(&self.root().join("checkpoints"))? {
@@ -114,6 +118,9 @@ impl Store {
             if entry.file_name().is_some_and(|n| n != "store.lock") {
                 remove("lock file", entry)?;
             }
+        }
+        if !dry_run {
+            self.note_collected(&collected, &now_rfc3339())?;
         }
         Ok(GcReport { removed, kept_objects })
     }

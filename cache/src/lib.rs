@@ -28,6 +28,7 @@
 //! runs/<run-id>/             plan.json, events.jsonl and logs/ of one run
 //! refs/pipelines/<name>.json the last key of every stage instance of a pipeline (a GC root)
 //! refs/pins/<name>.json      keys pinned by hand (GC roots)
+//! refs/links.json            the directories of links into the store (`results/`; see `links`)
 //! locks/                     advisory locks: one per action key, one for the store
 //! tmp/                       work directories of running actions; orphans are swept
 //! quarantine/                objects that failed verification, kept for inspection
@@ -45,6 +46,7 @@
 mod digest;
 pub mod external;
 mod gc;
+mod links;
 mod lock;
 mod preimage;
 mod store;
@@ -52,9 +54,11 @@ mod tree;
 
 pub use digest::Digest;
 pub use gc::GcReport;
+pub use links::Links;
 pub use lock::Lock;
 pub use preimage::{Change, InputDigest, Preimage, canonical_json};
 pub use store::{
-    ActionRecord, ActionRequest, Corruption, DamagedFile, PlanEntry, RecordSignature, RunPlan, Store, VerifyReport, file_safe, now_rfc3339, run_id,
+    ActionRecord, ActionRequest, Corruption, DamagedFile, GitState, PlanEntry, RecordSignature, RunPlan, Store, VerifyReport, file_safe, now_rfc3339,
+    run_id,
 };
 pub use tree::{TreeInfo, differing_files, hash_file, hash_tree};

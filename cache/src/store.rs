@@ -87,8 +87,19 @@ pub struct ActionRequest {
 pub struct PlanEntry {
     pub label: String,
     pub stage: String,
+    /// Its variant per dimension (`pretrain` -> `alpha4`, `seed` -> `2`), absent for a stage
+    /// without variants or seeds: how `compare` groups seeds and sets variants side by side.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub assignment: BTreeMap<String, String>,
     /// Unknown until its inputs exist; filled in as the run goes.
     pub key: Option<Digest>,
+}
+
+/// The git commit a run's pipeline file was at, and whether tracked files had changed since.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GitState {
+    pub commit: String,
+    pub dirty: bool,
 }
 
 /// `runs/<id>/plan.json`.
@@ -101,6 +112,9 @@ pub struct RunPlan {
     /// repeated (absent when there were none).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub overrides: Vec<String>,
+    /// Absent where the pipeline file is not in a git work tree (or git is not installed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub git: Option<GitState>,
     pub instances: Vec<PlanEntry>,
 }
 

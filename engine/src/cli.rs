@@ -157,6 +157,45 @@ enum Command {
         #[command(flatten)]
         store: StoreArg,
     },
+    /// List a pipeline's runs, newest first: when, the git commit (and whether the tree was
+    /// dirty), overrides, how many stages ran, were reused or pulled, and the headline of each
+    /// stage it computed.
+    Runs {
+        pipeline: PathBuf,
+        /// The headline of every stage instance, reused ones too.
+        #[arg(long)]
+        all: bool,
+        /// At most N runs.
+        #[arg(long, value_name = "N")]
+        last: Option<usize>,
+        /// One JSON object per run and line: its plan, how each instance ended, whether it finished.
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        store: StoreArg,
+    },
+    /// Settings and metrics side by side: two runs (default: the pipeline's last two; one RUN:
+    /// that run against the latest), or with --variants the variants of one run, seeds pooled
+    /// into mean ± sd. Shows only what differs unless --all.
+    Compare {
+        pipeline: PathBuf,
+        /// Run ids, or unique beginnings of them (`rlmflow runs` lists them).
+        #[arg(value_name = "RUN", num_args = 0..=2)]
+        runs: Vec<String>,
+        /// Compare the variants of each stage of one run (default: the latest).
+        #[arg(long)]
+        variants: bool,
+        /// Every instance, setting and metric, not only those that differ.
+        #[arg(long)]
+        all: bool,
+        #[arg(long, conflicts_with = "markdown")]
+        json: bool,
+        /// Markdown tables, for pasting into a note or an issue.
+        #[arg(long)]
+        markdown: bool,
+        #[command(flatten)]
+        store: StoreArg,
+    },
     /// Show where a stage's outputs, record and metrics are.
     Show {
         pipeline: PathBuf,
@@ -368,7 +407,16 @@ fn store_root(pipeline: &Pipeline, arg: &StoreArg) -> PathBuf {
 }
 
 fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
-    if matches!(command, Command::Operators { .. } | Command::Status { .. } | Command::Dag { .. } | Command::Explain { .. } | Command::Show { .. }) {
+    if matches!(
+        command,
+        Command::Operators { .. }
+            | Command::Status { .. }
+            | Command::Dag { .. }
+            | Command::Explain { .. }
+            | Command::Show { .. }
+            | Command::Runs { .. }
+            | Command::Compare { .. }
+    ) {
         // These only read and print: a reader that stops early (`| head`) ends them quietly, as
         // it ends `ls`, where a failed write would panic. The others start processes or write
         // the store, and keep Rust's default (a closed pipe is an error where it is written).
@@ -468,6 +516,58 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         }
         Command::Explain { pipeline, stage, set, store } => explain(registry, &pipeline, &set.set, &stage, &store),
         Command::Show { pipeline, stage, store } => show(registry, &pipeline, &stage, &store),
+        Command::Runs { pipeline, all, last, json, store } => {
+            let p = config::load(&pipeline, registry)?;
+            let store =
+                Store::open_existing(&store_root(&p, &store))?.with_context(|| format!("{} has not run yet: no store", pipeline.display()))?;
+            let mut runs = crate::history::runs_of(&store, &p.name)?;
+            runs.truncate(last.unwrap_or(usize::MAX));
+            if json {
+                runs.iter().try_for_each(|r| serde_json::to_string(r).map(|line| println!("{line}")))?;
+            } else if runs.is_empty() {
+                println!("no runs of pipeline `{}` in {}", p.name, store.root().display());
+            } else {
+                print!("{}", crate::history::listing(&store, &runs, all)?);
+            }
+            print_store_warnings(Some(&store));
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Compare { pipeline, runs: ids, variants, all, json, markdown, store } => {
+            let p = config::load(&pipeline, registry)?;
+            let store =
+                Store::open_existing(&store_root(&p, &store))?.with_context(|| format!("{} has not run yet: no store", pipeline.display()))?;
+            let runs = crate::history::runs_of(&store, &p.name)?;
+            let pick = |id: Option<&String>, newest: usize| -> anyhow::Result<&crate::history::PastRun> {
+                match id {
+                    Some(id) => crate::history::find(&runs, id, &p.name),
+                    None => runs.get(newest).with_context(|| {
+                        format!("pipeline `{}` has {} run(s) in {}; compare needs {}", p.name, runs.len(), store.root().display(), newest + 1)
+                    }),
+                }
+            };
+            let tables = if variants {
+                if ids.len() > 1 {
+                    return Err(UsageError("--variants compares the variants of one run: give at most one RUN".into()).into());
+                }
+                crate::compare::variants(&store, pick(ids.first(), 0)?, all)?
+            } else {
+                let (a, b) = match ids.as_slice() {
+                    [] => (pick(None, 1)?, pick(None, 0)?),
+                    [a] => (pick(Some(a), 0)?, pick(None, 0)?),
+                    [a, b, ..] => (pick(Some(a), 0)?, pick(Some(b), 0)?),
+                };
+                vec![crate::compare::runs(&store, a, b, all)?]
+            };
+            for table in &tables {
+                match (json, markdown) {
+                    (true, _) => println!("{}", serde_json::to_string(table)?),
+                    (_, true) => println!("{}", table.markdown()),
+                    _ => print!("{}", table.terminal()),
+                }
+            }
+            print_store_warnings(Some(&store));
+            Ok(ExitCode::SUCCESS)
+        }
         Command::Gc { pipeline, dry_run, keep_runs, responses, store } => {
             let store = existing_store(registry, pipeline.as_deref(), &store)?;
             let report = store.gc(keep_runs, dry_run, responses)?;

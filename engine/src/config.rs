@@ -41,6 +41,9 @@ pub struct Pipeline {
     pub seeds: Vec<u64>,
     /// The store directory (relative paths in the file are relative to the file).
     pub cache: PathBuf,
+    /// `[pipeline] results`: where a run links each instance to its current output
+    /// (`results/report/`); `None` for `results = ""`.
+    pub results: Option<PathBuf>,
     pub executor: Executor,
     /// `[pipeline.hyperqueue]`, also used when `run --executor hyperqueue` overrides a local one.
     pub hyperqueue: HyperQueueSettings,
@@ -85,7 +88,18 @@ pub struct Stage {
     pub per_seed: bool,
     /// How the parts of a sharded stage (`shards` or `shard_size`) join into its artifact.
     pub merge: Option<Merge>,
+    /// `timeout` and `retries`: outside the key, like the executor.
+    pub bounds: Bounds,
     pub line: usize,
+}
+
+/// How long each attempt of a stage's actions may take, and how many more attempts a failed or
+/// timed-out one gets.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Bounds {
+    /// Wall-clock seconds; none: unbounded.
+    pub timeout_s: Option<f64>,
+    pub retries: u32,
 }
 
 #[derive(Clone, Debug)]
@@ -281,6 +295,7 @@ impl Checker {
         let cache = self.string(header, "pipeline", "cache").unwrap_or_else(|| ".rlmflow".into());
         let cache = file.parent().unwrap_or(Path::new(".")).join(cache);
         let cache = std::path::absolute(&cache).unwrap_or(cache);
+        let results = self.results_dir(file, header, &cache);
         let executor = match self.string(header, "pipeline", "executor") {
             None => Executor::Local,
             Some(name) => Executor::parse(&name).unwrap_or_else(|| {
@@ -352,6 +367,7 @@ impl Checker {
             seed,
             seeds,
             cache,
+            results,
             executor,
             hyperqueue,
             remote,

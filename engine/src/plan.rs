@@ -164,7 +164,7 @@ fn assignment_key(a: &BTreeMap<String, String>) -> String {
 
 /// `stage`, `stage[variant]` for one variant dimension, `stage[dim=v,...]` for several; the seed
 /// always shows its name (`stage[seed=2]`), so a report can tell seeds from variants.
-fn label(stage: &str, a: &BTreeMap<String, String>) -> String {
+pub fn label(stage: &str, a: &BTreeMap<String, String>) -> String {
     match a.len() {
         0 => stage.to_owned(),
         1 if !a.contains_key(SEED_DIMENSION) => format!("{stage}[{}]", a.values().next().unwrap()),

@@ -11,9 +11,9 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use indicatif::ProgressBar;
-use rlmflow_cache::{ActionRecord, Digest, PlanEntry, Preimage, RunPlan, Store, file_safe, now_rfc3339, run_id};
+use rlmflow_cache::{ActionRecord, Digest, GitState, Links, PlanEntry, Preimage, RunPlan, Store, file_safe, now_rfc3339, run_id};
 use rlmflow_remote::{Pulled, Remote};
-use rlmflow_stages::{Device, Registry};
+use rlmflow_stages::{Device, LIVE_EVENT, Registry};
 use serde_json::{Value, json};
 
 use crate::config::{Executor as ExecutorKind, RemoteSettings};
@@ -74,6 +74,9 @@ struct Executor<'a> {
     store: &'a Store,
     opts: &'a RunOptions,
     run: String,
+    /// When it started (RFC 3339) and the git state of the pipeline's work tree then.
+    started: String,
+    git: Option<GitState>,
     states: Vec<State>,
     keys: Vec<Option<Digest>>,
     plan_dirty: bool,
@@ -89,12 +92,20 @@ struct Executor<'a> {
     dispatch: Box<dyn Dispatch>,
     /// Pulls from the remote cache, each on a thread of its own beside the running stages.
     pulls: Pulls<'a>,
+    /// `[pipeline] results`: a link per instance to its current output.
+    links: Option<Links<'a>>,
+    /// Instances whose link points at their work in progress.
+    live_linked: std::collections::BTreeSet<usize>,
+    /// How many times each instance's action was started in this run.
+    attempts: Vec<u32>,
 }
 
 /// Runs the plan; returns its summary.
 pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], opts: &RunOptions) -> anyhow::Result<Summary> {
     let _shared = store.lock_shared()?;
     store.sweep_tmp(None)?;
+    // Before the run exists: a results directory that cannot be used stops it with nothing done.
+    let links = plan.pipeline.results.as_deref().map(|dir| store.links(dir)).transpose()?;
     let run = run_id();
     let events = EventLog::create(&store.run_dir(&run), opts.json)?;
     let states = selected.iter().map(|&s| if s { State::Waiting } else { State::Excluded }).collect();
@@ -107,6 +118,8 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
         store,
         opts,
         run,
+        started: now_rfc3339(),
+        git: crate::history::git_state(&plan.pipeline.file),
         states,
         keys: vec![None; n],
         plan_dirty: true,
@@ -118,6 +131,9 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
         verified: Default::default(),
         dispatch,
         pulls: Pulls::new(opts.remote.as_ref(), n),
+        links,
+        live_linked: Default::default(),
+        attempts: vec![0; n],
     };
     ex.execute()?;
     Ok(ex.summary())
@@ -202,7 +218,8 @@ impl Executor<'_> {
                 started.insert(i, (Instant::now(), threads, wants.gpu));
                 self.states[i] = State::Running { key };
                 let label = self.plan.instances[i].label.clone();
-                self.events.write("stage_started", json!({"stage": label, "key": key, "threads": threads}))?;
+                self.attempts[i] += 1;
+                self.events.write("stage_started", json!({"stage": label, "key": key, "threads": threads, "attempt": self.attempts[i]}))?;
                 bars.insert(i, self.ui.bar(&label));
                 self.start(i, exe, key, threads, wants.gpu, tx.clone())?;
             }
@@ -225,6 +242,9 @@ impl Executor<'_> {
                     bar.set_message(message);
                 }
                 Report::Message(Message::Event { name, data }) => {
+                    if name == LIVE_EVENT {
+                        self.link_live(i, &data);
+                    }
                     self.events.write("operator_event", json!({"stage": self.plan.instances[i].label, "name": name, "data": data}))?;
                 }
                 Report::Message(Message::Waiting) => bars[&i].set_message("waiting for another run computing it"),
@@ -261,6 +281,9 @@ impl Executor<'_> {
         self.ui.say(format!("  provenance  {}", self.write_provenance(wall, &executor)?.display()));
         for (label, dir) in self.final_outputs() {
             self.ui.say(format!("  output  {label}  {}", dir.display()));
+        }
+        if let Some(links) = &self.links {
+            self.ui.say(format!("  results {}  (a link per instance to its current output)", links.dir().display()));
         }
         Ok(())
     }
@@ -322,6 +345,51 @@ impl Executor<'_> {
             .collect()
     }
 
+    /// Instance `i` has its output: consumers may start, and its results link points at it.
+    fn done(&mut self, i: usize, output: Digest) {
+        self.states[i] = State::Done { output };
+        self.live_linked.remove(&i);
+        if let Some(links) = &self.links
+            && let Some(entry) = crate::results::entry(self.plan, i)
+            && let Err(e) = links.point(&entry, &output)
+        {
+            self.ui.say(format!("  warning: {} not linked in {}: {e:#}", self.plan.instances[i].label, links.dir().display()));
+        }
+    }
+
+    /// A running instance's work in progress is in `data["dir"]`: its results entry points there
+    /// until its output is committed. A directory this machine cannot see (a cluster task's own
+    /// store) is not linked.
+    fn link_live(&mut self, i: usize, data: &Value) {
+        let Some(dir) = data["dir"].as_str().map(Path::new).filter(|d| d.is_dir()) else { return };
+        if let Some(links) = &self.links
+            && let Some(entry) = crate::results::entry(self.plan, i)
+        {
+            match links.point_at(&entry, dir) {
+                Ok(()) => _ = self.live_linked.insert(i),
+                Err(e) => self.ui.say(format!("  warning: {} not linked in {}: {e:#}", self.plan.instances[i].label, links.dir().display())),
+            }
+        }
+    }
+
+    /// A failed instance whose results entry was pointed at its work in progress points at its
+    /// previous output again, where the store has one (its work directory may be gone).
+    fn relink_previous(&mut self, i: usize) -> anyhow::Result<()> {
+        if !self.live_linked.remove(&i) {
+            return Ok(());
+        }
+        let previous = self.last.get(&self.plan.instances[i].label).map(|key| self.store.fresh(key)).transpose()?.flatten();
+        if let (Some(links), Some(entry), Some(record)) = (&self.links, crate::results::entry(self.plan, i), previous) {
+            links.point(&entry, &record.output)?;
+        }
+        Ok(())
+    }
+
+    /// Instance `i`'s stage's `timeout` and `retries`.
+    fn bounds(&self, i: usize) -> crate::config::Bounds {
+        self.plan.pipeline.stages[self.plan.instances[i].stage].bounds
+    }
+
     fn summary(&self) -> Summary {
         let count = |o: Outcome| self.results.iter().flatten().filter(|r| r.0 == o).count();
         Summary {
@@ -362,7 +430,7 @@ impl Executor<'_> {
             if let Some(record) = self.store.fresh(&key)?
                 && self.intact(&inst.label, &record.output)?
             {
-                self.states[i] = State::Done { output: record.output };
+                self.done(i, record.output);
                 self.results[i] = Some((Outcome::Reused, record.duration_s));
                 self.events.write(
                     "stage_finished",
@@ -427,7 +495,7 @@ impl Executor<'_> {
                     json!({"stage": label, "status": "pulled", "key": key, "output": record.output, "bytes": bytes, "seconds": seconds, "saved_s": record.duration_s}),
                 )?;
                 self.ui.say(format!("  pulled   {label}  {:.1} MB in {seconds:.1}s ({:.1}s saved)", bytes as f64 / 1e6, record.duration_s));
-                self.states[i] = State::Done { output: record.output };
+                self.done(i, record.output);
                 self.results[i] = Some((Outcome::Pulled, record.duration_s));
             }
             Pulled::Miss => {}
@@ -509,14 +577,20 @@ impl Executor<'_> {
             .iter()
             .enumerate()
             .filter(|(i, _)| !matches!(self.states[*i], State::Excluded))
-            .map(|(i, inst)| PlanEntry { label: inst.label.clone(), stage: self.plan.pipeline.stages[inst.stage].name.clone(), key: self.keys[i] })
+            .map(|(i, inst)| PlanEntry {
+                label: inst.label.clone(),
+                stage: self.plan.pipeline.stages[inst.stage].name.clone(),
+                assignment: inst.assignment.clone(),
+                key: self.keys[i],
+            })
             .collect();
         let overrides = self.plan.pipeline.overrides.iter().map(|o| o.text.clone()).collect();
         self.store.write_plan(&RunPlan {
             run: self.run.clone(),
             pipeline: self.plan.pipeline.name.clone(),
-            started: now_rfc3339(),
+            started: self.started.clone(),
             overrides,
+            git: self.git.clone(),
             instances,
         })?;
         // Recorded as soon as known, so a killed run still tells `status` what it was doing.
@@ -527,8 +601,14 @@ impl Executor<'_> {
         Ok(())
     }
 
-    fn log_path(&self, label: &str) -> PathBuf {
-        self.store.run_dir(&self.run).join("logs").join(format!("{}.log", file_safe(label)))
+    /// `runs/<id>/logs/<label>.log`, and `<label>.attempt-N.log` for a retry's.
+    fn log_path(&self, i: usize) -> PathBuf {
+        let label = file_safe(&self.plan.instances[i].label);
+        let name = match self.attempts[i] {
+            0 | 1 => format!("{label}.log"),
+            n => format!("{label}.attempt-{n}.log"),
+        };
+        self.store.run_dir(&self.run).join("logs").join(name)
     }
 
     fn start(&mut self, i: usize, exe: PathBuf, key: Digest, threads: usize, gpu: bool, tx: mpsc::Sender<(usize, Report)>) -> anyhow::Result<()> {
@@ -538,9 +618,10 @@ impl Executor<'_> {
             .map(str::to_owned)
             .chain(["--device".to_owned(), self.opts.device.to_string()])
             .collect();
-        let log = self.log_path(&label);
+        let log = self.log_path(i);
         let (store, device, replace_remote) = (self.store.root().to_path_buf(), self.opts.device, self.pulls.replaces(&key));
-        self.dispatch.start(i, Launch { exe, args, key, store, device, replace_remote, label, threads, gpu, log }, tx)
+        let timeout = self.bounds(i).timeout_s.map(std::time::Duration::from_secs_f64);
+        self.dispatch.start(i, Launch { exe, args, key, store, device, replace_remote, label, threads, gpu, log, timeout }, tx)
     }
 
     /// An instance that could not be started (its worker binary is missing) fails like one
@@ -562,7 +643,7 @@ impl Executor<'_> {
             Some(Message::Done { .. } | Message::Reused) if code == Some(0) => {
                 let record = self.store.fresh(&key)?.context("a finished action has no record")?;
                 let reused = matches!(outcome, Some(Message::Reused));
-                self.states[i] = State::Done { output: record.output };
+                self.done(i, record.output);
                 let status = if reused { "reused" } else { "ran" };
                 self.results[i] = Some(if reused { (Outcome::Reused, record.duration_s) } else { (Outcome::Ran, secs) });
                 self.events.write("stage_finished", json!({"stage": label, "status": status, "key": key, "output": record.output, "duration_s": secs, "summary": record.summary, "metrics": record.metrics}))?;
@@ -589,6 +670,8 @@ impl Executor<'_> {
                 self.states[i] = State::Waiting;
             }
             other => {
+                // A setting's error or a corrupt input would fail the same way again.
+                let retryable = !matches!(&other, Some(Message::Failed { setting: Some(_), .. } | Message::CorruptInput { .. }));
                 let message = match other {
                     Some(Message::Failed { message, setting: Some(key) }) => {
                         let inst = &self.plan.instances[i];
@@ -599,9 +682,25 @@ impl Executor<'_> {
                     Some(Message::CorruptInput { digest, .. }) => format!("input {} is still corrupt after recomputing it", digest.short()),
                     _ => exit.describe(),
                 };
+                let bounds = self.bounds(i);
+                if retryable && self.attempts[i] <= bounds.retries {
+                    let attempt = self.attempts[i];
+                    self.events.write(
+                        "stage_retry",
+                        json!({"stage": label, "key": key, "attempt": attempt, "error": message, "log": self.log_path(i), "duration_s": secs}),
+                    )?;
+                    self.ui.say(format!("  retry    {label}  attempt {attempt} of {} ended after {secs:.1}s: {message}", bounds.retries + 1));
+                    self.states[i] = State::Ready { key };
+                    return Ok(());
+                }
+                let message = match self.attempts[i] {
+                    n if n > 1 => format!("{message}, on attempt {n} of {n} (`retries = {}`)", bounds.retries),
+                    _ => message,
+                };
                 self.states[i] = State::Failed;
                 self.results[i] = Some((Outcome::Failed, secs));
-                let log = self.log_path(&label);
+                self.relink_previous(i)?;
+                let log = self.log_path(i);
                 self.events.write(
                     "stage_finished",
                     json!({"stage": label, "status": "failed", "key": key, "error": message, "log": log, "duration_s": secs}),

@@ -184,7 +184,17 @@ impl Context {
     pub fn event(&self, name: &str, data: Value) {
         self.reporter.event(name, data);
     }
+
+    /// Says that `dir` shows this action's work as it goes (a training's curves in its
+    /// checkpoint directory): the engine links the stage's results entry there until the
+    /// output is committed.
+    pub fn live(&self, dir: &std::path::Path) {
+        self.reporter.event(LIVE_EVENT, serde_json::json!({ "dir": dir }));
+    }
 }
+
+/// The event [`Context::live`] sends.
+pub const LIVE_EVENT: &str = "live";
 
 /// Reports the position of one piece of long work, at most ten times a second.
 pub struct Progress {

@@ -37,7 +37,7 @@ pub mod tokens;
 pub mod training;
 pub mod weights;
 
-pub use context::{Context, Device, Input, InstanceId, Progress, Reporter};
+pub use context::{Context, Device, Input, InstanceId, LIVE_EVENT, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};
 pub use memory::Footprint;
 pub use numerics::{Kernels, Numerics};

@@ -2,9 +2,11 @@
 //! operators of this crate).
 
 mod bad_input;
+mod bounds;
 mod config_errors;
 mod engine;
 mod harness;
+mod history;
 mod hyperqueue;
 mod numerics;
 mod overrides;

@@ -223,8 +223,9 @@ impl Operator for Count {
     fn run(&self, _: &NoSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         trace(format!("start count {}", ctx.stage));
         let text = fs::read_to_string(ctx.input("mapped")?.join("mapped.txt"))?;
-        fs::write(ctx.output_dir.join("count.txt"), text.chars().count().to_string())?;
-        Ok(Outcome::default())
+        let chars = text.chars().count();
+        fs::write(ctx.output_dir.join("count.txt"), chars.to_string())?;
+        Ok(Outcome { metrics: serde_json::json!({"chars": chars}), summary: format!("{chars} characters") })
     }
 }
 
@@ -239,9 +240,10 @@ impl Operator for Sample {
     }
     fn run(&self, _: &NoSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         let chars: Vec<char> = fs::read_to_string(ctx.input("mapped")?.join("mapped.txt"))?.chars().collect();
-        let pick = chars.get(ctx.seed as usize % chars.len().max(1)).copied().unwrap_or(' ');
+        let index = ctx.seed as usize % chars.len().max(1);
+        let pick = chars.get(index).copied().unwrap_or(' ');
         fs::write(ctx.output_dir.join("count.txt"), format!("seed {} picks {pick}", ctx.seed))?;
-        Ok(Outcome::default())
+        Ok(Outcome { metrics: serde_json::json!({"index": index}), summary: format!("picks {pick}") })
     }
 }
 

@@ -1,6 +1,6 @@
 //! The `[pipeline]` header: the remote cache, the executor, seeds.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
 use serde_json::{Map, Value};
@@ -99,6 +99,7 @@ pub(super) const PIPELINE_KEYS: &[&str] = &[
     "seed",
     "seeds",
     "cache",
+    "results",
     "executor",
     "hyperqueue",
     "remote",
@@ -111,6 +112,28 @@ pub(super) const PIPELINE_KEYS: &[&str] = &[
 const MAX_SEEDS: usize = 64;
 
 impl Checker {
+    /// `results` of `[pipeline]`: `results` beside the file by default, `""` for none. Never
+    /// the store or inside it, nor the pipeline's own directory or an ancestor of the store (a
+    /// run replaces the links it holds).
+    pub(super) fn results_dir(&mut self, file: &Path, header: &Map<String, Value>, cache: &Path) -> Option<PathBuf> {
+        let setting = self.string(header, "pipeline", "results").unwrap_or_else(|| "results".into());
+        if setting.is_empty() {
+            return None;
+        }
+        let base = file.parent().unwrap_or(Path::new("."));
+        let dir = std::path::absolute(base.join(&setting)).unwrap_or_else(|_| base.join(&setting));
+        let base = std::path::absolute(base).unwrap_or_else(|_| base.to_path_buf());
+        let clean = |p: &Path| p.components().collect::<PathBuf>();
+        let (d, c) = (clean(&dir), clean(cache));
+        if d.starts_with(&c) || c.starts_with(&d) || d == clean(&base) {
+            let help = "a directory of its own, such as \"results\", or \"\" for none".to_owned();
+            let msg = format!("`{setting}` would mix the run's links with the store or the pipeline's own files");
+            self.error(self.line("pipeline.results"), "pipeline.results", msg, Some(help));
+            return None;
+        }
+        Some(dir)
+    }
+
     /// `remote`, `remote_push`, `remote_timeout_s` of `[pipeline]`.
     pub(super) fn remote(&mut self, file: &Path, header: &Map<String, Value>) -> RemoteSettings {
         let mut remote = RemoteSettings { url: self.string(header, "pipeline", "remote"), ..RemoteSettings::default() };

@@ -9,7 +9,7 @@ use rlmflow_stages::{Arity, DynOperator, InputOutlines, ItemCount, Need, Outline
 use serde_json::{Map, Value};
 
 use super::checker::Checker;
-use super::{Binding, Merge, Stage, Variant, suggest};
+use super::{Binding, Bounds, Merge, Stage, Variant, suggest};
 
 /// `shards = N` (N equal parts) or `shard_size = K` (parts of K items: growing the stage keeps
 /// the parts it had).
@@ -28,7 +28,11 @@ impl Split {
     }
 }
 
-const STAGE_KEYS: &[&str] = &["kind", "operator", "inputs", "variants", "per_seed", "shards", "shard_size"];
+const STAGE_KEYS: &[&str] = &["kind", "operator", "inputs", "variants", "per_seed", "shards", "shard_size", "timeout", "retries"];
+/// The longest `timeout` a stage may set: a week, in seconds.
+const MAX_TIMEOUT_S: f64 = 7.0 * 24.0 * 3600.0;
+/// The most `retries` a stage may set.
+const MAX_RETRIES: u64 = 100;
 /// The most parts one stage instance may be split into.
 const MAX_SHARDS: u64 = 4_096;
 
@@ -230,6 +234,7 @@ impl Checker {
                 kind.per_seed
             }
         };
+        let bounds = self.bounds(table, &path);
         let split = self.split(table, &path);
         if checked.is_empty() {
             return None;
@@ -238,8 +243,28 @@ impl Checker {
             Some((key, split)) => Some(self.shard(&key, op, kind, &mut checked, split, registry)?),
             None => None,
         };
-        let stage = Stage { name: name.to_owned(), kind, operator: op_name, variants: checked, bindings: Vec::new(), per_seed, merge, line };
+        let stage = Stage { name: name.to_owned(), kind, operator: op_name, variants: checked, bindings: Vec::new(), per_seed, merge, bounds, line };
         Some((stage, inputs))
+    }
+
+    /// A stage's `timeout` (seconds) and `retries`.
+    fn bounds(&mut self, table: &Map<String, Value>, path: &str) -> Bounds {
+        let mut bounds = Bounds::default();
+        if let Some(value) = table.get("timeout") {
+            let key = format!("{path}.timeout");
+            match value.as_f64().filter(|t| *t > 0.0 && *t <= MAX_TIMEOUT_S) {
+                Some(t) => bounds.timeout_s = Some(t),
+                None => self.error(self.line(&key), &key, format!("must be a number of seconds in (0, {MAX_TIMEOUT_S}], not {value}"), None),
+            }
+        }
+        if let Some(value) = table.get("retries") {
+            let key = format!("{path}.retries");
+            match value.as_u64().filter(|n| *n <= MAX_RETRIES) {
+                Some(n) => bounds.retries = n as u32,
+                None => self.error(self.line(&key), &key, format!("must be an integer in 0..={MAX_RETRIES}, not {value}"), None),
+            }
+        }
+        bounds
     }
 
     /// A stage's `shards` or `shard_size` key, with the key's path.

@@ -231,6 +231,9 @@ impl Dispatch for HyperQueue {
     }
 }
 
+/// The exit status of coreutils' `timeout` when the command ran past its limit.
+const TIMED_OUT: i32 = 124;
+
 /// How often a running task's state and output are looked at.
 const POLL: Duration = Duration::from_millis(100);
 
@@ -270,7 +273,12 @@ impl Task {
                     (job, exit, outcome)
                 }
             };
-            let lost = !outcome && !matches!(exit, Exit::Code(0));
+            let exit = match (exit, self.launch.timeout) {
+                (Exit::Code(TIMED_OUT), Some(limit)) => Exit::TimedOut(limit.as_secs_f64()),
+                (exit, _) => exit,
+            };
+            // A task stopped at its time limit was not lost: the stage's `retries` decide.
+            let lost = !outcome && !matches!(exit, Exit::Code(0) | Exit::TimedOut(_));
             if !lost || attempt >= self.retries {
                 return Ok(exit);
             }
@@ -284,7 +292,14 @@ impl Task {
 
     fn submit(&self, name: &str, args: Vec<String>, cwd: &Path, [stdout, stderr]: [&Path; 2], stdin: Option<&[u8]>) -> anyhow::Result<u64> {
         let l = &self.launch;
-        let mut command = vec![l.exe.to_string_lossy().into_owned()];
+        // The stage's time limit, on the worker: the Python client cannot set HyperQueue's
+        // `--time-limit`, so coreutils' `timeout` stops the task (exit status 124), then kills it
+        // if it has not ended 10 s later.
+        let mut command: Vec<String> = match l.timeout {
+            Some(limit) => vec!["timeout".into(), "--kill-after=10".into(), format!("{}s", limit.as_secs_f64())],
+            None => Vec::new(),
+        };
+        command.push(l.exe.to_string_lossy().into_owned());
         command.extend(args);
         let gpus = u32::from(self.gpus && l.gpu);
         let [cwd, stdout, stderr] = [cwd, stdout, stderr].map(|p| p.to_string_lossy().into_owned());

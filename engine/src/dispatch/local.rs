@@ -40,9 +40,16 @@ impl Dispatch for Local {
                 let _ = writeln!(err_log.lock().unwrap(), "{line}");
             }
         });
+        let timer = launch.timeout.map(|limit| Timer::start(child.id(), limit));
         std::thread::spawn(move || {
             forward_lines(BufReader::new(stdout), id, &tx, &log);
-            let exit = match child.wait() {
+            let timed_out = timer.is_some_and(|t| {
+                wait_unreaped(child.id());
+                t.stop()
+            });
+            let status = child.wait();
+            let exit = match status {
+                Ok(_) if timed_out => Exit::TimedOut(launch.timeout.unwrap().as_secs_f64()),
                 Ok(status) => exit_of(status),
                 Err(e) => Exit::Lost(format!("could not wait for the child: {e}")),
             };
@@ -61,6 +68,59 @@ impl Dispatch for Local {
 
     fn describe(&self) -> String {
         "local".into()
+    }
+}
+
+/// Kills a child that runs past its limit. The child's pid is signalled only until the child is
+/// seen to have exited ([`wait_unreaped`], before it is reaped), so a reused pid is never hit.
+struct Timer {
+    state: Arc<Mutex<TimerState>>,
+    stop: std::sync::mpsc::Sender<()>,
+}
+
+#[derive(Default)]
+struct TimerState {
+    stopped: bool,
+    fired: bool,
+}
+
+impl Timer {
+    fn start(pid: u32, limit: std::time::Duration) -> Timer {
+        let state = Arc::new(Mutex::new(TimerState::default()));
+        let (stop, stopped) = std::sync::mpsc::channel::<()>();
+        let watched = state.clone();
+        std::thread::spawn(move || {
+            if stopped.recv_timeout(limit).is_err() {
+                let mut s = watched.lock().unwrap();
+                if !s.stopped {
+                    // SAFETY: kill(2) on the pid of our child, which has not been reaped.
+                    unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+                    s.fired = true;
+                }
+            }
+        });
+        Timer { state, stop }
+    }
+
+    /// Called once the child was waited for: whether the limit stopped it.
+    fn stop(self) -> bool {
+        let mut s = self.state.lock().unwrap();
+        s.stopped = true;
+        let _ = self.stop.send(());
+        s.fired
+    }
+}
+
+/// Blocks until child `pid` has exited, leaving it unreaped: until `wait` reaps it, its pid
+/// stays its own.
+fn wait_unreaped(pid: u32) {
+    loop {
+        // SAFETY: waitid(2) on our own child, into a zeroed siginfo_t.
+        let mut info: libc::siginfo_t = unsafe { std::mem::zeroed() };
+        let r = unsafe { libc::waitid(libc::P_PID, pid as libc::id_t, &mut info, libc::WEXITED | libc::WNOWAIT) };
+        if r == 0 || std::io::Error::last_os_error().raw_os_error() != Some(libc::EINTR) {
+            return;
+        }
     }
 }
 

@@ -39,6 +39,8 @@ pub struct Launch {
     pub gpu: bool,
     /// Where the process's output that is not protocol goes (`runs/<id>/logs/<label>.log`).
     pub log: PathBuf,
+    /// The stage's `timeout`: the process is stopped once it has run this long.
+    pub timeout: Option<std::time::Duration>,
 }
 
 /// What a dispatcher tells the executor about a started action.
@@ -57,6 +59,8 @@ pub enum Exit {
     Signal(i32),
     /// It could not be started or watched, or the cluster lost it.
     Lost(String),
+    /// It was stopped at its stage's `timeout` (seconds).
+    TimedOut(f64),
 }
 
 impl Exit {
@@ -72,6 +76,7 @@ impl Exit {
             Exit::Code(c) => format!("the stage process exited with status {c}"),
             Exit::Signal(s) => format!("the stage process was killed by signal {s}"),
             Exit::Lost(why) => why.clone(),
+            Exit::TimedOut(s) => format!("stopped at its timeout of {s} s"),
         }
     }
 }

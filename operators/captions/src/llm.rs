@@ -8,7 +8,7 @@
 //!   instruction, and, for a `no_distance_numbers` share of frames, "Do not add any distance bin
 //!   numbers". Shuffles and that choice are seeded per frame.
 //! * Requests: `concurrency` at a time; timeouts, connection failures, 429, 5xx and malformed
-//!   answers are retried up to `retries` times with exponential backoff from `backoff_s`
+//!   answers are retried up to `request_retries` times with exponential backoff from `backoff_s`
 //!   (a `Retry-After` header wins); any other 4xx stops the stage with the server's message.
 //! * Every answer is stored under the digest of its request (endpoint, model, body, and the
 //!   attempt number) in the store's `responses/llm/` (or `response_cache`), so an interrupted or
@@ -74,7 +74,7 @@ pub struct LlmSettings {
     /// Seconds a request may take, (0, 3600].
     pub timeout_s: f64,
     /// Retries (0..=20) of a request after a timeout, a connection failure, 429, 5xx or a malformed answer.
-    pub retries: u32,
+    pub request_retries: u32,
     /// Seconds before the first retry, 0..=60; doubled each time, at most a minute.
     pub backoff_s: f64,
     /// Where answers are kept by request digest; empty: the store's `responses/llm/`, which
@@ -102,7 +102,7 @@ impl Default for LlmSettings {
             min_captioned: 1.0,
             concurrency: 8,
             timeout_s: 120.0,
-            retries: 6,
+            request_retries: 6,
             backoff_s: 1.0,
             response_cache: String::new(),
             shard: None,
@@ -111,7 +111,7 @@ impl Default for LlmSettings {
 }
 
 impl Settings for LlmSettings {
-    const NON_RESULT: &'static [&'static str] = &["api_key_env", "concurrency", "timeout_s", "retries", "backoff_s", "response_cache"];
+    const NON_RESULT: &'static [&'static str] = &["api_key_env", "concurrency", "timeout_s", "request_retries", "backoff_s", "response_cache"];
 
     fn check(&self) -> Result<(), SettingError> {
         let err = |key: &str, message: String| Err(SettingError::new(key, message));
@@ -129,7 +129,7 @@ impl Settings for LlmSettings {
         }
         SettingError::check_range("max_tokens", self.max_tokens, 1..=32_768)?;
         SettingError::check_range("regenerate", self.regenerate, 0..=10)?;
-        SettingError::check_range("retries", self.retries, 0..=20)?;
+        SettingError::check_range("request_retries", self.request_retries, 0..=20)?;
         if !(1..=128).contains(&self.n) {
             return err("n", format!("must be in 1..=128, not {}", self.n));
         }
@@ -562,7 +562,7 @@ impl Client {
             auth,
             cache,
             identity: format!("{}\n{}", s.base_url.trim_end_matches('/'), s.model),
-            retries: s.retries,
+            retries: s.request_retries,
             backoff: Duration::from_secs_f64(s.backoff_s),
             stats: Stats::default(),
         })
@@ -1159,8 +1159,8 @@ mod tests {
         write_labels(&root, 5);
         let server = fake_llm(Box::new(|_, _, n| Reply::Captions(n)), Wrong::FirstAnswer);
         let s = settings(&server, &root);
-        let one = run_into(&root, &LlmSettings { concurrency: 1, retries: 2, timeout_s: 5.0, backoff_s: 0.5, ..s.clone() }, "one");
-        let other = LlmSettings { concurrency: 4, retries: 9, api_key_env: "RLMFLOW_TEST_LLM_KEY".into(), ..s };
+        let one = run_into(&root, &LlmSettings { concurrency: 1, request_retries: 2, timeout_s: 5.0, backoff_s: 0.5, ..s.clone() }, "one");
+        let other = LlmSettings { concurrency: 4, request_retries: 9, api_key_env: "RLMFLOW_TEST_LLM_KEY".into(), ..s };
         assert_eq!(run_into(&root, &other, "other"), one, "captions.json and captions.jsonl");
         let summary: Value = serde_json::from_slice(&one.0).unwrap();
         for key in LlmSettings::NON_RESULT {
@@ -1192,7 +1192,7 @@ mod tests {
         let server = fake_llm(Box::new(|_, _, _| Reply::Status(400, "Invalid value for 'top_p'")), Wrong::Never);
         let e = run(&root, &settings(&server, &root)).unwrap_err();
         assert!(format!("{e:#}").contains("answered 400: Invalid value for 'top_p'"), "{e:#}");
-        let s = LlmSettings { retries: 2, ..settings(&server, &root) };
+        let s = LlmSettings { request_retries: 2, ..settings(&server, &root) };
         let server = fake_llm(Box::new(|_, _, _| Reply::Status(503, "overloaded")), Wrong::Never);
         let e = run(&root, &LlmSettings { base_url: server.url.clone(), concurrency: 1, ..s }).unwrap_err();
         assert!(format!("{e:#}").contains("gave up after 3 tries: 503: overloaded"), "{e:#}");

@@ -5,7 +5,8 @@
 //! (both towers and the logit scale), [`projection`] (either tower's head into the shared space), [`loss`] (CLIP and SG-CLIP), [`optim`] (AdamW with saveable
 //! state, clipping, the learning-rate schedule), [`segment`] (the PUP decoder, the U-Net, Dice +
 //! BCE), [`data`] (the frames every operator trains on, in memory), [`train`] (the one training
-//! loop, `fit`: schedule, clipping, resume, checkpoints, device choice), [`gpt`] and [`decode`]
+//! loop, `fit`: schedule, clipping, resume, checkpoints, device choice), [`tensorboard`] (its curves
+//! as TensorBoard event files), [`gpt`] and [`decode`]
 //! (ClipCap's mapper and decoder, greedy and beam search), [`start`] (published start weights, CLIP's vision tower and GPT-2, onto them). Tensor names follow open_clip's CLIP layout, so
 //! a Python user can map the weights onto it.
 
@@ -18,6 +19,7 @@ pub mod optim;
 pub mod projection;
 pub mod segment;
 pub mod start;
+pub mod tensorboard;
 pub mod text;
 pub mod train;
 pub mod transformer;

@@ -10,6 +10,10 @@
 //! lists are always the ones the state holds. Each epoch's draws (frame order, then whatever the
 //! loss draws) come from a generator seeded by (seed, epoch) alone, so a killed run resumes at
 //! the next epoch and ends with the weights of an uninterrupted one.
+//!
+//! Each step's loss, rate and figures and each epoch's log line also go to a TensorBoard event
+//! file as they happen (`tensorboard.rs`), in the checkpoint directory, so a resumed run keeps
+//! its curves; the finished file is copied into the artifact's `tensorboard/`.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -25,9 +29,12 @@ use serde_json::{Value, json};
 use tch::{Tensor, nn};
 
 use crate::optim::{AdamW, warmup_cosine};
+use crate::tensorboard::{self, EventWriter};
 
 const STATE: &str = "state.safetensors";
 const LOG: &str = "state.json";
+/// The TensorBoard curves' directory, in the checkpoint while training and in the artifact.
+pub const CURVES: &str = "tensorboard";
 
 /// The device to train on for a `device` setting, given the engine's choice for the action
 /// (`rlmflow_stages::numerics::Target::of`, the rule the action's key was planned by). On CUDA,
@@ -149,10 +156,24 @@ pub fn fit(
     let warmup = (t.warmup_epochs * steps_per_epoch as f64).round() as u64;
     let lr = |step: u64| warmup_cosine(step, total, warmup, t.warmup_lr, t.lr, t.min_lr);
     let mut opt = AdamW::new(vs, (t.betas[0], t.betas[1]), t.eps, t.weight_decay);
-    let mut log = restore_checkpoint(vs, &mut opt, &ctx.checkpoint_dir)?;
+    let mut log = checkpoint_log(&ctx.checkpoint_dir)?;
+    let curves = ctx.checkpoint_dir.join(CURVES);
+    let checkpointed = log.last().and_then(|line| line["step"].as_u64()).unwrap_or(0);
+    let mut tensorboard = match EventWriter::resume(&curves, checkpointed)? {
+        Some(writer) => writer,
+        None => {
+            // A checkpoint whose curves were not kept with it: start over, so the artifact's
+            // curves are whole.
+            log.clear();
+            EventWriter::resume(&curves, 0)?.expect("a new event file")
+        }
+    };
     if !log.is_empty() {
+        restore_state(vs, &mut opt, &ctx.checkpoint_dir)?;
         ctx.event("resumed", json!({"epoch": log.len()}));
     }
+    // Where the curves grow while it trains.
+    ctx.live(&ctx.checkpoint_dir);
     let progress = ctx.progress(total, "steps");
     progress.set_position(opt.steps() as u64);
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
@@ -194,6 +215,9 @@ pub fn fit(
             }
             AdamW::clip_grad_norm(&grads, t.clip_norm);
             opt.step(&grads, lr(global));
+            let mut scalars = vec![("train/loss".to_owned(), value), ("train/lr".to_owned(), lr(global))];
+            scalars.extend(figures.iter().map(|(name, series)| (format!("train/{name}"), series[series.len() - 1])));
+            tensorboard.scalars(global + 1, &scalars)?;
             progress.set_position(global + 1);
             progress.set_message(format!("epoch {}/{} loss {:.3}", epoch + 1, t.epochs, losses[losses.len() - 1]));
         }
@@ -201,6 +225,7 @@ pub fn fit(
         let mut line = json!({"epoch": epoch + 1, "step": step, "loss": mean(&losses), "lr": lr(step - 1)});
         figures.iter().for_each(|(name, series)| line[*name] = mean(series).into());
         evaluate()?.into_iter().for_each(|(name, figure)| line[name] = figure.into());
+        tensorboard.scalars(step, &epoch_scalars(&line))?;
         // Times go to the event log only: the artifact holds what the key determines.
         let mut event = line.clone();
         event["seconds"] = clock.elapsed().as_secs_f64().into();
@@ -216,9 +241,19 @@ pub fn fit(
     if t.epochs == 0 {
         let mut line = json!({"epoch": 0, "step": 0});
         evaluate()?.into_iter().for_each(|(name, figure)| line[name] = figure.into());
+        tensorboard.scalars(0, &epoch_scalars(&line))?;
         log.push(line);
     }
+    let into = ctx.output_dir.join(CURVES);
+    std::fs::create_dir_all(&into)?;
+    std::fs::copy(tensorboard.path(), into.join(tensorboard::FILE)).with_context(|| format!("copying the curves into {}", into.display()))?;
     Ok(Fitted { log, steps: total })
+}
+
+/// An epoch's log line as TensorBoard scalars: `epoch/<name>` for each of its numbers.
+fn epoch_scalars(line: &Value) -> Vec<(String, f64)> {
+    let numbers = line.as_object().into_iter().flatten().filter(|(name, _)| *name != "epoch" && *name != "step");
+    numbers.filter_map(|(name, v)| Some((format!("epoch/{name}"), v.as_f64()?))).collect()
 }
 
 /// Variables sorted by name: files' bytes never depend on a hash order.
@@ -246,23 +281,25 @@ fn save_checkpoint(vs: &nn::VarStore, opt: &AdamW, log: &[Value], dir: &Path) ->
     Ok(())
 }
 
-/// Restores the last checkpoint in `dir` into `vs` and `opt`; the finished epochs' log, empty
-/// when there is none.
-fn restore_checkpoint(vs: &nn::VarStore, opt: &mut AdamW, dir: &Path) -> anyhow::Result<Vec<Value>> {
-    let path = dir.join(STATE);
-    if !path.is_file() {
+/// The finished epochs' log lines of the last checkpoint in `dir`, empty when there is none.
+fn checkpoint_log(dir: &Path) -> anyhow::Result<Vec<Value>> {
+    if !dir.join(STATE).is_file() {
         return Ok(Vec::new());
     }
-    let state: HashMap<String, Tensor> = Tensor::read_safetensors(&path)?.into_iter().collect();
+    let log = dir.join(LOG);
+    serde_json::from_slice(&std::fs::read(&log)?).with_context(|| format!("reading {}", log.display()))
+}
+
+/// Restores the last checkpoint in `dir` into `vs` and `opt`.
+fn restore_state(vs: &nn::VarStore, opt: &mut AdamW, dir: &Path) -> anyhow::Result<()> {
+    let state: HashMap<String, Tensor> = Tensor::read_safetensors(&dir.join(STATE))?.into_iter().collect();
     tch::no_grad(|| -> anyhow::Result<()> {
         for (name, mut var) in vs.variables() {
             var.copy_(state.get(&name).with_context(|| format!("the checkpoint has no `{name}`"))?);
         }
         Ok(())
     })?;
-    opt.load_state(&state)?;
-    let log = dir.join(LOG);
-    serde_json::from_slice(&std::fs::read(&log)?).with_context(|| format!("reading {}", log.display()))
+    opt.load_state(&state)
 }
 
 #[cfg(test)]
@@ -331,7 +368,7 @@ mod tests {
         tch::manual_seed(1);
         let (vs, layer) = build();
         let mut opt = AdamW::new(&vs, (0.9, 0.999), 1e-8, 0.01);
-        assert!(restore_checkpoint(&vs, &mut opt, &dir).unwrap().is_empty(), "no checkpoint yet");
+        assert!(checkpoint_log(&dir).unwrap().is_empty(), "no checkpoint yet");
         let loss = nn::Module::forward(&layer, &Tensor::ones([4, 3], (tch::Kind::Float, tch::Device::Cpu))).sum(tch::Kind::Float);
         opt.step(&opt.gradients(&loss), 0.1);
         save_checkpoint(&vs, &opt, &[serde_json::json!({"epoch": 1})], &dir).unwrap();
@@ -339,8 +376,8 @@ mod tests {
         tch::manual_seed(2);
         let (fresh, _) = build();
         let mut fresh_opt = AdamW::new(&fresh, (0.9, 0.999), 1e-8, 0.01);
-        let log = restore_checkpoint(&fresh, &mut fresh_opt, &dir).unwrap();
-        assert_eq!(log, vec![serde_json::json!({"epoch": 1})]);
+        restore_state(&fresh, &mut fresh_opt, &dir).unwrap();
+        assert_eq!(checkpoint_log(&dir).unwrap(), vec![serde_json::json!({"epoch": 1})]);
         assert_eq!(fresh_opt.steps(), 1);
         let same = |a: &nn::VarStore, b: &nn::VarStore| named_variables(a).iter().zip(named_variables(b)).all(|((_, x), (_, y))| x.equal(&y));
         assert!(same(&vs, &fresh));

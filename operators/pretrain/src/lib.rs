@@ -173,7 +173,7 @@ fn spec() -> OperatorSpec {
     OperatorSpec {
         name: "clip",
         kind: "pretrain",
-        version: 4,
+        version: 5,
         inputs: None,
         summary: "radar and text towers trained with CLIP, SG-CLIP (alpha) or on the counts (libtorch, in rlmflow-torch)",
     }

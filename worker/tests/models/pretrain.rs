@@ -1,7 +1,8 @@
 //! Pretraining end to end through the real binaries: `rlmflow` plans and the `rlmflow-torch`
 //! worker beside it trains. On small data the test makes through the pipeline, the CI-size model
-//! learns (retrieval well above chance and above the same model untrained) and a run killed
-//! between epochs resumes to the same weights. (Fresh processes give the stored bytes:
+//! learns (retrieval well above chance and above the same model untrained), its TensorBoard
+//! curves read back as its `train.jsonl`, and a run killed between epochs resumes to the same
+//! weights and curves. (Fresh processes give the stored bytes:
 //! `numerics.rs`.)
 
 use std::path::{Path, PathBuf};
@@ -38,8 +39,10 @@ fn the_ci_size_model_learns_retrieval_above_chance_and_above_random_init() {
             "epochs = 12\nwarmup_epochs = 1.0\n[stages.pretrain.variants]\nclip = {}\nsgclip = { objective = \"sg-clip\", alpha = 4.0 }\nrandom = { epochs = 0, warmup_epochs = 0.0 }",
         ),
     );
+    let reader = std::thread::spawn(rlmflow_test_support::tensorboard::install);
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
+    reader.join().unwrap();
     let random = summary(&dir, "learns", "pretrain[random]");
     for label in ["pretrain[clip]", "pretrain[sgclip]"] {
         let s = summary(&dir, "learns", label);
@@ -64,6 +67,37 @@ fn the_ci_size_model_learns_retrieval_above_chance_and_above_random_init() {
             assert_eq!(masses.iter().any(|&m| m > 0.0), positive, "{label}: {line}");
         }
         assert!(summary(&dir, "learns", label)["last"].get("batch_loss").is_none(), "the summary keeps the epoch figures only");
+    }
+    // The curves, as TensorBoard's own reader reads them, are train.jsonl's numbers: each step's
+    // loss and off-diagonal mass, each epoch's figures at its last step.
+    for label in ["pretrain[clip]", "pretrain[sgclip]", "pretrain[random]"] {
+        let scalars = rlmflow_test_support::tensorboard::scalars(&encoder(&dir, "learns", label).join("tensorboard/events.out.tfevents.rlmflow"));
+        let at = |step: u64, tag: &str| -> f64 {
+            let found: Vec<f64> = scalars.iter().filter(|(s, t, _)| *s == step && t == tag).map(|(_, _, v)| *v).collect();
+            assert_eq!(found.len(), 1, "{label}: {tag} at step {step}: {found:?}");
+            found[0]
+        };
+        let log = std::fs::read_to_string(encoder(&dir, "learns", label).join("train.jsonl")).unwrap();
+        let (mut epoch_figures, mut step_values) = (0, 0);
+        for line in log.lines() {
+            let line: serde_json::Value = serde_json::from_str(line).unwrap();
+            let step = line["step"].as_u64().unwrap();
+            for (name, value) in line.as_object().unwrap() {
+                let Some(value) = value.as_f64().filter(|_| name != "epoch" && name != "step") else { continue };
+                assert_eq!(at(step, &format!("epoch/{name}")), f64::from(value as f32), "{label}: {name} at step {step}");
+                epoch_figures += 1;
+            }
+            let Some(losses) = line["batch_loss"].as_array() else { continue };
+            let first = step + 1 - losses.len() as u64;
+            for (k, (loss, mass)) in losses.iter().zip(line["batch_off_diagonal"].as_array().unwrap()).enumerate() {
+                assert_eq!(at(first + k as u64, "train/loss"), f64::from(loss.as_f64().unwrap() as f32), "{label}");
+                assert_eq!(at(first + k as u64, "train/off_diagonal"), f64::from(mass.as_f64().unwrap() as f32), "{label}");
+                step_values += 2;
+            }
+        }
+        let per_step = scalars.iter().filter(|(_, t, _)| t.starts_with("train/")).count();
+        assert_eq!(per_step, step_values + step_values / 2, "{label}: loss, lr and mass per step");
+        assert_eq!(scalars.len() - per_step, epoch_figures, "{label}: nothing else");
     }
 }
 
@@ -105,4 +139,6 @@ fn a_run_killed_between_epochs_resumes_to_the_weights_of_an_uninterrupted_one() 
     assert!(out.contains("\"name\":\"resumed\""), "the rerun resumed from the checkpoint: {out}");
     let resumed = std::fs::read(encoder(&dir, "resumes", "pretrain").join("model.safetensors")).unwrap();
     assert!(resumed == expected, "resumed after {done} epochs, the weights differ");
+    let curves = |dir: &Path| std::fs::read(encoder(dir, "resumes", "pretrain").join("tensorboard/events.out.tfevents.rlmflow")).unwrap();
+    assert!(curves(&dir) == curves(&reference), "resumed after {done} epochs, the TensorBoard curves differ");
 }

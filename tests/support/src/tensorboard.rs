@@ -1,0 +1,45 @@
+//! TensorBoard's own event reader, installed from PyPI into a scratch environment the first time
+//! a test needs it (never into the product): what the training stages' curves are checked with.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// A venv holding the `tensorboard` package (installed on first use, about 30 s: a test may
+/// start it on a thread of its own while it trains).
+pub fn install() -> PathBuf {
+    let env = std::env::temp_dir().join("rlmflow-test-tensorboard-v1");
+    if !env.join("bin/tensorboard").exists() {
+        let python = std::env::var("RLMFLOW_TEST_PYTHON").unwrap_or_else(|_| "python3".into());
+        let ok = Command::new(&python).args(["-m", "venv", env.to_str().unwrap()]).status().unwrap().success();
+        assert!(ok, "creating a venv with {python}");
+        let pip =
+            Command::new(env.join("bin/pip")).args(["install", "--quiet", "--disable-pip-version-check", "tensorboard==2.21.0"]).status().unwrap();
+        assert!(pip.success(), "installing tensorboard from PyPI");
+    }
+    env
+}
+
+const READ: &str = r#"
+import json, sys
+from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+from tensorboard.util import tensor_util
+out = []
+# The loader TensorBoard serves from: it migrates each simple value to a scalar tensor.
+for event in EventFileLoader(sys.argv[1]).Load():
+    if event.HasField("file_version"):
+        out.append({"file_version": event.file_version})
+    for value in event.summary.value:
+        assert value.metadata.plugin_data.plugin_name == "scalars", value
+        out.append({"step": event.step, "tag": value.tag, "value": float(tensor_util.make_ndarray(value.tensor).item())})
+print(json.dumps(out))
+"#;
+
+/// Every scalar of event file `file` as TensorBoard reads it: (step, tag, value), in order, after
+/// checking the file declares its format version.
+pub fn scalars(file: &Path) -> Vec<(u64, String, f64)> {
+    let out = Command::new(install().join("bin/python")).args(["-c", READ]).arg(file).output().unwrap();
+    assert!(out.status.success(), "reading {}: {}", file.display(), String::from_utf8_lossy(&out.stderr));
+    let events: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(events.first().and_then(|e| e["file_version"].as_str()), Some("brain.Event:2"), "{}", file.display());
+    events[1..].iter().map(|e| (e["step"].as_u64().unwrap(), e["tag"].as_str().unwrap().to_owned(), e["value"].as_f64().unwrap())).collect()
+}
