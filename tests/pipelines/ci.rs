@@ -146,6 +146,8 @@ fn a_local_hyperqueue_cluster_gives_the_same_keys_and_bytes() {
 fn the_report_holds_every_probe_and_rerun_reads_its_recording() {
     let report = &ci_run().output("report");
     let html = std::fs::read_to_string(report.join("report.html")).unwrap();
+    // At the stable path beside the pipeline too.
+    assert_eq!(std::fs::read_to_string(ci_run().dir.join("results/report/report.html")).unwrap(), html);
     let markdown = std::fs::read_to_string(report.join("report.md")).unwrap();
     let metrics: serde_json::Value = serde_json::from_slice(&std::fs::read(report.join("metrics.json")).unwrap()).unwrap();
     let captioning = metrics["captioning"].as_object().unwrap();

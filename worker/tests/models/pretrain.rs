@@ -132,6 +132,12 @@ fn a_run_killed_between_epochs_resumes_to_the_weights_of_an_uninterrupted_one() 
     }
     unsafe { libc::kill(-(run.id() as i32), libc::SIGKILL) };
     run.wait().unwrap();
+    // While it trained, its results link was its checkpoint, where its curves grow.
+    let live = dir.join("results/pretrain/tensorboard/events.out.tfevents.rlmflow");
+    assert!(
+        live.is_file()
+            && std::fs::canonicalize(dir.join("results/pretrain")).unwrap().starts_with(dir.join(".rlmflow/checkpoints").canonicalize().unwrap())
+    );
     let done = epochs_done(&dir);
     assert!((1..4).contains(&done), "killed after {done} of 4 epochs");
     let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--json"]);
@@ -139,6 +145,6 @@ fn a_run_killed_between_epochs_resumes_to_the_weights_of_an_uninterrupted_one() 
     assert!(out.contains("\"name\":\"resumed\""), "the rerun resumed from the checkpoint: {out}");
     let resumed = std::fs::read(encoder(&dir, "resumes", "pretrain").join("model.safetensors")).unwrap();
     assert!(resumed == expected, "resumed after {done} epochs, the weights differ");
-    let curves = |dir: &Path| std::fs::read(encoder(dir, "resumes", "pretrain").join("tensorboard/events.out.tfevents.rlmflow")).unwrap();
+    let curves = |dir: &Path| std::fs::read(dir.join("results/pretrain/tensorboard/events.out.tfevents.rlmflow")).unwrap();
     assert!(curves(&dir) == curves(&reference), "resumed after {done} epochs, the TensorBoard curves differ");
 }
