@@ -95,3 +95,24 @@ pub fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
     static TURN: std::sync::Mutex<()> = std::sync::Mutex::new(());
     TURN.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
 }
+
+/// A training stage's TensorBoard curves in its output `object`, as TensorBoard's own reader
+/// reads them, hold each number of each epoch's `log` line at the epoch's last step, and a loss
+/// and a learning rate for every step.
+pub fn assert_curves_hold(object: &Path, log: &[serde_json::Value]) {
+    let scalars = rlmflow_test_support::tensorboard::scalars(&object.join("tensorboard/events.out.tfevents.rlmflow"));
+    for line in log {
+        let step = line["step"].as_u64().unwrap();
+        for (name, value) in line.as_object().unwrap() {
+            let Some(value) = value.as_f64().filter(|_| name != "epoch" && name != "step") else { continue };
+            let tag = format!("epoch/{name}");
+            let found: Vec<f64> = scalars.iter().filter(|(s, t, _)| *s == step && *t == tag).map(|(_, _, v)| *v).collect();
+            assert_eq!(found, [f64::from(value as f32)], "{}: {tag} at step {step}", object.display());
+        }
+    }
+    let steps = log.last().unwrap()["step"].as_u64().unwrap();
+    for tag in ["train/loss", "train/lr"] {
+        let at: Vec<u64> = scalars.iter().filter(|(_, t, _)| t == tag).map(|(s, _, _)| *s).collect();
+        assert_eq!(at, (1..=steps).collect::<Vec<_>>(), "{}: {tag}", object.display());
+    }
+}

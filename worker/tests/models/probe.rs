@@ -95,6 +95,7 @@ fn clipcap_learns_to_caption_and_true_captions_score_perfectly() {
     let log = row.details["log"].as_array().unwrap();
     let loss = |i: usize, k: &str| log[i][k].as_f64().unwrap();
     assert!(loss(log.len() - 1, "loss") < loss(0, "loss") && loss(log.len() - 1, "validation_loss") < loss(0, "validation_loss"), "{log:?}");
+    crate::common::assert_curves_hold(&object, log);
     // The trivial predictor: the training split's mean counts, rounded, for every test frame.
     let train: Vec<&[u32; CELLS]> = labels.split(Split::Train).map(|f| &f.grid.counts).collect();
     let mean: [u32; CELLS] = std::array::from_fn(|c| (train.iter().map(|t| f64::from(t[c])).sum::<f64>() / train.len() as f64).round() as u32);

@@ -47,6 +47,7 @@ fn pup_and_unet_learn_and_keep_samples_and_rollouts() {
         let m = &summary.metrics;
         let (first, last) = (&summary.log[0], &summary.log[summary.log.len() - 1]);
         assert!(last["loss"].as_f64() < first["loss"].as_f64(), "{label}: the training loss falls: {:?}", summary.log);
+        crate::common::assert_curves_hold(&object, &summary.log);
         assert!(m.ap > 2.0 * m.positive_rate, "{label}: AP {} vs a constant predictor's {}", m.ap, m.positive_rate);
         assert!(m.iou > 0.0 && m.peak_iou >= m.iou, "{label}: IoU {} peak {}", m.iou, m.peak_iou);
         assert_eq!((m.iou_curve.len(), m.dice_curve.len()), (segment::THRESHOLDS, segment::THRESHOLDS));
