@@ -131,9 +131,9 @@ enum Command {
         #[command(flatten)]
         remote: RemoteArg,
     },
-    /// Draw the plan: each stage instance coloured by its state (cached, will run, pending) with
-    /// the reason in its tooltip, and the artifacts between them; Mermaid (GitHub renders it) or
-    /// Graphviz DOT.
+    /// Draw the plan: each stage instance coloured by its state (cached, will run, will be pulled
+    /// from the remote cache, pending) with the reason in its tooltip, and the artifacts between
+    /// them; Mermaid (GitHub renders it) or Graphviz DOT.
     Dag {
         pipeline: PathBuf,
         #[arg(long, value_enum, default_value = "mermaid")]
@@ -142,6 +142,8 @@ enum Command {
         set: SetArg,
         #[command(flatten)]
         store: StoreArg,
+        #[command(flatten)]
+        remote: RemoteArg,
     },
     /// Upload every cached result of a pipeline (or of `--only` stages) to the remote cache.
     Push(Transfer),
@@ -469,10 +471,14 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             print_store_warnings(pre.store.as_ref());
             Ok(ExitCode::SUCCESS)
         }
-        Command::Dag { pipeline, format, set, store } => {
+        Command::Dag { pipeline, format, set, store, remote } => {
             let p = config::load_with(&pipeline, &set.set, registry)?;
             let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &[])?;
-            print!("{}", crate::dag::draw(&pre.plan, &pre.states, format));
+            let remote = remote.settings(&p)?.map(|r| open_remote(&r)).transpose()?;
+            print!("{}", crate::dag::draw(&pre.plan, &pre.states, remote.as_ref(), format));
+            if let Some(why) = remote.as_ref().and_then(|r| r.down()) {
+                eprintln!("warning: remote cache {} not asked: {why}", remote.as_ref().map_or("", |r| r.url()));
+            }
             Ok(ExitCode::SUCCESS)
         }
         Command::Push(Transfer { pipeline, only, store, remote }) => {

@@ -1,9 +1,11 @@
 //! `rlmflow dag`: the plan drawn as Mermaid (which GitHub renders) or Graphviz DOT. Each stage
-//! instance is a node coloured by its freshness (cached, will run, pending) with the reason in
-//! its tooltip; each instance's output artifact is a node of its own, with an edge to every
+//! instance is a node coloured by its state (cached, will run, will be pulled from the remote
+//! cache, pending) with the reason in its tooltip; each instance's output artifact is a node of its own, with an edge to every
 //! instance that reads it, labelled with the input slot.
 
 use std::fmt::Write as _;
+
+use rlmflow_remote::Remote;
 
 use crate::plan::{Freshness, Plan};
 use crate::ui::words;
@@ -14,13 +16,18 @@ pub enum Format {
     Dot,
 }
 
-/// The three states a node is coloured by: (name, fill, stroke).
-const STATES: [(&str, &str, &str); 3] = [("cached", "#d8f0d8", "#2e7d32"), ("run", "#fff1c9", "#b58900"), ("pending", "#e8e8e8", "#777777")];
+/// The states a node is coloured by: (name, fill, stroke).
+const STATES: [(&str, &str, &str); 4] =
+    [("cached", "#d8f0d8", "#2e7d32"), ("run", "#fff1c9", "#b58900"), ("pulled", "#dbe9fb", "#1565c0"), ("pending", "#e8e8e8", "#777777")];
 
-/// The state a node is coloured by, and its tooltip.
-fn state(freshness: &Freshness) -> (&'static str, String) {
+/// The state a node is coloured by, and its tooltip: an instance that would run and whose
+/// result the remote cache holds will be pulled instead.
+fn state(freshness: &Freshness, remote: Option<&Remote>) -> (&'static str, String) {
     match freshness {
         Freshness::Cached(r) => ("cached", format!("cached: ran {:.1}s at {}", r.duration_s, r.started)),
+        Freshness::Stale { key, reasons, .. } if remote.is_some_and(|r| r.holds(key)) => {
+            ("pulled", format!("will be pulled from the remote cache: {}", words(reasons)))
+        }
         Freshness::Stale { reasons, .. } => ("run", format!("will run: {}", words(reasons))),
         Freshness::Pending(waiting) => ("pending", format!("pending: {waiting}")),
     }
@@ -37,15 +44,16 @@ fn edges(plan: &Plan) -> Vec<(usize, &'static str, usize)> {
     edges
 }
 
-/// The plan with every instance's freshness (`states`, in plan order) in `format`.
-pub fn draw(plan: &Plan, states: &[Freshness], format: Format) -> String {
+/// The plan with every instance's freshness (`states`, in plan order) in `format`; with a
+/// `remote`, what it holds shows as pulled.
+pub fn draw(plan: &Plan, states: &[Freshness], remote: Option<&Remote>, format: Format) -> String {
     match format {
-        Format::Mermaid => mermaid(plan, states),
-        Format::Dot => dot(plan, states),
+        Format::Mermaid => mermaid(plan, states, remote),
+        Format::Dot => dot(plan, states, remote),
     }
 }
 
-fn mermaid(plan: &Plan, states: &[Freshness]) -> String {
+fn mermaid(plan: &Plan, states: &[Freshness], remote: Option<&Remote>) -> String {
     // Mermaid has no escape for `"` inside a quoted label but its `#quot;` entity.
     let text = |s: &str| s.replace('"', "#quot;");
     let mut out = String::from("flowchart LR\n");
@@ -53,7 +61,7 @@ fn mermaid(plan: &Plan, states: &[Freshness]) -> String {
         let _ = writeln!(out, "  classDef {name} fill:{fill},stroke:{stroke}");
     }
     for (i, inst) in plan.instances.iter().enumerate() {
-        let (class, tooltip) = state(&states[i]);
+        let (class, tooltip) = state(&states[i], remote);
         let produces = plan.pipeline.stages[inst.stage].kind.produces;
         let _ = writeln!(out, "  s{i}[\"{}\"]:::{class}", text(&inst.label));
         let _ = writeln!(out, "  a{i}[/\"{produces}\"/]");
@@ -66,11 +74,11 @@ fn mermaid(plan: &Plan, states: &[Freshness]) -> String {
     out
 }
 
-fn dot(plan: &Plan, states: &[Freshness]) -> String {
+fn dot(plan: &Plan, states: &[Freshness], remote: Option<&Remote>) -> String {
     let text = |s: &str| s.replace('\\', "\\\\").replace('"', "\\\"");
     let mut out = format!("digraph \"{}\" {{\n  rankdir=LR;\n  node [fontname=\"sans-serif\"];\n", text(&plan.pipeline.name));
     for (i, inst) in plan.instances.iter().enumerate() {
-        let (class, tooltip) = state(&states[i]);
+        let (class, tooltip) = state(&states[i], remote);
         let (_, fill, stroke) = STATES.iter().find(|(name, ..)| *name == class).expect("every state has colours");
         let produces = plan.pipeline.stages[inst.stage].kind.produces;
         let _ = writeln!(

@@ -4,7 +4,8 @@ use super::*;
 
 /// A scenes stage in two shards (run), and labels (will run) and captions (pending) after it:
 /// the Mermaid drawing has a node per instance with its state's class and an edge per input;
-/// the DOT drawing has the same nodes and edges (and Graphviz, where installed, lays it out).
+/// the DOT drawing has the same nodes and edges (and Graphviz, where installed, lays it out);
+/// with a remote cache that holds the scenes, a fresh store's drawing shows their shards pulled.
 #[test]
 fn dag_draws_every_instance_in_its_state_and_every_input_as_an_edge() {
     let dir = scratch(
@@ -67,4 +68,17 @@ fn dag_draws_every_instance_in_its_state_and_every_input_as_an_edge() {
         }
         Err(_) => println!("Graphviz's `dot` is not installed here: the DOT text was checked, not laid out"),
     }
+
+    // What a remote cache holds shows as pulled: the scenes, pushed there, for a fresh store.
+    let remote = format!("file://{}", dir.join("remote").display());
+    let (ok, out) = rlmflow(&dir, &["push", "p.toml", "--remote", &remote]);
+    assert!(ok, "{out}");
+    let fresh = scratch("dag-fresh", &std::fs::read_to_string(dir.join("p.toml")).unwrap());
+    let (ok, mermaid) = rlmflow(&fresh, &["dag", "p.toml", "--remote", &remote]);
+    assert!(ok, "{mermaid}");
+    for shard in ["scenes#0", "scenes#1"] {
+        assert!(mermaid.contains(&format!("[\"{shard}\"]:::pulled")), "{shard}: {mermaid}");
+    }
+    // The merge's key waits for the shards' outputs.
+    assert!(mermaid.contains("[\"scenes\"]:::pending") && mermaid.contains("classDef pulled"), "{mermaid}");
 }
