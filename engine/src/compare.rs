@@ -200,17 +200,7 @@ fn setting_rows(instance: &str, sides: &[Option<&Group>], all: bool) -> Vec<Row>
             leaves
         })
         .collect();
-    let mut names: Vec<&String> = flat.iter().flat_map(|f| f.keys()).collect();
-    names.sort();
-    names.dedup();
-    names
-        .into_iter()
-        .filter_map(|name| {
-            let values: Vec<Value> = flat.iter().map(|f| f.get(name).cloned().unwrap_or(Value::Null)).collect();
-            let differs = values.iter().any(|v| *v != values[0]);
-            (differs || all).then(|| Row { instance: instance.to_owned(), kind: RowKind::Setting, name: name.clone(), values, change: None })
-        })
-        .collect()
+    value_rows(instance, RowKind::Setting, &flat, all)
 }
 
 /// The inputs whose digests differ between the sides (all with `all`), by slot and label.
@@ -223,15 +213,20 @@ fn input_rows(instance: &str, sides: &[Option<&Group>], all: bool) -> Vec<Row> {
             inputs.iter().map(|i| (name(&i.slot, &i.label), Value::from(i.digest.to_string()))).collect()
         })
         .collect();
-    let mut names: Vec<&String> = inputs.iter().flat_map(|f| f.keys()).collect();
+    value_rows(instance, RowKind::Input, &inputs, all)
+}
+
+/// A row per name of any side's values (null where a side lacks it): those that differ, or all.
+fn value_rows(instance: &str, kind: RowKind, sides: &[BTreeMap<String, Value>], all: bool) -> Vec<Row> {
+    let mut names: Vec<&String> = sides.iter().flat_map(|f| f.keys()).collect();
     names.sort();
     names.dedup();
     names
         .into_iter()
         .filter_map(|name| {
-            let values: Vec<Value> = inputs.iter().map(|f| f.get(name).cloned().unwrap_or(Value::Null)).collect();
+            let values: Vec<Value> = sides.iter().map(|f| f.get(name).cloned().unwrap_or(Value::Null)).collect();
             let differs = values.iter().any(|v| *v != values[0]);
-            (differs || all).then(|| Row { instance: instance.to_owned(), kind: RowKind::Input, name: name.clone(), values, change: None })
+            (differs || all).then(|| Row { instance: instance.to_owned(), kind, name: name.clone(), values, change: None })
         })
         .collect()
 }
