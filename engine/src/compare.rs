@@ -67,6 +67,9 @@ pub struct Table {
     pub identical: Vec<String>,
 }
 
+/// One metric of an instance: each member's seed (`None` without seeds) and value.
+type SeedValues = Vec<(Option<String>, f64)>;
+
 /// An instance with its seeds pooled: each member's seed (`None` without seeds) and record.
 struct Group<'r> {
     label: String,
@@ -81,8 +84,8 @@ impl Group<'_> {
     }
 
     /// Each numeric leaf of the members' metrics, by dotted path: (seed, value) per member.
-    fn metrics(&self) -> BTreeMap<String, Vec<(Option<String>, f64)>> {
-        let mut out: BTreeMap<String, Vec<(Option<String>, f64)>> = BTreeMap::new();
+    fn metrics(&self) -> BTreeMap<String, SeedValues> {
+        let mut out: BTreeMap<String, SeedValues> = BTreeMap::new();
         for (seed, _, record) in &self.members {
             let Some(record) = record else { continue };
             let mut leaves = Vec::new();
@@ -235,7 +238,7 @@ fn value_rows(instance: &str, kind: RowKind, sides: &[BTreeMap<String, Value>], 
 /// sides), the second's mean less the first's, with the sd of the per-seed differences where
 /// both sides have the same seeds.
 fn metric_rows(instance: &str, sides: &[Option<&Group>], all: bool, change: bool) -> Vec<Row> {
-    let metrics: Vec<BTreeMap<String, Vec<(Option<String>, f64)>>> = sides.iter().map(|g| g.map(Group::metrics).unwrap_or_default()).collect();
+    let metrics: Vec<BTreeMap<String, SeedValues>> = sides.iter().map(|g| g.map(Group::metrics).unwrap_or_default()).collect();
     let mut names: Vec<&String> = metrics.iter().flat_map(|m| m.keys()).collect();
     names.sort();
     names.dedup();

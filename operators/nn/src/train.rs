@@ -292,7 +292,7 @@ fn checkpoint_log(dir: &Path) -> anyhow::Result<Vec<Value>> {
 
 /// Restores the last checkpoint in `dir` into `vs` and `opt`.
 fn restore_state(vs: &nn::VarStore, opt: &mut AdamW, dir: &Path) -> anyhow::Result<()> {
-    let state: HashMap<String, Tensor> = Tensor::read_safetensors(&dir.join(STATE))?.into_iter().collect();
+    let state: HashMap<String, Tensor> = Tensor::read_safetensors(dir.join(STATE))?.into_iter().collect();
     tch::no_grad(|| -> anyhow::Result<()> {
         for (name, mut var) in vs.variables() {
             var.copy_(state.get(&name).with_context(|| format!("the checkpoint has no `{name}`"))?);
