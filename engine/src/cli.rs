@@ -170,7 +170,8 @@ enum Command {
         /// At most N runs.
         #[arg(long, value_name = "N")]
         last: Option<usize>,
-        /// One JSON object per run and line: its plan, how each instance ended, whether it finished.
+        /// One JSON object per run and line: its plan, how each instance ended, the counts,
+        /// whether it finished.
         #[arg(long)]
         json: bool,
         #[command(flatten)]
@@ -529,7 +530,11 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let mut runs = crate::history::runs_of(&store, &p.name)?;
             runs.truncate(last.unwrap_or(usize::MAX));
             if json {
-                runs.iter().try_for_each(|r| serde_json::to_string(r).map(|line| println!("{line}")))?;
+                for run in &runs {
+                    let mut line = serde_json::to_value(run)?;
+                    line["counts"] = serde_json::to_value(run.counts())?;
+                    println!("{line}");
+                }
             } else if runs.is_empty() {
                 println!("no runs of pipeline `{}` in {}", p.name, store.root().display());
             } else {

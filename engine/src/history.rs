@@ -26,7 +26,7 @@ pub struct PastRun {
 }
 
 /// How many instances of a run ended each way.
-#[derive(Debug, Default, PartialEq, Serialize)]
+#[derive(Debug, Default, Serialize)]
 pub struct Counts {
     pub ran: usize,
     pub reused: usize,

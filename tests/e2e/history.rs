@@ -62,6 +62,8 @@ fn runs_lists_each_run_and_compare_shows_the_setting_that_changed_and_the_metric
     assert_eq!(runs[0]["run"], second.as_str());
     assert_eq!((runs[0]["git"]["dirty"].as_bool(), runs[0]["git"]["commit"].as_str().map(str::len)), (Some(false), Some(40)));
     assert_eq!(runs[1]["outcomes"]["measure"], "ran");
+    assert_eq!(runs[0]["counts"], serde_json::json!({"ran": 3, "reused": 2, "pulled": 0, "failed": 0, "skipped": 0}));
+    assert_eq!(runs[0]["finished"], true);
 
     // The last two by default: the setting, the inputs it changed, the metric it moved (with its
     // sign); what kept its key is named, not shown.
