@@ -25,7 +25,8 @@ pub struct PastRun {
     pub finished: bool,
 }
 
-/// How many instances of a run ended each way.
+/// How many instances of a run ended each way: what `run` returns (for the exit status and
+/// tests), and what `runs` reads back from a run's events.
 #[derive(Debug, Default, Serialize)]
 pub struct Counts {
     pub ran: usize,

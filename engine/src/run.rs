@@ -18,6 +18,7 @@ use serde_json::{Value, json};
 
 use crate::config::{Executor as ExecutorKind, RemoteSettings};
 use crate::dispatch::{Dispatch, Exit, Launch, Local, Report};
+use crate::history::Counts;
 use crate::plan::Plan;
 use crate::protocol::{EXIT_CORRUPT_INPUT, Message};
 use crate::pulls::{Ask, Pulls};
@@ -35,16 +36,6 @@ pub struct RunOptions {
     pub verify_inputs: bool,
     /// The remote cache asked on a local miss (and pushed to, when it pushes).
     pub remote: Option<RemoteSettings>,
-}
-
-/// The outcome of a run, for the exit status and tests.
-#[derive(Debug, Default)]
-pub struct Summary {
-    pub ran: usize,
-    pub reused: usize,
-    pub pulled: usize,
-    pub failed: usize,
-    pub skipped: usize,
 }
 
 #[derive(Clone, Debug)]
@@ -93,7 +84,7 @@ struct Executor<'a> {
     /// Pulls from the remote cache, each on a thread of its own beside the running stages.
     pulls: Pulls<'a>,
     /// `[pipeline] results`: a link per instance to its current output.
-    links: Option<Links<'a>>,
+    links: Option<Links>,
     /// Instances whose link points at their work in progress.
     live_linked: std::collections::BTreeSet<usize>,
     /// How many times each instance's action was started in this run.
@@ -101,7 +92,7 @@ struct Executor<'a> {
 }
 
 /// Runs the plan; returns its summary.
-pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], opts: &RunOptions) -> anyhow::Result<Summary> {
+pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], opts: &RunOptions) -> anyhow::Result<Counts> {
     let _shared = store.lock_shared()?;
     store.sweep_tmp(None)?;
     // Before the run exists: a results directory that cannot be used stops it with nothing done.
@@ -390,9 +381,9 @@ impl Executor<'_> {
         self.plan.pipeline.stages[self.plan.instances[i].stage].bounds
     }
 
-    fn summary(&self) -> Summary {
+    fn summary(&self) -> Counts {
         let count = |o: Outcome| self.results.iter().flatten().filter(|r| r.0 == o).count();
-        Summary {
+        Counts {
             ran: count(Outcome::Ran),
             reused: count(Outcome::Reused),
             pulled: count(Outcome::Pulled),
