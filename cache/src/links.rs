@@ -25,15 +25,16 @@ const MARKER: &str = ".rlmflow-links";
 const COLLECTED: &str = ".collected";
 
 /// A directory of links into one store.
-pub struct Links<'s> {
-    store: &'s Store,
+pub struct Links {
     dir: PathBuf,
+    /// The store's `objects/`, canonical, as the links name it.
+    objects: PathBuf,
 }
 
 impl Store {
     /// The links directory `dir`, created (and registered with this store, for `gc`) if need be.
     /// An existing directory is used only if it carries the marker or is empty.
-    pub fn links(&self, dir: &Path) -> anyhow::Result<Links<'_>> {
+    pub fn links(&self, dir: &Path) -> anyhow::Result<Links> {
         match fs::read_dir(dir) {
             Ok(mut entries) => {
                 if !dir.join(MARKER).is_file() && entries.next().is_some() {
@@ -58,7 +59,7 @@ impl Store {
             registered.push(dir.clone());
             atomic_write(self, &self.link_dirs_file(), &serde_json::to_vec_pretty(&registered)?)?;
         }
-        Ok(Links { store: self, dir })
+        Ok(Links { dir, objects: self.root().canonicalize()?.join("objects") })
     }
 
     fn link_dirs_file(&self) -> PathBuf {
@@ -74,15 +75,17 @@ impl Store {
     /// just collected) at a note saying so. Links are read, never followed.
     pub(crate) fn note_collected(&self, removed: &[Digest], when: &str) -> anyhow::Result<()> {
         let objects = self.root().canonicalize()?.join("objects");
+        let removed: std::collections::BTreeSet<&Digest> = removed.iter().collect();
         for dir in self.link_dirs()? {
             if !dir.join(MARKER).is_file() {
                 continue;
             }
-            let links = Links { store: self, dir };
+            let links = Links { dir, objects: objects.clone() };
             for link in links.all()? {
                 let Ok(target) = fs::read_link(&link) else { continue };
-                let target = link.parent().unwrap().join(target);
-                let Some(digest) = removed.iter().find(|d| normal(&target) == objects.join(d.shard()).join(d.hex())) else { continue };
+                let target = normal(&link.parent().unwrap().join(target));
+                let named = target.strip_prefix(&objects).ok().and_then(|rest| rest.file_name()?.to_str()?.parse::<Digest>().ok());
+                let Some(digest) = named.filter(|d| removed.contains(d)) else { continue };
                 let note = links.dir.join(COLLECTED).join(digest.hex());
                 fs::create_dir_all(&note)?;
                 let text = format!(
@@ -96,15 +99,14 @@ impl Store {
     }
 }
 
-impl Links<'_> {
+impl Links {
     pub fn dir(&self) -> &Path {
         &self.dir
     }
 
     /// Points `entry` (a relative path such as `pretrain/alpha4`) at `object`'s directory.
     pub fn point(&self, entry: &Path, object: &Digest) -> anyhow::Result<()> {
-        let target = self.store.root().canonicalize()?.join("objects").join(object.shard()).join(object.hex());
-        self.point_at(entry, &target)
+        self.point_at(entry, &self.objects.join(object.shard()).join(object.hex()))
     }
 
     /// Points `entry` at `target`, an absolute path (a running action's checkpoint directory).
@@ -136,10 +138,14 @@ impl Links<'_> {
         self.replace(&link, target)
     }
 
-    /// Renames a new link to `target` (relative to the link's directory) over `link`.
+    /// Renames a new link to `target` (relative to the link's directory) over `link`, unless it
+    /// points there already (a run that reuses everything rewrites nothing).
     fn replace(&self, link: &Path, target: &Path) -> anyhow::Result<()> {
         let from = link.parent().unwrap();
         let relative = relative_path(&normal(from), &normal(target));
+        if fs::read_link(link).is_ok_and(|current| current == relative) {
+            return Ok(());
+        }
         let tmp = from.join(format!(".{}.new-{}", link.file_name().unwrap().to_string_lossy(), std::process::id()));
         let _ = fs::remove_file(&tmp);
         std::os::unix::fs::symlink(&relative, &tmp).with_context(|| format!("linking {}", tmp.display()))?;
@@ -242,6 +248,11 @@ mod tests {
         fs::create_dir_all(&two).unwrap();
         links.point_at(Path::new("pretrain"), &one).unwrap();
         assert_eq!(fs::canonicalize(root.join("results/pretrain")).unwrap(), one.canonicalize().unwrap());
+        // Pointed where it points already, the link is left as it is (no new link renamed in).
+        let inode = |p: &Path| std::os::unix::fs::MetadataExt::ino(&fs::symlink_metadata(p).unwrap());
+        let before = inode(&root.join("results/pretrain"));
+        links.point_at(Path::new("pretrain"), &one).unwrap();
+        assert_eq!(inode(&root.join("results/pretrain")), before);
         // The stage gained variants: its link becomes a directory of links.
         links.point_at(Path::new("pretrain/alpha4"), &two).unwrap();
         assert_eq!(fs::canonicalize(root.join("results/pretrain/alpha4")).unwrap(), two.canonicalize().unwrap());
