@@ -11,6 +11,7 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use crate::digest::Digest;
+use crate::links::Gone;
 use crate::store::{RESPONSES, Store, now_rfc3339, read_dir_sorted, remove_tree};
 
 /// What `gc` removed (or would remove, with `dry_run`).
@@ -120,7 +121,7 @@ impl Store {
             }
         }
         if !dry_run {
-            self.note_collected(&collected, &now_rfc3339())?;
+            self.note_gone(&collected, Gone::Collected, &now_rfc3339())?;
         }
         Ok(GcReport { removed, kept_objects })
     }

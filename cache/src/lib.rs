@@ -31,7 +31,7 @@
 //! refs/links.json            the directories of links into the store (`results/`; see `links`)
 //! locks/                     advisory locks: one per action key, one for the store
 //! tmp/                       work directories of running actions; orphans are swept
-//! quarantine/                objects that failed verification, kept for inspection
+//! quarantine/                objects and files that failed verification, kept for inspection
 //! external/                  digests of external inputs' files, and their trees' manifests
 //!                            (see [`external`])
 //! ```
@@ -51,14 +51,13 @@ mod lock;
 mod preimage;
 mod store;
 mod tree;
+mod verify;
 
 pub use digest::Digest;
 pub use gc::GcReport;
 pub use links::Links;
 pub use lock::Lock;
 pub use preimage::{Change, InputDigest, Preimage, canonical_json};
-pub use store::{
-    ActionRecord, ActionRequest, Corruption, DamagedFile, GitState, PlanEntry, RecordSignature, RunPlan, Store, VerifyReport, file_safe, now_rfc3339,
-    run_id,
-};
+pub use store::{ActionRecord, ActionRequest, GitState, PlanEntry, RecordSignature, RunPlan, Store, file_safe, now_rfc3339, run_id};
 pub use tree::{TreeInfo, differing_files, hash_file, hash_tree};
+pub use verify::{Corruption, DamagedFile, VerifyReport};

@@ -7,8 +7,8 @@
 //! without it is written into only while empty: a setting that names someone's own directory
 //! changes nothing in it. Only links are ever replaced or removed, never a file or a directory
 //! that holds anything else. The store keeps the list of its link directories
-//! (`refs/links.json`); `gc` reads the links there (it never follows them) and points each one
-//! whose object it collected at a note saying so, rather than leaving it dangling.
+//! (`refs/links.json`); `gc` and `verify` read the links there (never following them) and point
+//! each one whose object they removed at a note saying why, rather than leaving it dangling.
 
 use std::fs;
 use std::io;
@@ -21,8 +21,38 @@ use crate::store::{Store, atomic_write};
 
 /// The file marking a directory as rlmflow's links.
 const MARKER: &str = ".rlmflow-links";
-/// Where the notes for collected objects live, inside the links directory.
-const COLLECTED: &str = ".collected";
+/// Where the notes for objects no longer in the store live, inside the links directory.
+const GONE: &str = ".gone";
+
+/// Why an object a link pointed at left the store.
+#[derive(Clone, Copy)]
+pub(crate) enum Gone {
+    /// `gc` collected it.
+    Collected,
+    /// `verify` found its bytes damaged and quarantined it.
+    Damaged,
+}
+
+impl Gone {
+    fn note_file(self) -> &'static str {
+        match self {
+            Gone::Collected => "COLLECTED.txt",
+            Gone::Damaged => "DAMAGED.txt",
+        }
+    }
+
+    fn note(self, digest: &Digest, when: &str) -> String {
+        let what = match self {
+            Gone::Collected => format!("was removed by `rlmflow gc` at {when}"),
+            Gone::Damaged => {
+                format!("failed `rlmflow verify` at {when} (its files no longer hash to its digest) and was moved to the store's quarantine/")
+            }
+        };
+        format!(
+            "The output this link pointed at (object {digest}) {what}.\nRun the pipeline again to recompute it; the link then points at the new output.\n"
+        )
+    }
+}
 
 /// A directory of links into one store.
 pub struct Links {
@@ -71,11 +101,14 @@ impl Store {
         Ok(self.read_json(&self.link_dirs_file())?.unwrap_or_default())
     }
 
-    /// Points every link of every registered directory whose target was `removed` (objects `gc`
-    /// just collected) at a note saying so. Links are read, never followed.
-    pub(crate) fn note_collected(&self, removed: &[Digest], when: &str) -> anyhow::Result<()> {
+    /// Points every link of every registered directory whose target is among `gone` (objects
+    /// just removed from the store) at a note saying why. Links are read, never followed.
+    pub(crate) fn note_gone(&self, gone: &[Digest], why: Gone, when: &str) -> anyhow::Result<()> {
+        if gone.is_empty() {
+            return Ok(());
+        }
         let objects = self.root().canonicalize()?.join("objects");
-        let removed: std::collections::BTreeSet<&Digest> = removed.iter().collect();
+        let gone: std::collections::BTreeSet<&Digest> = gone.iter().collect();
         for dir in self.link_dirs()? {
             if !dir.join(MARKER).is_file() {
                 continue;
@@ -85,13 +118,10 @@ impl Store {
                 let Ok(target) = fs::read_link(&link) else { continue };
                 let target = normal(&link.parent().unwrap().join(target));
                 let named = target.strip_prefix(&objects).ok().and_then(|rest| rest.file_name()?.to_str()?.parse::<Digest>().ok());
-                let Some(digest) = named.filter(|d| removed.contains(d)) else { continue };
-                let note = links.dir.join(COLLECTED).join(digest.hex());
+                let Some(digest) = named.filter(|d| gone.contains(d)) else { continue };
+                let note = links.dir.join(GONE).join(digest.hex());
                 fs::create_dir_all(&note)?;
-                let text = format!(
-                    "The output this link pointed at (object {digest}) was removed by `rlmflow gc` at {when}.\nRun the pipeline again to recompute it; the link then points at the new output.\n"
-                );
-                fs::write(note.join("COLLECTED.txt"), text)?;
+                fs::write(note.join(why.note_file()), why.note(&digest, when))?;
                 links.replace(&link, &note)?;
             }
         }
@@ -114,7 +144,7 @@ impl Links {
     /// gained or lost variants) is replaced; a file or a directory holding anything but links is
     /// an error naming it.
     pub fn point_at(&self, entry: &Path, target: &Path) -> anyhow::Result<()> {
-        if entry.as_os_str().is_empty() || entry.components().any(|c| !matches!(c, Component::Normal(_))) || entry.starts_with(COLLECTED) {
+        if entry.as_os_str().is_empty() || entry.components().any(|c| !matches!(c, Component::Normal(_))) || entry.starts_with(GONE) {
             bail!("results link `{}`: not a plain relative path", entry.display());
         }
         let link = self.dir.join(entry);
@@ -163,7 +193,7 @@ impl Links {
                 let kind = entry.file_type()?;
                 if kind.is_symlink() {
                     out.push(entry.path());
-                } else if kind.is_dir() && entry.file_name() != COLLECTED {
+                } else if kind.is_dir() && entry.file_name() != GONE {
                     stack.push(entry.path());
                 }
             }
@@ -272,6 +302,25 @@ mod tests {
         let err = store.links(&root.join("mine")).err().unwrap().to_string();
         assert!(err.contains("holds files rlmflow did not put there"), "{err}");
         assert_eq!(fs::read_dir(root.join("mine")).unwrap().count(), 1);
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn a_link_to_an_object_found_damaged_points_at_a_note_saying_so() {
+        let root = scratch("damaged");
+        let store = Store::open(&root.join("store")).unwrap();
+        let record = crate::store::tests::record_for(&store, 1, b"payload");
+        let links = store.links(&root.join("results")).unwrap();
+        links.point(Path::new("report"), &record.output).unwrap();
+        assert_eq!(fs::read_to_string(root.join("results/report/data.txt")).unwrap(), "payload");
+
+        let file = store.object_dir(&record.output).join("data.txt");
+        fs::set_permissions(&file, std::os::unix::fs::PermissionsExt::from_mode(0o644)).unwrap();
+        fs::write(&file, b"pAyload").unwrap();
+        assert_eq!(store.verify(|_| {}).unwrap().objects.len(), 1);
+        let note = fs::read_to_string(root.join("results/report/DAMAGED.txt")).unwrap();
+        let named = format!("(object {})", record.output);
+        assert!(note.contains(&named) && note.contains("failed `rlmflow verify`") && note.contains("Run the pipeline again"), "{note}");
         fs::remove_dir_all(&root).unwrap();
     }
 }
