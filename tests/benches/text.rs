@@ -116,7 +116,7 @@ fn main() {
 
     // Each dataset reader on its fixture: 4 sequences of 50 frames.
     let names = ["seq_0", "seq_1", "seq_2", "seq_3"];
-    let datasets: [(&str, Format, fn(&Path, &[&str], usize) -> Vec<Vec<rlmflow_test_support::datasets::Placed>>); 3] = [
+    let datasets: [(&str, Format, rlmflow_test_support::datasets::WriteSized); 3] = [
         ("RADIATE", Format::Radiate, rlmflow_test_support::datasets::write_radiate_sized),
         ("CRUW", Format::Cruw, rlmflow_test_support::datasets::write_cruw_sized),
         ("CARRADA", Format::Carrada, rlmflow_test_support::datasets::write_carrada_sized),

@@ -92,11 +92,7 @@ fn runs_lists_each_run_and_compare_shows_the_setting_that_changed_and_the_metric
     let runs: Vec<Value> = stdout_of(&s, &["runs", "p.toml", "--json", "--last", "1"]).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     assert_eq!((runs.len(), runs[0]["git"]["dirty"].as_bool()), (1, Some(true)));
     let out = s.cli(&["compare", "p.toml", "20990101"]);
-    assert!(
-        !out.status.success() && text(&out.stderr).contains(&format!("no run `20990101` of pipeline `chain`; its newest: ")),
-        "{}",
-        text(&out.stderr)
-    );
+    assert!(!out.status.success() && text(&out.stderr).contains("no run `20990101` of pipeline `chain`; its newest: "), "{}", text(&out.stderr));
     assert!(text(&out.stderr).contains(&second), "{}", text(&out.stderr));
 }
 

@@ -93,7 +93,8 @@ fn bad_dataset_input_is_named_and_leaves_nothing() {
     let pipeline = |format: &str| {
         format!("[pipeline]\nname = \"bad\"\nseed = 1\n[stages.scenes]\noperator = \"import\"\nformat = \"{format}\"\npath = \"data\"\nimage = 32\n")
     };
-    let cases: Vec<(&str, &str, Box<dyn Fn(&Path)>, &str)> = vec![
+    type Damage = Box<dyn Fn(&Path)>;
+    let cases: Vec<(&str, &str, Damage, &str)> = vec![
         (
             "radiate",
             "no-annotations",

@@ -143,7 +143,8 @@ mod tests {
         let tokens = Tensor::randint_low(2, 40, [batch, 8], (Kind::Int64, tch::Device::Cpu));
         let counts = Tensor::randint(3, [batch, 48], (Kind::Float, tch::Device::Cpu));
         let targets = soft_targets(&counts, 1.0, Distance::Raw);
-        let objectives: [(&str, Box<dyn Fn(&Tensor, &Tensor) -> Tensor>); 2] = [
+        type Loss<'a> = Box<dyn Fn(&Tensor, &Tensor) -> Tensor + 'a>;
+        let objectives: [(&str, Loss); 2] = [
             ("clip", Box::new(|image: &Tensor, text: &Tensor| clip_loss(&logits(image, text, &model.scale())))),
             ("sg-clip", Box::new(|image: &Tensor, text: &Tensor| soft_clip_loss(&logits(image, text, &model.scale()), &targets))),
         ];

@@ -119,7 +119,7 @@ pub fn caption_loss(gpt: &Gpt, prefix: &Tensor, ids: &Tensor, pad: i64, groups: 
         let logits = gpt.forward(&Tensor::cat(&[prefix.index_select(0, &index), inputs], 1));
         let predicted = logits.narrow(1, k, t - 1).flatten(0, 1);
         let summed = predicted.cross_entropy_loss::<Tensor>(&ids.narrow(1, 1, t - 1).flatten(0, 1), None, tch::Reduction::Sum, pad, 0.0);
-        total = total + summed.to_kind(Kind::Float);
+        total += summed.to_kind(Kind::Float);
     }
     let scored: i64 = lengths.iter().map(|&l| (l - 1).max(0)).sum();
     total / scored.max(1) as f64

@@ -8,6 +8,9 @@ use std::path::Path;
 use anyhow::{Context as _, bail};
 use tch::{Tensor, nn};
 
+/// Looks a tensor up by its name in a weights file.
+pub type FileTensor<'a> = &'a dyn Fn(&str) -> Option<Tensor>;
+
 /// A family of published weights: how its file names our variables' tensors.
 pub struct Source {
     /// For messages: `CLIP`, `GPT-2`.
@@ -16,7 +19,7 @@ pub struct Source {
     pub names: &'static str,
     /// The file's tensor for our variable `rest` (its name after the model's prefix), in our
     /// layout; `None` where the file has none. `file` looks a name up in the file.
-    pub map: fn(file: &dyn Fn(&str) -> Option<Tensor>, rest: &str) -> Option<Tensor>,
+    pub map: fn(file: FileTensor<'_>, rest: &str) -> Option<Tensor>,
     /// Variables left as they are when the file's tensor does not fit.
     pub optional: &'static [&'static str],
 }
@@ -68,7 +71,7 @@ pub const CLIP_VISION: Source = Source {
     optional: &["proj"],
 };
 
-fn clip_vision(file: &dyn Fn(&str) -> Option<Tensor>, rest: &str) -> Option<Tensor> {
+fn clip_vision(file: FileTensor<'_>, rest: &str) -> Option<Tensor> {
     if let Some(t) = file(&format!("visual.{rest}")) {
         return Some(t);
     }

@@ -63,6 +63,10 @@ pub fn write_radiate(root: &Path) -> Vec<Vec<Placed>> {
     write_radiate_sized(root, &["city_1_0", "fog_6_0"], 3)
 }
 
+/// A writer of one dataset's fixture: a root, its sequence names and frames per sequence in; each
+/// frame's objects out.
+pub type WriteSized = fn(&Path, &[&str], usize) -> Vec<Vec<Placed>>;
+
 /// A RADIATE root with `names` sequences of `frames` radar frames each:
 /// `Navtech_Polar/00000k.png` (400 azimuths x 576 range bins, uint8), `Navtech_Polar.txt`,
 /// `annotations/annotations.json` (boxes in the 1152-pixel Cartesian image, `{}` where an object is
@@ -89,7 +93,9 @@ pub fn write_radiate_sized(root: &Path, names: &[&str], frames: usize) -> Vec<Ve
                 }
             }
             write_png(&dir.join(format!("Navtech_Polar/{:06}.png", k + 1)), 576, 400, &polar);
-            stamps += &format!("Frame: {:06} Time: {:.9}\n", k + 1, 1_574_859_771.744_660_272 + k as f64 * 0.25);
+            // To the nanosecond, as the published files have them (more digits than an f64 holds).
+            let ns = 1_574_859_771_744_660_272 + k as u64 * 250_000_000;
+            stamps += &format!("Frame: {:06} Time: {}.{:09}\n", k + 1, ns / 1_000_000_000, ns % 1_000_000_000);
             for o in &objects {
                 // The Cartesian image: the radar at pixel 576, ahead up, the left to the left.
                 let (col, row) = (576.0 - o.left / RADIATE_RES, 576.0 - o.ahead / RADIATE_RES);

@@ -73,12 +73,11 @@ pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: UnknownClasse
     Ok(Opened { frames, skipped })
 }
 
-/// A sequence's scenario and, for each radar frame in order, its number and objects.
-fn read_sequence(
-    seq: &Sequence,
-    unknown: UnknownClasses,
-    skipped: &mut BTreeMap<String, usize>,
-) -> anyhow::Result<(String, Vec<(u64, Vec<Object>)>)> {
+/// Each radar frame of a sequence in order: its number and its objects.
+type Frames = Vec<(u64, Vec<Object>)>;
+
+/// A sequence's scenario and its annotated frames.
+fn read_sequence(seq: &Sequence, unknown: UnknownClasses, skipped: &mut BTreeMap<String, usize>) -> anyhow::Result<(String, Frames)> {
     let (dir, shown) = (&seq.dir, &seq.shown);
     let stamps = shown.join("Navtech_Polar.txt");
     let text = std::fs::read_to_string(dir.join("Navtech_Polar.txt")).with_context(|| format!("reading {}", stamps.display()))?;

@@ -135,11 +135,14 @@ impl<'a> Tokens<'a> {
     }
 }
 
-/// A trainable head and how it maps frames to mask logits (batch, 1, side, side).
+/// Mask logits (batch, 1, side, side) of the frames at the given indices, in training mode or not.
+type Forward<'a> = Box<dyn Fn(&[usize], bool) -> Tensor + 'a>;
+
+/// A trainable head and how it maps frames to mask logits.
 struct Segmenter<'a> {
     name: &'static str,
     vs: nn::VarStore,
-    forward: Box<dyn Fn(&[usize], bool) -> Tensor + 'a>,
+    forward: Forward<'a>,
 }
 
 /// `scored` frames scored: pixel counts for the metrics and the mean loss.
