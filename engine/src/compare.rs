@@ -6,14 +6,14 @@
 use std::collections::BTreeMap;
 
 use rlmflow_cache::{ActionRecord, Digest, PlanEntry, Preimage, Store, canonical_json};
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use serde_json::Value;
 
 use crate::config::SEED_DIMENSION;
 use crate::history::PastRun;
 
 /// A metric over an instance's seeds (one value without seeds).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Stat {
     pub mean: f64,
     /// Sample standard deviation; `None` for a single value.
@@ -33,6 +33,17 @@ impl Stat {
     }
 }
 
+/// One column's entry of a row: a setting's value or an input's digest, a metric's [`Stat`], or
+/// nothing where the column has no such instance or its record was collected. JSON: the value,
+/// the stat's fields, or null.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+#[serde(untagged)]
+pub enum Cell {
+    Absent,
+    Value(Value),
+    Stat(Stat),
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum RowKind {
@@ -49,9 +60,8 @@ pub struct Row {
     pub kind: RowKind,
     /// The setting's dotted key, the input's slot, the metric's dotted path in the record.
     pub name: String,
-    /// One per column: a setting's value, an input's digest, a metric's [`Stat`]; null where the
-    /// column has no such instance or its record was collected.
-    pub values: Vec<Value>,
+    /// One per column.
+    pub values: Vec<Cell>,
     /// A metric of a two-run table: the second column's mean less the first's.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub change: Option<Stat>,
@@ -227,7 +237,7 @@ fn value_rows(instance: &str, kind: RowKind, sides: &[BTreeMap<String, Value>], 
     names
         .into_iter()
         .filter_map(|name| {
-            let values: Vec<Value> = sides.iter().map(|f| f.get(name).cloned().unwrap_or(Value::Null)).collect();
+            let values: Vec<Cell> = sides.iter().map(|f| f.get(name).map_or(Cell::Absent, |v| Cell::Value(v.clone()))).collect();
             let differs = values.iter().any(|v| *v != values[0]);
             (differs || all).then(|| Row { instance: instance.to_owned(), kind, name: name.clone(), values, change: None })
         })
@@ -250,7 +260,7 @@ fn metric_rows(instance: &str, sides: &[Option<&Group>], all: bool, change: bool
             continue;
         }
         let stats: Vec<Option<Stat>> = series.iter().map(|s| Stat::of(&s.iter().map(|(_, v)| *v).collect::<Vec<_>>())).collect();
-        let values = stats.iter().map(|s| s.as_ref().map_or(Value::Null, |s| serde_json::to_value(s).expect("a stat serialises"))).collect();
+        let values = stats.iter().map(|s| s.clone().map_or(Cell::Absent, Cell::Stat)).collect();
         let delta = match (change, series.as_slice(), stats.as_slice()) {
             (true, [a, b], [Some(sa), Some(sb)]) => {
                 let seeds = |s: &[(Option<String>, f64)]| s.iter().map(|(seed, _)| seed.clone()).collect::<Vec<_>>();
@@ -307,16 +317,13 @@ fn number(x: f64) -> String {
 
 /// What a cell shows: a setting's value as TOML would write it, a digest's first 12 hex, a
 /// metric's mean ± sd (n).
-fn cell(kind: RowKind, value: &Value) -> String {
-    match (kind, value) {
-        (_, Value::Null) => "-".to_owned(),
-        (RowKind::Metric, v) => match serde_json::from_value::<Stat>(v.clone()) {
-            Ok(s) => stat(&s, false),
-            Err(_) => canonical_json(v),
-        },
-        (RowKind::Input, Value::String(digest)) => digest.chars().take(12).collect(),
-        (_, Value::String(s)) => s.clone(),
-        (_, v) => canonical_json(v),
+fn cell(kind: RowKind, cell: &Cell) -> String {
+    match (kind, cell) {
+        (_, Cell::Absent | Cell::Value(Value::Null)) => "-".to_owned(),
+        (_, Cell::Stat(s)) => stat(s, false),
+        (RowKind::Input, Cell::Value(Value::String(digest))) => digest.chars().take(12).collect(),
+        (_, Cell::Value(Value::String(s))) => s.clone(),
+        (_, Cell::Value(v)) => canonical_json(v),
     }
 }
 
