@@ -142,7 +142,8 @@ impl Pipeline {
 
     /// Setting `key` (dotted, relative to the stage table) of a stage's variant, located as
     /// validation errors are: `p.toml:12: stages.pretrain.variants.alpha4.batch`, the variant's
-    /// line where the variant sets the key, else the stage's.
+    /// line where the variant sets the key, else the stage's; `p.toml with --set pretrain.batch=8:
+    /// stages.pretrain.batch` where the command line set it.
     pub fn locate(&self, stage: &str, variant: Option<&str>, key: &str) -> String {
         let top = key.split('.').next().unwrap_or_default();
         let path = match variant {
@@ -150,7 +151,10 @@ impl Pipeline {
             _ if key.is_empty() => format!("stages.{stage}"),
             _ => format!("stages.{stage}.{key}"),
         };
-        format!("{}:{}: {path}", self.file.display(), self.lines.line(&path))
+        match Override::setting(&self.overrides, &path) {
+            Some(o) => format!("{} with --set {}: {path}", self.file.display(), o.text),
+            None => format!("{}:{}: {path}", self.file.display(), self.lines.line(&path)),
+        }
     }
 }
 

@@ -97,6 +97,12 @@ fn a_failure_about_a_setting_names_its_file_line_and_key() {
         errors.contains(&"p.toml:4: stages.source.variants.b.steps: is wrong for this data (a check only a run can make)".to_owned()),
         "{errors:?}"
     );
+    // Set on the command line, the key is located at the override (variant b's own line still wins for b).
+    let events = s.run_expecting(1, &["--set", "source.steps=3"]);
+    let errors: Vec<String> = events.of("stage_finished").iter().map(|e| e["error"].as_str().unwrap().to_owned()).collect();
+    let overridden = "p.toml with --set source.steps=3: stages.source.steps: is wrong for this data (a check only a run can make)";
+    assert!(errors.contains(&overridden.to_owned()), "{errors:?}");
+    assert!(errors.iter().any(|e| e.starts_with("p.toml:4: stages.source.variants.b.steps")), "{errors:?}");
 }
 
 #[test]

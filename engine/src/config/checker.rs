@@ -33,8 +33,7 @@ impl fmt::Display for ConfigError {
             if i > 0 {
                 writeln!(f)?;
             }
-            let set_by = self.overrides.iter().rev().find(|o| d.key == o.path || d.key.starts_with(&format!("{}.", o.path)));
-            match set_by {
+            match super::overrides::Override::setting(&self.overrides, &d.key) {
                 Some(o) => write!(f, "{} with --set {}: ", self.file.display(), o.text)?,
                 // Line 0: the command line's (a malformed override names itself in the key).
                 None if d.line == 0 => write!(f, "{}: ", self.file.display())?,

@@ -39,6 +39,12 @@ impl Override {
         Ok(Override { text: text.to_owned(), path: format!("stages.{key}"), value })
     }
 
+    /// The last of `overrides` that set `key` (a dotted path from the file's root) or a table
+    /// above it: where a problem with that key is located.
+    pub fn setting<'o>(overrides: &'o [Override], key: &str) -> Option<&'o Override> {
+        overrides.iter().rev().find(|o| key == o.path || key.strip_prefix(o.path.as_str()).is_some_and(|rest| rest.starts_with('.')))
+    }
+
     /// Sets the value in the pipeline's `root` table: the stage must exist; tables below it are
     /// made where missing (a new variant, say).
     pub fn apply(&self, root: &Map<String, Value>) -> Result<Map<String, Value>, String> {
