@@ -7,8 +7,8 @@
 //! without it is written into only while empty: a setting that names someone's own directory
 //! changes nothing in it. Only links are ever replaced or removed, never a file or a directory
 //! that holds anything else. The store keeps the list of its link directories
-//! (`refs/links.json`); `gc` and `verify` read the links there (never following them) and point
-//! each one whose object they removed at a note saying why, rather than leaving it dangling.
+//! (`refs/links.json`); `gc` and quarantine read the links there (never following them) and
+//! point each one whose object they removed at a note saying why, rather than leaving it dangling.
 
 use std::fs;
 use std::io;
@@ -29,7 +29,8 @@ const GONE: &str = ".gone";
 pub(crate) enum Gone {
     /// `gc` collected it.
     Collected,
-    /// `verify` found its bytes damaged and quarantined it.
+    /// Its files no longer hashed to its digest (found by `verify`, or by a run re-hashing
+    /// an input or output), so it was quarantined.
     Damaged,
 }
 
@@ -45,7 +46,7 @@ impl Gone {
         let what = match self {
             Gone::Collected => format!("was removed by `rlmflow gc` at {when}"),
             Gone::Damaged => {
-                format!("failed `rlmflow verify` at {when} (its files no longer hash to its digest) and was moved to the store's quarantine/")
+                format!("was found damaged at {when} (its files no longer hash to its digest) and moved to the store's quarantine/")
             }
         };
         format!(
@@ -320,7 +321,7 @@ mod tests {
         assert_eq!(store.verify(|_| {}).unwrap().objects.len(), 1);
         let note = fs::read_to_string(root.join("results/report/DAMAGED.txt")).unwrap();
         let named = format!("(object {})", record.output);
-        assert!(note.contains(&named) && note.contains("failed `rlmflow verify`") && note.contains("Run the pipeline again"), "{note}");
+        assert!(note.contains(&named) && note.contains("was found damaged") && note.contains("Run the pipeline again"), "{note}");
         fs::remove_dir_all(&root).unwrap();
     }
 }
