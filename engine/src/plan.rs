@@ -162,14 +162,24 @@ fn assignment_key(a: &BTreeMap<String, String>) -> String {
     a.iter().map(|(d, v)| format!("{d}={v}")).collect::<Vec<_>>().join(",")
 }
 
-/// `stage`, `stage[variant]` for one variant dimension, `stage[dim=v,...]` for several; the seed
-/// always shows its name (`stage[seed=2]`), so a report can tell seeds from variants.
-pub fn label(stage: &str, a: &BTreeMap<String, String>) -> String {
+/// How an instance's variants are named: the variant alone for a stage's one variant dimension,
+/// else each with its dimension (`dim`, `v`); the seed always shows its name (`seed=2`), so a
+/// report can tell seeds from variants.
+pub fn variant_names(a: &BTreeMap<String, String>) -> Vec<(Option<&str>, &str)> {
     match a.len() {
-        0 => stage.to_owned(),
-        1 if !a.contains_key(SEED_DIMENSION) => format!("{stage}[{}]", a.values().next().unwrap()),
-        _ => format!("{stage}[{}]", assignment_key(a)),
+        1 if !a.contains_key(SEED_DIMENSION) => a.values().map(|v| (None, v.as_str())).collect(),
+        _ => a.iter().map(|(d, v)| (Some(d.as_str()), v.as_str())).collect(),
     }
+}
+
+/// `stage`, `stage[variant]` for one variant dimension, `stage[dim=v,...]` for several
+/// ([`variant_names`]).
+pub fn label(stage: &str, a: &BTreeMap<String, String>) -> String {
+    if a.is_empty() {
+        return stage.to_owned();
+    }
+    let names: Vec<String> = variant_names(a).into_iter().map(|(d, v)| d.map_or_else(|| v.to_owned(), |d| format!("{d}={v}"))).collect();
+    format!("{stage}[{}]", names.join(","))
 }
 
 impl Plan<'_> {

@@ -7,24 +7,23 @@ use std::path::PathBuf;
 
 use rlmflow_cache::file_safe;
 
-use crate::config::SEED_DIMENSION;
-use crate::plan::Plan;
+use crate::plan::{Plan, variant_names};
 
 /// The link of instance `i`, relative to the results directory: `stage`, then one component per
-/// variant dimension: the variant alone for a stage's one dimension (`pretrain/alpha4`), else
-/// `dimension=variant` (`clipcap/captions=llm/pretrain=alpha4`, `pretrain/seed=2`). A shard has
-/// none (its stage's merged output does). Names are made file-safe as the store's are.
+/// variant named as its label names it (`pretrain/alpha4`, `clipcap/captions=llm/pretrain=alpha4`,
+/// `pretrain/seed=2`). A shard has none (its stage's merged output does). Names are made
+/// file-safe as the store's are.
 pub fn entry(plan: &Plan, i: usize) -> Option<PathBuf> {
     let inst = &plan.instances[i];
     if inst.shard.is_some() {
         return None;
     }
-    let a = &inst.assignment;
     let mut path = PathBuf::from(file_safe(&plan.pipeline.stages[inst.stage].name));
-    match a.len() {
-        0 => {}
-        1 if !a.contains_key(SEED_DIMENSION) => path.push(file_safe(a.values().next().unwrap())),
-        _ => a.iter().for_each(|(d, v)| path.push(format!("{}={}", file_safe(d), file_safe(v)))),
+    for (dimension, variant) in variant_names(&inst.assignment) {
+        path.push(match dimension {
+            Some(d) => format!("{}={}", file_safe(d), file_safe(variant)),
+            None => file_safe(variant),
+        });
     }
     Some(path)
 }
