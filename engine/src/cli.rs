@@ -409,6 +409,12 @@ fn store_root(pipeline: &Pipeline, arg: &StoreArg) -> PathBuf {
     arg.cache.clone().unwrap_or_else(|| pipeline.cache.clone())
 }
 
+/// The store `pipeline` has run into; an error saying `nothing` (what there is not to do) where
+/// it has not run yet.
+fn ran_store(pipeline: &Pipeline, arg: &StoreArg, nothing: &str) -> anyhow::Result<Store> {
+    Store::open_existing(&store_root(pipeline, arg))?.with_context(|| format!("{} has not run yet; {nothing}", pipeline.file.display()))
+}
+
 fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
     if matches!(
         command,
@@ -484,7 +490,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         }
         Command::Push(Transfer { pipeline, only, store, remote }) => {
             let p = config::load(&pipeline, registry)?;
-            let store = Store::open_existing(&store_root(&p, &store))?.context("the pipeline has not run yet; nothing to push")?;
+            let store = ran_store(&p, &store, "nothing to push")?;
             let plan = planned(&p, Some(&store), Device::Cpu)?;
             let selected = plan.select(&only)?;
             let settings = remote.settings(&p)?.context("no remote cache: set `[pipeline] remote` or give --remote")?;
@@ -525,8 +531,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         Command::Show { pipeline, stage, store } => show(registry, &pipeline, &stage, &store),
         Command::Runs { pipeline, all, last, json, store } => {
             let p = config::load(&pipeline, registry)?;
-            let store =
-                Store::open_existing(&store_root(&p, &store))?.with_context(|| format!("{} has not run yet: no store", pipeline.display()))?;
+            let store = ran_store(&p, &store, "no runs to list")?;
             let mut runs = crate::history::runs_of(&store, &p.name)?;
             runs.truncate(last.unwrap_or(usize::MAX));
             if json {
@@ -545,8 +550,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         }
         Command::Compare { pipeline, runs: ids, variants, all, json, markdown, store } => {
             let p = config::load(&pipeline, registry)?;
-            let store =
-                Store::open_existing(&store_root(&p, &store))?.with_context(|| format!("{} has not run yet: no store", pipeline.display()))?;
+            let store = ran_store(&p, &store, "nothing to compare")?;
             let runs = crate::history::runs_of(&store, &p.name)?;
             let pick = |id: Option<&String>, newest: usize| -> anyhow::Result<&crate::history::PastRun> {
                 match id {
@@ -640,7 +644,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         Command::Pin { pipeline, name, store } => {
             config::check_name(&name).map_err(|problem| anyhow::anyhow!("the pin name {problem}"))?;
             let p = config::load(&pipeline, registry)?;
-            let store = Store::open_existing(&store_root(&p, &store))?.context("the pipeline has not run yet; nothing to pin")?;
+            let store = ran_store(&p, &store, "nothing to pin")?;
             let plan = planned(&p, Some(&store), Device::Cpu)?;
             let states = assess(&plan, registry, Some(&store))?;
             let keys: std::collections::BTreeMap<String, Digest> = states
