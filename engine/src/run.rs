@@ -336,16 +336,29 @@ impl Executor<'_> {
             .collect()
     }
 
+    /// Instance `i`'s results link, where the run keeps links and `i` has one (a shard has none).
+    fn results_link(&self, i: usize) -> Option<(&Links, PathBuf)> {
+        Some((self.links.as_ref()?, crate::results::entry(self.plan, i)?))
+    }
+
+    /// Points instance `i`'s results link with `point` (given the links and the entry); a link
+    /// that cannot be made is a warning, never a failed run. Whether it was made.
+    fn link(&self, i: usize, point: impl FnOnce(&Links, &Path) -> anyhow::Result<()>) -> bool {
+        let Some((links, entry)) = self.results_link(i) else { return false };
+        match point(links, &entry) {
+            Ok(()) => true,
+            Err(e) => {
+                self.ui.say(format!("  warning: {} not linked in {}: {e:#}", self.plan.instances[i].label, links.dir().display()));
+                false
+            }
+        }
+    }
+
     /// Instance `i` has its output: consumers may start, and its results link points at it.
     fn done(&mut self, i: usize, output: Digest) {
         self.states[i] = State::Done { output };
         self.live_linked.remove(&i);
-        if let Some(links) = &self.links
-            && let Some(entry) = crate::results::entry(self.plan, i)
-            && let Err(e) = links.point(&entry, &output)
-        {
-            self.ui.say(format!("  warning: {} not linked in {}: {e:#}", self.plan.instances[i].label, links.dir().display()));
-        }
+        self.link(i, |links, entry| links.point(entry, &output));
     }
 
     /// A running instance's work in progress is in `data["dir"]`: its results entry points there
@@ -353,13 +366,8 @@ impl Executor<'_> {
     /// store) is not linked.
     fn link_live(&mut self, i: usize, data: &Value) {
         let Some(dir) = data["dir"].as_str().map(Path::new).filter(|d| d.is_dir()) else { return };
-        if let Some(links) = &self.links
-            && let Some(entry) = crate::results::entry(self.plan, i)
-        {
-            match links.point_at(&entry, dir) {
-                Ok(()) => _ = self.live_linked.insert(i),
-                Err(e) => self.ui.say(format!("  warning: {} not linked in {}: {e:#}", self.plan.instances[i].label, links.dir().display())),
-            }
+        if self.link(i, |links, entry| links.point_at(entry, dir)) {
+            self.live_linked.insert(i);
         }
     }
 
@@ -370,7 +378,7 @@ impl Executor<'_> {
             return Ok(());
         }
         let previous = self.last.get(&self.plan.instances[i].label).map(|key| self.store.fresh(key)).transpose()?.flatten();
-        if let (Some(links), Some(entry), Some(record)) = (&self.links, crate::results::entry(self.plan, i), previous) {
+        if let (Some((links, entry)), Some(record)) = (self.results_link(i), previous) {
             links.point(&entry, &record.output)?;
         }
         Ok(())
