@@ -119,9 +119,7 @@ fn pooled_label(entry: &PlanEntry) -> String {
 /// The run's instances grouped over seeds, in plan order.
 fn groups<'r>(store: &Store, run: &'r PastRun) -> anyhow::Result<Vec<Group<'r>>> {
     let mut out: Vec<Group> = Vec::new();
-    for entry in &run.plan.instances {
-        let Some(key) = entry.key else { continue };
-        let record = store.record(&key)?;
+    for (entry, record) in run.records(store)? {
         let label = pooled_label(entry);
         let seed = entry.assignment.get(SEED_DIMENSION).cloned();
         match out.iter_mut().find(|g| g.label == label) {
@@ -129,7 +127,7 @@ fn groups<'r>(store: &Store, run: &'r PastRun) -> anyhow::Result<Vec<Group<'r>>>
             None => {
                 let preimage = match &record {
                     Some(r) => Some(r.preimage.clone()),
-                    None => store.request(&key)?.map(|r| r.preimage),
+                    None => entry.key.map(|key| store.request(&key)).transpose()?.flatten().map(|r| r.preimage),
                 };
                 out.push(Group { label, members: vec![(seed, entry, record)], preimage });
             }
