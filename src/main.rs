@@ -1,5 +1,6 @@
 use std::process::ExitCode;
 
+mod doctor;
 mod parse;
 
 use rlmflow_stages::{Catalog, Registry};
@@ -28,5 +29,5 @@ fn registry() -> Registry {
 }
 
 fn main() -> ExitCode {
-    rlmflow_engine::cli::main(registry(), &[parse::command()])
+    rlmflow_engine::cli::main(registry(), &[parse::command(), doctor::command()])
 }

@@ -44,6 +44,46 @@ impl fmt::Display for Numerics {
     }
 }
 
+/// The arithmetic a model trains and evaluates in (the `precision` setting). Weights, the loss
+/// and the optimiser stay in float32 whatever it says (as open_clip's `amp`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// `bf16` on a CUDA device, `fp32` on the CPU: what measured fastest on each
+    /// (docs/benchmarks.md, "Precision").
+    #[default]
+    Auto,
+    /// Float32 throughout; on CUDA with TF32 off in cuBLAS and cuDNN.
+    Fp32,
+    /// Float32 with TF32 matmuls and convolutions: a CUDA mode (Ampere and newer).
+    Tf32,
+    /// bfloat16 autocast over the models' forward passes (matmuls, convolutions and attention
+    /// in bfloat16; softmax, norms and losses in float32).
+    Bf16,
+}
+
+impl Precision {
+    /// What `self` computes in on `target`: `auto` resolved.
+    pub fn on(self, target: Target) -> Precision {
+        match (self, target) {
+            (Precision::Auto, Target::Cuda(_)) => Precision::Bf16,
+            (Precision::Auto, Target::Cpu) => Precision::Fp32,
+            (chosen, _) => chosen,
+        }
+    }
+}
+
+impl fmt::Display for Precision {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Precision::Auto => "auto",
+            Precision::Fp32 => "fp32",
+            Precision::Tf32 => "tf32",
+            Precision::Bf16 => "bf16",
+        })
+    }
+}
+
 /// What a platform-dependent operator's settings say of its kernels.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Kernels {

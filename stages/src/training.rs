@@ -7,6 +7,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::numerics::Precision;
 use crate::{Device, InputOutlines, Kernels, Numerics, Outline, Resources, SettingError};
 
 /// One training run's schedule, optimiser and placement.
@@ -50,6 +51,9 @@ pub struct Training {
     /// CPU models) or `native` (the fastest kernels this machine has; results shared only with
     /// machines of the same CPU model). See `rlmflow_stages::numerics`.
     pub numerics: Numerics,
+    /// `auto` (bf16 on CUDA, fp32 on the CPU), `fp32`, `tf32` (CUDA only) or `bf16`: the
+    /// arithmetic of the forward passes; see [`Precision`].
+    pub precision: Precision,
 }
 
 impl Default for Training {
@@ -69,6 +73,7 @@ impl Default for Training {
             device: Device::Auto,
             threads: 2,
             numerics: Numerics::Portable,
+            precision: Precision::Auto,
         }
     }
 }
@@ -102,6 +107,9 @@ impl Training {
         SettingError::check_positive("eps", self.eps, 1.0)?;
         SettingError::check_range("weight_decay", self.weight_decay, 0.0..=1.0)?;
         SettingError::check_positive("clip_norm", self.clip_norm, 1e6)?;
+        if self.precision == Precision::Tf32 && self.device == Device::Cpu {
+            return Err(SettingError::new("precision", "`tf32` is a CUDA matmul mode; on the CPU use `fp32` or `bf16`"));
+        }
         SettingError::check_range("threads", self.threads, 1..=256)
     }
 
@@ -166,6 +174,8 @@ mod tests {
         assert_eq!(key(Training { betas: [0.9, 1.0], ..Training::default() }), "betas.1");
         assert_eq!(key(Training { eps: 0.0, ..Training::default() }), "eps");
         assert_eq!(key(Training { threads: 0, ..Training::default() }), "threads");
+        assert_eq!(key(Training { precision: Precision::Tf32, device: Device::Cpu, ..Training::default() }), "precision");
+        assert!(Training { precision: Precision::Tf32, device: Device::Cuda(0), ..Training::default() }.check().is_ok());
     }
 
     #[test]
@@ -192,7 +202,8 @@ mod tests {
     fn a_device_is_a_string_in_settings() {
         let t: Training = serde_json::from_value(serde_json::json!({
             "epochs": 1, "batch": 2, "accumulate": 1, "lr": 0.1, "warmup_epochs": 0.0, "warmup_lr": 0.0, "min_lr": 0.0, "betas": [0.9, 0.99],
-            "eps": 1e-8, "weight_decay": 0.0, "clip_norm": 1.0, "device": "cuda:1", "threads": 1, "numerics": "native"
+            "eps": 1e-8, "weight_decay": 0.0, "clip_norm": 1.0, "device": "cuda:1", "threads": 1, "numerics": "native",
+            "precision": "bf16"
         }))
         .unwrap();
         assert_eq!(t.device, Device::Cuda(1));

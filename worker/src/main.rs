@@ -3,11 +3,13 @@
 //! with the same entry point, protocol, store and locks as `rlmflow exec`, so `rlmflow` itself
 //! never loads libtorch. It finds libtorch by its run path, or through `LD_LIBRARY_PATH` on a
 //! machine with its own torch 2.11. It has no embedded Python, so it runs on a GPU machine
-//! without one.
+//! without one. `rlmflow-torch doctor` says which devices it can compute on.
 
 use std::process::ExitCode;
 
 use rlmflow_stages::{Catalog, Registry};
+
+mod doctor;
 
 fn registry() -> Registry {
     let mut registry = Registry::new(Catalog::paper());
@@ -23,5 +25,8 @@ fn registry() -> Registry {
 }
 
 fn main() -> ExitCode {
-    rlmflow_engine::cli::main(registry(), &[])
+    // libtorch decides once, at its first question about CUDA, whether it has it: load its CUDA
+    // half first, where there is one and a driver (`rlmflow_nn::cuda`).
+    let _ = rlmflow_nn::cuda::load(false);
+    rlmflow_engine::cli::main(registry(), &[doctor::command()])
 }

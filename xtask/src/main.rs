@@ -9,7 +9,10 @@
 //! cargo xtask build [ARGS]         cargo build [ARGS]
 //! cargo xtask bench [ARGS]         cargo bench [ARGS]
 //! cargo xtask rlmflow [ARGS]       build (release), then rlmflow [ARGS]: any subcommand
-//! cargo xtask libtorch             install libtorch if missing and print where it is
+//! cargo xtask libtorch [--cuda]    install libtorch if missing and print where it is; with
+//!                                  --cuda also the CUDA packages its CUDA half loads (about
+//!                                  2.6 GB; every command installs them where an NVIDIA driver
+//!                                  is present, `RLMFLOW_LIBTORCH_CUDA=0` never)
 //! cargo xtask llm-check            build rlmflow, then run tests/llm_check.py: the `llm`
 //!                                  operator against a real llama.cpp server (opt-in; it
 //!                                  compiles llama.cpp, about 11 minutes on 2 cores)
@@ -36,7 +39,13 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
     let Some((command, rest)) = args.split_first() else {
         bail!("usage: cargo xtask <test|run|build|bench|rlmflow|libtorch|llm-check> [ARGS]");
     };
-    let libtorch = rlmflow_python::libtorch::ensure_libtorch(&mut |note| eprintln!("xtask: {note}"))?;
+    let note = &mut |note: &str| eprintln!("xtask: {note}");
+    let ours = std::env::var_os("LIBTORCH").is_none();
+    let libtorch = rlmflow_python::libtorch::ensure_libtorch(note)?;
+    // A libtorch of the user's own (LIBTORCH) comes with its CUDA libraries or without.
+    if ours && rlmflow_python::libtorch::cuda_wanted(command == "libtorch" && rest.iter().any(|a| a == "--cuda")) {
+        rlmflow_python::libtorch::ensure_cuda_packages(&libtorch, note)?;
+    }
     let cargo = || {
         let mut cmd = Command::new(std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into()));
         cmd.env("LIBTORCH", &libtorch).env("LIBTORCH_CXX11_ABI", "1");

@@ -24,7 +24,7 @@ impl Clip {
     /// A model with fresh weights (drawn from torch's generator: seed it first). `tau` is the
     /// initial temperature, learnt when `learn_tau`.
     pub fn new(root: &nn::Path, config: &ModelConfig, tau: f64, learn_tau: bool) -> Clip {
-        let logit_scale = root.add("logit_scale", Tensor::from((1.0 / tau).ln() as f32), learn_tau);
+        let logit_scale = root.add("logit_scale", Tensor::from((1.0 / tau).ln() as f32).to_device(root.device()), learn_tau);
         Clip {
             visual: VisionTower::new(&(root / "visual"), &config.vision, config.embed),
             text: config.text.as_ref().map(|t| TextTower::new(root, t, config.embed)),

@@ -12,6 +12,8 @@ use tch::{Device, Kind, Tensor};
 
 /// A decoder stepped one token at a time.
 pub trait StepModel {
+    /// Where its weights are: the rows and tokens fed to [`StepModel::next`] are built there.
+    fn device(&self) -> Device;
     /// Log-probabilities of each row's first token: (rows, vocab).
     fn start(&mut self) -> Tensor;
     /// Keeps the rows `parents` names (reordered and repeated; `None`: all, as they are), feeds
@@ -74,7 +76,8 @@ pub fn beam_search(model: &mut impl StepModel, beam: usize, end: i64, max_tokens
             break;
         }
         let last: Vec<i64> = beams.iter().flatten().map(|h| *h.tokens.last().expect("a token")).collect();
-        let logp = model.next(Some(&Tensor::from_slice(&parents)), &Tensor::from_slice(&last).unsqueeze(1));
+        let device = model.device();
+        let logp = model.next(Some(&Tensor::from_slice(&parents).to_device(device)), &Tensor::from_slice(&last).to_device(device).unsqueeze(1));
         let (values, indices) = logp.topk(beam as i64, -1, true, true);
         let (values, indices) = (to_rows(&values), to_rows(&indices));
         parents.clear();
@@ -118,6 +121,9 @@ mod tests {
     }
 
     impl StepModel for Markov {
+        fn device(&self) -> Device {
+            self.table.device()
+        }
         fn start(&mut self) -> Tensor {
             self.first.log().unsqueeze(0).expand([self.rows, -1], false)
         }

@@ -149,6 +149,10 @@ impl<'a> Steps<'a> {
 }
 
 impl StepModel for Steps<'_> {
+    fn device(&self) -> tch::Device {
+        self.gpt.wte.device()
+    }
+
     fn start(&mut self) -> Tensor {
         let prompt = self.prompt.take().expect("start is called once");
         self.last_log_probs(&prompt)
@@ -156,9 +160,9 @@ impl StepModel for Steps<'_> {
 
     fn next(&mut self, parents: Option<&Tensor>, tokens: &Tensor) -> Tensor {
         if let Some(parents) = parents {
-            self.cache.select(&parents.to_device(tokens.device()));
+            self.cache.select(parents);
         }
-        let x = self.gpt.embed(&tokens.to_device(self.gpt.wte.device()));
+        let x = self.gpt.embed(tokens);
         self.last_log_probs(&x)
     }
 }

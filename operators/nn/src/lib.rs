@@ -11,9 +11,12 @@
 //! a Python user can map the weights onto it.
 
 pub mod clip;
+pub mod cuda;
 pub mod data;
 pub mod decode;
+pub mod failure;
 pub mod gpt;
+pub mod libtorch;
 pub mod loss;
 pub mod optim;
 pub mod projection;

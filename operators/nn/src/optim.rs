@@ -96,7 +96,7 @@ impl AdamW {
             out.push((format!("adamw.m.{name}"), self.m[i].shallow_clone()));
             out.push((format!("adamw.v.{name}"), self.v[i].shallow_clone()));
         }
-        out.push(("adamw.steps".into(), Tensor::from(self.steps)));
+        out.push(("adamw.steps".into(), Tensor::from(self.steps))); // host: a checkpoint's counter, never computed with
         out
     }
 

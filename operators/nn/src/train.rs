@@ -23,11 +23,13 @@ use anyhow::{Context as _, bail};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
-use rlmflow_stages::numerics::Target;
+use rlmflow_stages::numerics::{Precision, Target};
 use rlmflow_stages::{Context, Device, SettingError, Training};
 use serde_json::{Value, json};
 use tch::{Tensor, nn};
 
+use crate::cuda;
+use crate::libtorch::{self, Autocast};
 use crate::optim::{AdamW, warmup_cosine};
 use crate::tensorboard::{self, EventWriter};
 
@@ -36,19 +38,57 @@ const LOG: &str = "state.json";
 /// The TensorBoard curves' directory, in the checkpoint while training and in the artifact.
 pub const CURVES: &str = "tensorboard";
 
-/// The device to train on for a `device` setting, given the engine's choice for the action
+/// The device a `device` setting computes on, given the engine's choice for the action
 /// (`rlmflow_stages::numerics::Target::of`, the rule the action's key was planned by). On CUDA,
-/// cuDNN's autotuner stays off: it picks kernels by timing them, so two runs could differ.
+/// deterministic algorithms are on (an op without a deterministic kernel fails naming itself),
+/// cuDNN's autotuner and TF32 off: two runs of a key give the same bytes.
 pub fn resolve_device(setting: Device, engine: Device) -> anyhow::Result<tch::Device> {
-    match Target::of(setting, engine, tch::Cuda::is_available()) {
+    match Target::of(setting, engine, cuda::available()) {
         Target::Cpu => Ok(tch::Device::Cpu),
-        Target::Cuda(_) if !tch::Cuda::is_available() => bail!(
-            "device `{setting}`: this machine has no CUDA device libtorch can use (its libtorch is a CPU build, or the driver is missing): point `LD_LIBRARY_PATH` at a CUDA build of torch 2.11, or set the stage's `device = \"cpu\"`"
-        ),
+        Target::Cuda(_) if !cuda::available() => {
+            let why = cuda::status().why_not().unwrap_or_else(|| "libtorch reports no CUDA device".into());
+            bail!("device `{setting}`: libtorch cannot compute on CUDA here: {why}; or set the stage's `device = \"cpu\"` (`rlmflow-torch doctor` says more)")
+        }
         Target::Cuda(n) => {
+            libtorch::set_deterministic(true)?;
+            libtorch::set_tf32(false)?;
             tch::Cuda::cudnn_set_benchmark(false);
             Ok(tch::Device::Cuda(n))
         }
+    }
+}
+
+/// Where a training stage computes, and in what arithmetic (`auto` resolved for the device).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Placement {
+    pub device: tch::Device,
+    pub precision: Precision,
+}
+
+impl Placement {
+    /// For a training stage's settings, given the engine's device for the action.
+    pub fn of(training: &Training, engine: Device) -> anyhow::Result<Placement> {
+        let device = resolve_device(training.device, engine)?;
+        let target = match device {
+            tch::Device::Cuda(n) => Target::Cuda(n),
+            _ => Target::Cpu,
+        };
+        let precision = training.precision.on(target);
+        if device.is_cuda() && precision == Precision::Tf32 {
+            libtorch::set_tf32(true)?;
+        }
+        Ok(Placement { device, precision })
+    }
+
+    /// Runs `f`, a forward pass (with its backward, where it takes one), in the placement's
+    /// arithmetic: for `bf16` inside a bfloat16 autocast region of its own, so autocast's
+    /// low-precision copies of the weights never outlive an optimiser step.
+    pub fn forward<T>(&self, f: impl FnOnce() -> T) -> anyhow::Result<T> {
+        let _region = match self.precision {
+            Precision::Bf16 => Some(Autocast::enter(self.device)?),
+            Precision::Auto | Precision::Fp32 | Precision::Tf32 => None,
+        };
+        Ok(f())
     }
 }
 
@@ -116,6 +156,8 @@ pub type Figures = Vec<(&'static str, f64)>;
 /// What [`fit`] trains on.
 pub struct Fit<'a> {
     pub training: &'a Training,
+    /// Where it computes, and in what arithmetic: each batch's loss and each evaluation run in it.
+    pub placement: Placement,
     /// The training frames (indices into the operator's data); each epoch visits them once in a
     /// seeded order, in batches of `training.batch`, the remainder dropped.
     pub frames: &'a [usize],
@@ -189,7 +231,7 @@ pub fn fit(
             // The micro-batches' losses, figures and gradients, averaged.
             let (mut value, mut grads, mut batch_figures) = (0.0, Vec::<Tensor>::new(), Vec::new());
             for (m, micro) in frames.chunks_exact(batch / micro_batches).enumerate() {
-                let Step { loss: micro_loss, figures: micro_figures } = loss(micro, &mut rng, &Backward::new(&opt))?;
+                let Step { loss: micro_loss, figures: micro_figures } = fit.placement.forward(|| loss(micro, &mut rng, &Backward::new(&opt)))??;
                 let (micro_value, micro_grads) = match micro_loss {
                     Loss::Tensor(loss) => (finite(loss.double_value(&[]), global + 1, epoch + 1)?, opt.gradients(&loss)),
                     Loss::Computed { value, gradients } => (finite(value, global + 1, epoch + 1)?, gradients),
@@ -224,7 +266,7 @@ pub fn fit(
         let step = (epoch + 1) * steps_per_epoch;
         let mut line = json!({"epoch": epoch + 1, "step": step, "loss": mean(&losses), "lr": lr(step - 1)});
         figures.iter().for_each(|(name, series)| line[*name] = mean(series).into());
-        evaluate()?.into_iter().for_each(|(name, figure)| line[name] = figure.into());
+        fit.placement.forward(&mut evaluate)??.into_iter().for_each(|(name, figure)| line[name] = figure.into());
         tensorboard.scalars(step, &epoch_scalars(&line))?;
         // Times go to the event log only: the artifact holds what the key determines.
         let mut event = line.clone();
@@ -240,7 +282,7 @@ pub fn fit(
     progress.finish();
     if t.epochs == 0 {
         let mut line = json!({"epoch": 0, "step": 0});
-        evaluate()?.into_iter().for_each(|(name, figure)| line[name] = figure.into());
+        fit.placement.forward(&mut evaluate)??.into_iter().for_each(|(name, figure)| line[name] = figure.into());
         tensorboard.scalars(0, &epoch_scalars(&line))?;
         log.push(line);
     }
@@ -330,7 +372,8 @@ mod tests {
         let targets = Tensor::randn([8, 2], (tch::Kind::Float, tch::Device::Cpu));
         let training = Training { epochs: 1, batch: 8, accumulate, warmup_epochs: 0.0, lr: 0.1, eps: 1.0, clip_norm: 1e6, ..Training::default() };
         let frames: Vec<usize> = (0..8).collect();
-        let fit_on = Fit { training: &training, frames: &frames, per_batch: false };
+        let placement = Placement { device: tch::Device::Cpu, precision: Precision::Fp32 };
+        let fit_on = Fit { training: &training, placement, frames: &frames, per_batch: false };
         fit(
             &vs,
             fit_on,
@@ -354,6 +397,61 @@ mod tests {
             let accumulated = one_step(accumulate);
             assert!(accumulated.allclose(&whole, 1e-5, 1e-6, false), "accumulate = {accumulate}: {accumulated} against {whole}");
         }
+    }
+
+    /// `epochs` epochs of a two-layer model in bfloat16 autocast on the CPU, in `dir`'s
+    /// checkpoint; the loss fails at the first step of epoch `fail_at` (a killed run), if given.
+    /// The trained weights, or the error.
+    fn bf16_run(dir: &Path, epochs: u64, fail_at: Option<u64>) -> anyhow::Result<Vec<(String, Tensor)>> {
+        let (out, ckpt) = (dir.join("out"), dir.join("ckpt"));
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::create_dir_all(&ckpt).unwrap();
+        let mut ctx = Context::standalone("fit", &[], &out, &ckpt, 11, 1);
+        tch::manual_seed(4);
+        let vs = nn::VarStore::new(tch::Device::Cpu);
+        let hidden = nn::linear(vs.root() / "hidden", 6, 16, Default::default());
+        let head = nn::linear(vs.root() / "head", 16, 2, Default::default());
+        let inputs = Tensor::randn([32, 6], (tch::Kind::Float, tch::Device::Cpu));
+        let targets = Tensor::randn([32, 2], (tch::Kind::Float, tch::Device::Cpu));
+        let training = Training { epochs, batch: 8, warmup_epochs: 0.0, lr: 0.01, precision: Precision::Bf16, device: Device::Cpu, ..Training::default() };
+        let placement = Placement::of(&training, Device::Cpu)?;
+        assert_eq!(placement, Placement { device: tch::Device::Cpu, precision: Precision::Bf16 });
+        let frames: Vec<usize> = (0..32).collect();
+        let steps = std::cell::Cell::new(0u64);
+        fit(
+            &vs,
+            Fit { training: &training, placement, frames: &frames, per_batch: false },
+            &mut ctx,
+            |batch, _, _| {
+                steps.set(steps.get() + 1);
+                if fail_at.is_some_and(|epoch| steps.get() > (epoch - 1) * 4) {
+                    anyhow::bail!("killed");
+                }
+                let index = Tensor::from_slice(&batch.iter().map(|&i| i as i64).collect::<Vec<_>>());
+                let h = nn::Module::forward(&hidden, &inputs.index_select(0, &index)).relu();
+                assert_eq!(h.kind(), tch::Kind::BFloat16, "the forward pass computes in bfloat16");
+                let predicted = nn::Module::forward(&head, &h).to_kind(tch::Kind::Float);
+                Ok(Step::from((predicted - targets.index_select(0, &index)).square().mean(tch::Kind::Float)))
+            },
+            || Ok(Vec::new()),
+        )?;
+        Ok(named_variables(&vs).into_iter().map(|(name, t)| (name, t.detach().copy())).collect())
+    }
+
+    #[test]
+    fn bfloat16_training_keeps_float_weights_and_resumes_to_the_same_bytes() {
+        let dir = std::env::temp_dir().join(format!("rlmflow-nn-bf16-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let whole = bf16_run(&dir.join("whole"), 3, None).unwrap();
+        assert!(whole.iter().all(|(_, t)| t.kind() == tch::Kind::Float), "weights stay float32");
+        assert!(bf16_run(&dir.join("resumed"), 3, Some(3)).is_err(), "killed in epoch 3");
+        let resumed = bf16_run(&dir.join("resumed"), 3, None).unwrap();
+        for ((name, a), (_, b)) in whole.iter().zip(&resumed) {
+            assert!(a.equal(b), "{name}: a resumed bfloat16 run ends with other weights");
+        }
+        let again = bf16_run(&dir.join("again"), 3, None).unwrap();
+        assert!(whole.iter().zip(&again).all(|((_, a), (_, b))| a.equal(b)), "two runs of one key, other bytes");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

@@ -18,6 +18,7 @@
 use rlmflow_stages::encoder::{Distance, Head, ModelConfig, Stem, TextConfig, VisionConfig};
 use rlmflow_stages::grid::CELLS;
 use rlmflow_stages::memory::{FLOAT, LOWER_BY_ACCUMULATING, TRAINED};
+use rlmflow_stages::numerics::Precision;
 use rlmflow_stages::weights::{Expected, check_init};
 use rlmflow_stages::{
     Device, Footprint, InWorker, InputOutlines, ModelOutline, Numerics, OperatorSpec, Outline, Resources, SettingError, Settings, Training,
@@ -111,6 +112,7 @@ impl Default for ClipSettings {
                 device: Device::Auto,
                 threads: 2,
                 numerics: Numerics::Portable,
+                precision: Precision::Auto,
             },
         }
     }

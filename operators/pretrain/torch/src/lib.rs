@@ -13,7 +13,7 @@ use rand::RngExt;
 use rlmflow_nn::clip::{Clip as Model, cached_contrastive, logits};
 use rlmflow_nn::data::{Frames, Need, Splits};
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
-use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Loss, Step, fit, resolve_device, write_weights};
+use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Loss, Placement, Step, fit, write_weights};
 use rlmflow_nn::{loss, start};
 use rlmflow_pretrain::{ClipSettings, Objective};
 use rlmflow_stages::encoder::{self, ModelConfig};
@@ -24,8 +24,13 @@ use serde_json::{Value, json};
 
 /// `clip`'s training, attached by the worker to `rlmflow_pretrain::operator()`.
 pub fn clip(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+    rlmflow_nn::failure::catching(|| clip_on(s, ctx))
+}
+
+fn clip_on(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     tch::set_num_threads(s.training.threads as i32);
-    let device = resolve_device(s.training.device, ctx.device)?;
+    let placement = Placement::of(&s.training, ctx.device)?;
+    let device = placement.device;
     let text = s.objective != Objective::Counts;
     let frames = Frames::load(ctx, Need { captions: true, masks: false })?;
     let captions = frames.captions.as_ref().context("pretraining reads the tokens stage")?;
@@ -72,7 +77,7 @@ pub fn clip(s: &ClipSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         figures.extend(evaluate(&model, &frames, &split.test, device, text));
         Ok(figures)
     };
-    let fitted = fit(&vs, Fit { training: &s.training, frames: &split.train, per_batch: true }, ctx, batch_loss, after_epoch)?;
+    let fitted = fit(&vs, Fit { training: &s.training, placement, frames: &split.train, per_batch: true }, ctx, batch_loss, after_epoch)?;
     write_artifact(s, ctx, &vs, &config, &frames, &split, fitted)
 }
 

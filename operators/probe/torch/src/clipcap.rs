@@ -11,7 +11,7 @@ use rlmflow_nn::data::{Captions, Frames, Need, Splits};
 use rlmflow_nn::decode::{beam_search, greedy};
 use rlmflow_nn::gpt::{Gpt, GptConfig, Mapper, Steps, caption_loss};
 use rlmflow_nn::tch::{self, Tensor, nn};
-use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
+use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Placement, Step, fit, write_weights};
 use rlmflow_nn::{clip, start};
 use rlmflow_probe::{ClipcapSettings, Decode};
 use rlmflow_stages::grid::{CELLS, Grid};
@@ -85,8 +85,13 @@ fn load(s: &ClipcapSettings, ctx: &Context, device: tch::Device) -> anyhow::Resu
 
 /// `clipcap`'s training, attached by the worker to `rlmflow_probe::clipcap()`.
 pub fn clipcap(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+    rlmflow_nn::failure::catching(|| clipcap_on(s, ctx))
+}
+
+fn clipcap_on(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     tch::set_num_threads(s.training.threads as i32);
-    let device = resolve_device(s.training.device, ctx.device)?;
+    let placement = Placement::of(&s.training, ctx.device)?;
+    let device = placement.device;
     let (data, encoder) = load(s, ctx, device)?;
     let captions = data.captions();
     let tokenizer_path = ctx.input("tokens")?.join(tokens::TOKENIZER);
@@ -124,7 +129,7 @@ pub fn clipcap(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome
         });
         Ok(vec![("validation_loss", sum / data.split.validation.len() as f64)])
     };
-    let Fitted { log, .. } = fit(&vs, Fit { training: &s.training, frames: &data.split.train, per_batch: false }, ctx, batch_loss, validation_loss)?;
+    let Fitted { log, .. } = fit(&vs, Fit { training: &s.training, placement, frames: &data.split.train, per_batch: false }, ctx, batch_loss, validation_loss)?;
 
     // Generate the validation and test captions.
     let context = captions.context as usize;
@@ -136,12 +141,14 @@ pub fn clipcap(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome
         let mut captions = Vec::with_capacity(frames.len());
         tch::no_grad(|| -> anyhow::Result<()> {
             for frames in frames.chunks(CHUNK) {
-                let prefix = mapper.forward(&data.embedding(frames));
-                let mut steps = Steps::new(&gpt, &prefix, start);
-                let sequences = match s.decode {
-                    Decode::Greedy => greedy(&mut steps, end, max_tokens),
-                    Decode::Beam => beam_search(&mut steps, s.beam, end, max_tokens),
-                };
+                let sequences = placement.forward(|| {
+                    let prefix = mapper.forward(&data.embedding(frames));
+                    let mut steps = Steps::new(&gpt, &prefix, start);
+                    match s.decode {
+                        Decode::Greedy => greedy(&mut steps, end, max_tokens),
+                        Decode::Beam => beam_search(&mut steps, s.beam, end, max_tokens),
+                    }
+                })?;
                 for ids in sequences {
                     let ids: Vec<u32> = ids.into_iter().take_while(|&t| t != end).map(|t| t as u32).collect();
                     captions.push(tokenizer.decode(&ids, true).map_err(|e| anyhow::anyhow!("decoding a generated caption: {e}"))?.trim().to_owned());

@@ -22,6 +22,10 @@ pub use ridge::Ridge;
 
 /// `linear`'s training, attached by the worker to `rlmflow_probe::linear()`.
 pub fn linear(s: &LinearSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+    rlmflow_nn::failure::catching(|| linear_on(s, ctx))
+}
+
+fn linear_on(s: &LinearSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     tch::set_num_threads(s.threads as i32);
     let data = Frames::load(ctx, Need::default())?;
     let labels = &data.labels;

@@ -14,7 +14,7 @@ use rlmflow_nn::clip::{self, Clip as Model};
 use rlmflow_nn::data::{Frames, Need, Splits};
 use rlmflow_nn::segment::{Pup as PupHead, UNet, dice_bce_loss};
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
-use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Step, fit, resolve_device, write_weights};
+use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Placement, Step, fit, write_weights};
 use rlmflow_segment::{PupSettings, TOKEN_CACHE_BYTES, UnetSettings, pup_widths};
 use rlmflow_stages::identity::Split;
 use rlmflow_stages::npy::{Dtype, NpyWriter};
@@ -28,7 +28,12 @@ const CHUNK: usize = 256;
 
 /// `pup`'s training, attached by the worker to `rlmflow_segment::pup()`.
 pub fn pup(s: &PupSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-    let (device, data) = prepare(&s.training, ctx, s.allow_test_overlap)?;
+    rlmflow_nn::failure::catching(|| pup_on(s, ctx))
+}
+
+fn pup_on(s: &PupSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+    let (placement, data) = prepare(&s.training, ctx, s.allow_test_overlap)?;
+    let device = placement.device;
     let (_encoder_vs, encoder) = clip::load(ctx.input("encoder")?, device, data.frames.side)?;
     let vision = &encoder.config.vision;
     let widths = if s.channels.is_empty() { pup_widths(vision.grid(), data.frames.side) } else { s.channels.clone() };
@@ -44,12 +49,17 @@ pub fn pup(s: &PupSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     let segmenter = Segmenter { name: "pup", vs, forward: Box::new(move |frames: &[usize], train: bool| head.forward_t(&tokens.get(frames), train)) };
     let rollout = |frames: &[usize]| tch::no_grad(|| encoder.visual.attention_rollout(&data.frames.images(frames, device), blocks.len()));
     let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: s.result_settings() };
-    train(&s.training, &segmentation, ctx, &data, device, segmenter, Some((&blocks, &rollout)))
+    train(&s.training, &segmentation, ctx, &data, placement, segmenter, Some((&blocks, &rollout)))
 }
 
 /// `unet`'s training, attached by the worker to `rlmflow_segment::unet()`.
 pub fn unet(s: &UnetSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
-    let (device, data) = prepare(&s.training, ctx, false)?;
+    rlmflow_nn::failure::catching(|| unet_on(s, ctx))
+}
+
+fn unet_on(s: &UnetSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+    let (placement, data) = prepare(&s.training, ctx, false)?;
+    let device = placement.device;
     s.check_depth(data.frames.side as u64)?;
     let vs = nn::VarStore::new(device);
     tch::manual_seed(ctx.seed as i64);
@@ -58,7 +68,7 @@ pub fn unet(s: &UnetSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
     let segmenter =
         Segmenter { name: "unet", vs, forward: Box::new(move |batch: &[usize], train: bool| unet.forward_t(&frames.images(batch, device), train)) };
     let segmentation = Segmentation { samples: s.samples, dice_weight: s.dice_weight, generator: s.result_settings() };
-    train(&s.training, &segmentation, ctx, &data, device, segmenter, None)
+    train(&s.training, &segmentation, ctx, &data, placement, segmenter, None)
 }
 
 /// Share of the training split held out as the validation slice the per-epoch log scores.
@@ -78,14 +88,14 @@ struct Data {
     hygiene: Vec<rlmflow_stages::identity::Overlap>,
 }
 
-fn prepare(t: &Training, ctx: &Context, allow_test_overlap: bool) -> anyhow::Result<(tch::Device, Data)> {
+fn prepare(t: &Training, ctx: &Context, allow_test_overlap: bool) -> anyhow::Result<(Placement, Data)> {
     tch::set_num_threads(t.threads as i32);
-    let device = resolve_device(t.device, ctx.device)?;
+    let placement = Placement::of(t, ctx.device)?;
     let frames = Frames::load(ctx, Need { captions: false, masks: true })?;
     let hygiene = rlmflow_stages::identity::check_inputs(ctx, &frames.labels.ids(Split::Test), allow_test_overlap)?;
     let split = frames.splits(VALIDATION_SHARE, false);
     split.require("segmentation", true)?;
-    Ok((device, Data { frames, split, hygiene }))
+    Ok((placement, Data { frames, split, hygiene }))
 }
 
 /// The frozen encoder's tokens after `ln_post` for any frames: from a table of every frame's
@@ -153,7 +163,7 @@ fn evaluate(segmenter: &Segmenter, frames: &Frames, scored: &[usize], device: tc
         for batch in scored.chunks(CHUNK) {
             let logits = (segmenter.forward)(batch, false);
             loss += dice_bce_loss(&logits, &frames.masks(batch, device), dice_weight).double_value(&[]) * batch.len() as f64;
-            let predicted = Vec::<f32>::try_from(logits.sigmoid().to_device(tch::Device::Cpu).flatten(0, -1))?;
+            let predicted = Vec::<f32>::try_from(logits.sigmoid().to_device(tch::Device::Cpu).to_kind(Kind::Float).flatten(0, -1))?;
             let n = (frames.side * frames.side) as usize;
             for (i, &f) in batch.iter().enumerate() {
                 counts.add(&predicted[i * n..(i + 1) * n], frames.mask(f));
@@ -170,11 +180,11 @@ fn train(
     segmentation: &Segmentation,
     ctx: &mut Context,
     data: &Data,
-    device: tch::Device,
+    placement: Placement,
     segmenter: Segmenter,
     rollout: Option<Rollout>,
 ) -> anyhow::Result<Outcome> {
-    let frames = &data.frames;
+    let (frames, device) = (&data.frames, placement.device);
     let batch_loss = |batch: &[usize], _: &mut EpochRng, _: &Backward| -> anyhow::Result<Step> {
         Ok(dice_bce_loss(&(segmenter.forward)(batch, true), &frames.masks(batch, device), segmentation.dice_weight).into())
     };
@@ -183,8 +193,8 @@ fn train(
         let m = counts.metrics();
         Ok(vec![("validation_loss", loss), ("validation_iou", m.iou), ("validation_ap", m.ap)])
     };
-    let fitted = fit(&segmenter.vs, Fit { training: t, frames: &data.split.train, per_batch: false }, ctx, batch_loss, validation)?;
-    let metrics = evaluate(&segmenter, frames, &data.split.test, device, segmentation.dice_weight)?.0.metrics();
+    let fitted = fit(&segmenter.vs, Fit { training: t, placement, frames: &data.split.train, per_batch: false }, ctx, batch_loss, validation)?;
+    let metrics = placement.forward(|| evaluate(&segmenter, frames, &data.split.test, device, segmentation.dice_weight))??.0.metrics();
     write_artifact(t, segmentation, ctx, data, &segmenter, rollout, fitted, metrics)
 }
 
