@@ -2,12 +2,16 @@
 SG-CLIP loss, clipping and AdamW step as rlmflow-nn, written in plain PyTorch the way open_clip
 writes them. Needs torch 2.11 (`import torch`); CI never runs it.
 
-    python step_reference.py '<model config JSON>' BATCH STEPS THREADS
+    python step_reference.py '<model config JSON>' BATCH STEPS THREADS [DEVICE [PRECISION]]
 
-prints the median milliseconds per training step.
+prints the median milliseconds per training step (the device synchronised). DEVICE is cpu or
+cuda; PRECISION fp32, tf32 or bf16 (the towers and loss under torch.autocast in bfloat16, as
+open_clip's `--precision amp_bf16`; weights, optimiser and clipping in float32). On CUDA it runs
+with deterministic algorithms, as rlmflow does.
 """
 
 import json
+import os
 import sys
 import time
 
@@ -85,37 +89,49 @@ class Text(nn.Module):
             x = block(x, True)
         x = self.ln_final(x)
         end = (tokens == self.c["end_token"]).int().argmax(1) // self.c["group"]
-        return x[torch.arange(b), end] @ self.proj
+        return x[torch.arange(b, device=x.device), end] @ self.proj
 
 
 def main():
     config, batch, steps, threads = json.loads(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+    device = torch.device(sys.argv[5] if len(sys.argv) > 5 else "cpu")
+    precision = sys.argv[6] if len(sys.argv) > 6 else "fp32"
     torch.set_num_threads(threads)
     torch.manual_seed(0)
-    vision, text = Vision(config["vision"], config["embed"]), Text(config["text"], config["embed"])
+    if device.type == "cuda":
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+        torch.use_deterministic_algorithms(True)
+        torch.backends.cudnn.benchmark = False
+        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = precision == "tf32"
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    vision, text = Vision(config["vision"], config["embed"]).to(device), Text(config["text"], config["embed"]).to(device)
     params = list(vision.parameters()) + list(text.parameters())
     decay = [p for p in params if p.dim() >= 2]
     rest = [p for p in params if p.dim() < 2]
     opt = torch.optim.AdamW([{"params": decay, "weight_decay": 0.05}, {"params": rest, "weight_decay": 0.0}], lr=1e-4, betas=(0.9, 0.98), eps=1e-8)
     side, ctx = config["vision"]["image"], config["text"]["context"]
-    images = torch.randint(0, 256, (batch, 1, side, side)).float() / 127.5 - 1
+    images = (torch.randint(0, 256, (batch, 1, side, side)).float() / 127.5 - 1).to(device)
     tokens = torch.randint(3, config["text"]["vocab"], (batch, ctx))
     tokens[:, ctx // 2] = config["text"]["end_token"]
-    counts = torch.randint(0, 3, (batch, 48)).float()
+    tokens = tokens.to(device)
+    counts = torch.randint(0, 3, (batch, 48)).float().to(device)
     times = []
     for _ in range(steps + 2):
+        sync()
         t0 = time.perf_counter()
-        img, txt = vision(images), text(tokens)
-        logits = F.normalize(img, dim=-1) @ F.normalize(txt, dim=-1).T / 0.07
-        d = (counts[:, None] - counts[None]).abs().sum(-1)
-        s = torch.exp(-4.0 * d**2)
-        target = s / s.sum(1, keepdim=True)
-        tt = target.T / target.T.sum(1, keepdim=True)
-        loss = (-(target * logits.log_softmax(1)).sum(1).mean() - (tt * logits.T.log_softmax(1)).sum(1).mean()) / 2
+        with torch.autocast(device.type, torch.bfloat16, enabled=precision == "bf16"):
+            img, txt = vision(images), text(tokens)
+            logits = F.normalize(img, dim=-1) @ F.normalize(txt, dim=-1).T / 0.07
+            d = (counts[:, None] - counts[None]).abs().sum(-1)
+            s = torch.exp(-4.0 * d**2)
+            target = s / s.sum(1, keepdim=True)
+            tt = target.T / target.T.sum(1, keepdim=True)
+            loss = (-(target * logits.log_softmax(1)).sum(1).mean() - (tt * logits.T.log_softmax(1)).sum(1).mean()) / 2
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, 1.0)
         opt.step()
+        sync()
         times.append(time.perf_counter() - t0)
     times = sorted(times[2:])
     print(1000 * times[len(times) // 2])

@@ -10,6 +10,7 @@ use std::process::ExitCode;
 use rlmflow_stages::{Catalog, Registry};
 
 mod doctor;
+mod step;
 
 fn registry() -> Registry {
     let mut registry = Registry::new(Catalog::paper());
@@ -28,5 +29,5 @@ fn main() -> ExitCode {
     // libtorch decides once, at its first question about CUDA, whether it has it: load its CUDA
     // half first, where there is one and a driver (`rlmflow_nn::cuda`).
     let _ = rlmflow_nn::cuda::load(false);
-    rlmflow_engine::cli::main(registry(), &[doctor::command()])
+    rlmflow_engine::cli::main(registry(), &[doctor::command(), step::command()])
 }

@@ -13,6 +13,12 @@
 //!                                  --cuda also the CUDA packages its CUDA half loads (about
 //!                                  2.6 GB; every command installs them where an NVIDIA driver
 //!                                  is present, `RLMFLOW_LIBTORCH_CUDA=0` never)
+//! cargo xtask device-check [--build-only] [ARGS]
+//!                                  build rlmflow and its torch worker (release), pack them
+//!                                  (xz) with the libpython rlmflow embeds into
+//!                                  target/device-check/ for a GPU machine, then run
+//!                                  xtask/device-check.py ARGS on them (without a GPU: a dry
+//!                                  run that checks its inputs)
 //! cargo xtask llm-check            build rlmflow, then run tests/llm_check.py: the `llm`
 //!                                  operator against a real llama.cpp server (opt-in; it
 //!                                  compiles llama.cpp, about 11 minutes on 2 cores)
@@ -37,7 +43,7 @@ fn main() -> ExitCode {
 
 fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
     let Some((command, rest)) = args.split_first() else {
-        bail!("usage: cargo xtask <test|run|build|bench|rlmflow|libtorch|llm-check> [ARGS]");
+        bail!("usage: cargo xtask <test|run|build|bench|rlmflow|libtorch|device-check|llm-check> [ARGS]");
     };
     let note = &mut |note: &str| eprintln!("xtask: {note}");
     let ours = std::env::var_os("LIBTORCH").is_none();
@@ -67,6 +73,19 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
             }
             status(rlmflow.args(rest))
         }
+        "device-check" => {
+            if !status(cargo().args(["build", "--release", "--bins", "-p", "rlmflow", "-p", "rlmflow-torch"]))?.eq(&ExitCode::SUCCESS) {
+                return Ok(ExitCode::FAILURE);
+            }
+            let packed = target_dir()?.join("device-check");
+            pack(&target_dir()?.join("release"), &packed)?;
+            if rest.iter().any(|a| a == "--build-only") {
+                println!("{}: carry it to the GPU machine and run `python3 xtask/device-check.py --bin {}` there", packed.display(), packed.display());
+                return Ok(ExitCode::SUCCESS);
+            }
+            let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("device-check.py");
+            status(Command::new("python3").arg(script).arg("--bin").arg(&packed).args(rest))
+        }
         "llm-check" => {
             if !status(cargo().args(["build", "--bin", "rlmflow", "-p", "rlmflow"]))?.eq(&ExitCode::SUCCESS) {
                 return Ok(ExitCode::FAILURE);
@@ -74,8 +93,29 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
             let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/llm_check.py");
             status(Command::new("python3").arg(script).arg(target_dir()?.join("debug/rlmflow")))
         }
-        other => bail!("unknown xtask `{other}`; valid: test, run, build, bench, rlmflow, libtorch, llm-check"),
+        other => bail!("unknown xtask `{other}`; valid: test, run, build, bench, rlmflow, libtorch, device-check, llm-check"),
     }
+}
+
+/// The release binaries of `release`, xz-compressed, and the libpython `rlmflow` embeds, in
+/// `into`: what a GPU machine without Rust needs (`xtask/device-check.py` unpacks them).
+fn pack(release: &std::path::Path, into: &std::path::Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(into)?;
+    for name in ["rlmflow", "rlmflow-torch"] {
+        let _ = std::fs::remove_file(into.join(name));
+        let packed = std::fs::File::create(into.join(format!("{name}.xz")))?;
+        let ok = Command::new("xz").args(["-T0", "-6", "-c"]).arg(release.join(name)).stdout(packed).status().context("running xz")?;
+        if !ok.success() {
+            bail!("xz could not pack {}", release.join(name).display());
+        }
+    }
+    let python = std::env::var_os("PYO3_PYTHON").unwrap_or_else(|| "python3".into());
+    let query = "import os, sysconfig; print(os.path.join(sysconfig.get_config_var('LIBDIR'), sysconfig.get_config_var('INSTSONAME')))";
+    let out = Command::new(&python).args(["-c", query]).output().context("asking Python for its libpython")?;
+    let libpython = PathBuf::from(String::from_utf8_lossy(&out.stdout).trim());
+    let name = libpython.file_name().context("libpython's file name")?;
+    std::fs::copy(&libpython, into.join(name)).with_context(|| format!("copying {}", libpython.display()))?;
+    Ok(())
 }
 
 fn status(cmd: &mut Command) -> anyhow::Result<ExitCode> {

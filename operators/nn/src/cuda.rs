@@ -10,7 +10,7 @@
 use std::ffi::{CStr, CString, c_int, c_void};
 use std::fmt;
 use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
+use std::sync::Mutex;
 
 /// What this process can compute on, and why not CUDA.
 #[derive(Clone, Debug)]
@@ -130,28 +130,31 @@ fn driver_version() -> Result<String, String> {
     }
 }
 
-static LOADED: OnceLock<Result<(), String>> = OnceLock::new();
+/// The outcome of loading libtorch_cuda: `None` until tried.
+static LOADED: Mutex<Option<Result<(), String>>> = Mutex::new(None);
+const NO_DRIVER: &str = "not tried: no NVIDIA driver";
 
 /// Loads `libtorch_cuda.so` beside the libtorch this process runs with, once, where the
 /// libtorch is a CUDA build and an NVIDIA driver is present (so a CPU machine loads nothing);
 /// `force` tries even without a driver (for [`status`]'s report). Call before anything asks
 /// libtorch about CUDA: the worker does, first thing.
-pub fn load(force: bool) -> &'static Result<(), String> {
-    if let Some(done) = LOADED.get() {
-        return done;
+pub fn load(force: bool) -> Result<(), String> {
+    let mut loaded = LOADED.lock().expect("the CUDA load's outcome");
+    if let Some(outcome) = loaded.as_ref().filter(|o| !(force && o.as_ref().err().is_some_and(|e| e == NO_DRIVER))) {
+        return outcome.clone();
     }
-    let Some(lib) = libtorch_lib_dir().filter(|lib| built_for(lib).is_some()) else {
-        return LOADED.get_or_init(|| Err("this libtorch has no libtorch_cuda.so".into()));
+    let outcome = match libtorch_lib_dir().filter(|lib| built_for(lib).is_some()) {
+        None => Err("this libtorch has no libtorch_cuda.so".into()),
+        Some(_) if !force && driver_version().is_err() => Err(NO_DRIVER.into()),
+        Some(lib) => dlopen(&lib.join("libtorch_cuda.so").to_string_lossy(), libc::RTLD_NOW | libc::RTLD_GLOBAL).map(|_| ()),
     };
-    if !force && driver_version().is_err() {
-        return LOADED.get_or_init(|| Err("not tried: no NVIDIA driver".into()));
-    }
-    LOADED.get_or_init(|| dlopen(&lib.join("libtorch_cuda.so").to_string_lossy(), libc::RTLD_NOW | libc::RTLD_GLOBAL).map(|_| ()))
+    *loaded = Some(outcome.clone());
+    outcome
 }
 
 /// What this process can compute on; loads libtorch_cuda first if it can ([`load`]).
 pub fn status() -> Status {
-    let library = load(true).clone();
+    let library = load(true);
     let libtorch = libtorch_lib_dir();
     let built_for = libtorch.as_deref().and_then(built_for);
     let devices = if library.is_ok() { tch::Cuda::device_count() } else { 0 };

@@ -255,8 +255,8 @@ pub fn fit(
                     None => figures.push((name, vec![figure])),
                 }
             }
-            AdamW::clip_grad_norm(&grads, t.clip_norm);
-            opt.step(&grads, lr(global));
+            opt.clip_grad_norm(&grads, t.clip_norm)?;
+            opt.step(&grads, lr(global))?;
             let mut scalars = vec![("train/loss".to_owned(), value), ("train/lr".to_owned(), lr(global))];
             scalars.extend(figures.iter().map(|(name, series)| (format!("train/{name}"), series[series.len() - 1])));
             tensorboard.scalars(global + 1, &scalars)?;
@@ -468,7 +468,7 @@ mod tests {
         let mut opt = AdamW::new(&vs, (0.9, 0.999), 1e-8, 0.01);
         assert!(checkpoint_log(&dir).unwrap().is_empty(), "no checkpoint yet");
         let loss = nn::Module::forward(&layer, &Tensor::ones([4, 3], (tch::Kind::Float, tch::Device::Cpu))).sum(tch::Kind::Float);
-        opt.step(&opt.gradients(&loss), 0.1);
+        opt.step(&opt.gradients(&loss), 0.1).unwrap();
         save_checkpoint(&vs, &opt, &[serde_json::json!({"epoch": 1})], &dir).unwrap();
 
         tch::manual_seed(2);

@@ -2,6 +2,7 @@
 //! one store (see `common::scratch`), so the data stages they read alike are computed once.
 
 mod common;
+mod devices;
 mod numerics;
 mod operators;
 mod pretrain;
