@@ -42,7 +42,7 @@ BINARIES = ("rlmflow", "rlmflow-torch")
 MODEL_STAGES = ("pretrain", "clipcap", "pup", "unet")
 # The report's Rerun recording needs the managed Python environment, which a GPU machine without
 # a network cannot install; the report's other files are made all the same.
-CUDA = [f"{stage}.device=cuda" for stage in MODEL_STAGES] + ["report.rerun=false"]
+CUDA = [f'{stage}.device="cuda"' for stage in MODEL_STAGES] + ["report.rerun=false"]
 # The paper's per-GPU batch, embedded in chunks as examples/paper.toml does.
 MEMORY = ["scenes.frames=200", "pretrain.batch=160", "pretrain.chunk=80", "--only", "pretrain"]
 

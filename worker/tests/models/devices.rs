@@ -39,11 +39,13 @@ fn the_doctor_says_which_devices_the_worker_can_use_and_why_not_cuda() {
     }
 }
 
-/// A CPU-size encoder, one epoch, in the given arithmetic.
+/// A CPU-size encoder, one epoch, in the given arithmetic (native kernels: bfloat16 under the
+/// portable pins is five times slower, and `numerics.rs` checks the pins).
 fn pipeline(name: &str, precision: &str) -> String {
     format!(
-        "{}\n[stages.pretrain]\noperator = \"clip\"\ndevice = \"cpu\"\nbatch = 64\nepochs = 1\nwarmup_epochs = 0.0\n{precision}\n",
-        crate::common::data_stages(name)
+        "{}\n[stages.pretrain]\noperator = \"clip\"\ndevice = \"cpu\"\n{}\nbatch = 64\nepochs = 1\nwarmup_epochs = 0.0\n{precision}\n",
+        crate::common::data_stages(name),
+        crate::common::NATIVE
     )
 }
 
@@ -54,11 +56,11 @@ fn precision_is_keyed_and_bf16_trains_to_the_same_bytes_in_a_fresh_store() {
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
     let fp32 = output(&dir, "precision", "pretrain");
-    let (ok, status) = rlmflow(&dir, &["status", "p.toml", "--set", "pretrain.precision=bf16"]);
-    assert!(ok && status.contains("pretrain.precision auto -> bf16"), "{status}");
-    let (ok, explain) = rlmflow(&dir, &["explain", "p.toml", "pretrain", "--set", "pretrain.precision=bf16"]);
+    let (ok, status) = rlmflow(&dir, &["status", "p.toml", "--set", "pretrain.precision=\"bf16\""]);
+    assert!(ok && status.contains(r#"pretrain.precision "auto" -> "bf16""#), "{status}");
+    let (ok, explain) = rlmflow(&dir, &["explain", "p.toml", "pretrain", "--set", "pretrain.precision=\"bf16\""]);
     assert!(ok && explain.contains("precision") && explain.contains("bf16"), "{explain}");
-    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--set", "pretrain.precision=bf16"]);
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--set", "pretrain.precision=\"bf16\""]);
     assert!(ok && out.contains("ran      pretrain"), "{out}");
     let bf16 = output(&dir, "precision", "pretrain");
     assert_ne!(fp32, bf16, "bf16 is another result under another key");
@@ -72,7 +74,7 @@ fn precision_is_keyed_and_bf16_trains_to_the_same_bytes_in_a_fresh_store() {
     assert_eq!(output(&fresh, "precision", "pretrain").file_name(), bf16.file_name(), "same key, same bytes: {out}");
 
     // A CUDA-only arithmetic on the CPU is refused before anything runs, naming the key.
-    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--set", "pretrain.precision=tf32"]);
+    let (ok, out) = rlmflow(&dir, &["run", "p.toml", "--set", "pretrain.precision=\"tf32\""]);
     assert!(!ok && out.contains("precision") && out.contains("`tf32` is a CUDA matmul mode"), "{out}");
 }
 
