@@ -23,8 +23,28 @@ impl ConvBnRelu {
     }
 }
 
+/// Bilinear interpolation from `from` points to `to` (`align_corners = false`, as libtorch's
+/// `upsample_bilinear2d`): a (to, from) matrix, each row two weights summing to one.
+fn interpolation(from: i64, to: i64, device: tch::Device) -> Tensor {
+    let scale = from as f64 / to as f64;
+    let mut weights = vec![0f32; (to * from) as usize];
+    for i in 0..to {
+        let source = ((i as f64 + 0.5) * scale - 0.5).max(0.0);
+        let low = (source as i64).min(from - 1);
+        let high = (low + 1).min(from - 1);
+        let share = (source - low as f64) as f32;
+        weights[(i * from + low) as usize] += 1.0 - share;
+        weights[(i * from + high) as usize] += share;
+    }
+    Tensor::from_slice(&weights).view([to, from]).to_device(device)
+}
+
+/// Bilinear upsampling of (batch, channels, h, w) maps to `side` x `side`, as two matrix
+/// products: libtorch's `upsample_bilinear2d` has no deterministic backward on CUDA (its
+/// deterministic mode refuses it), a matmul's is; and the CPU computes what CUDA does.
 fn upsample(x: &Tensor, side: i64) -> Tensor {
-    x.upsample_bilinear2d([side, side], false, None, None)
+    let (h, w) = (x.size()[2], x.size()[3]);
+    interpolation(h, side, x.device()).matmul(x).matmul(&interpolation(w, side, x.device()).tr())
 }
 
 /// Progressive upsampling (SETR's PUP, the paper's table, widths from
@@ -146,6 +166,16 @@ pub fn dice_bce_loss(logits: &Tensor, target: &Tensor, dice_weight: f64) -> Tens
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn upsampling_by_matrices_is_libtorchs_bilinear_upsampling() {
+        for (from, to) in [(2, 4), (7, 14), (14, 224), (5, 12), (28, 32)] {
+            let x = Tensor::randn([2, 3, from, from], (tch::Kind::Float, tch::Device::Cpu));
+            let ours = upsample(&x, to);
+            let theirs = x.upsample_bilinear2d([to, to], false, None, None);
+            assert!(ours.allclose(&theirs, 1e-5, 1e-5, false), "{from} -> {to}: {}", (ours - theirs).abs().max());
+        }
+    }
 
     #[test]
     fn dice_bce_is_small_for_a_confident_right_answer_and_large_for_a_wrong_one() {
