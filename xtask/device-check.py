@@ -44,7 +44,7 @@ MODEL_STAGES = ("pretrain", "clipcap", "pup", "unet")
 # a network cannot install; the report's other files are made all the same.
 CUDA = [f'{stage}.device="cuda"' for stage in MODEL_STAGES] + ["report.rerun=false"]
 # The paper's per-GPU batch, embedded in chunks as examples/paper.toml does.
-MEMORY = ["scenes.frames=200", "pretrain.batch=160", "pretrain.chunk=80", "--only", "pretrain"]
+MEMORY = ["scenes.frames=400", "pretrain.batch=160", "pretrain.chunk=80", "--only", "pretrain"]
 
 
 def binaries(directory):
@@ -167,7 +167,7 @@ def main():
             ours = float(run([worker, "step", "--model", "paper", "--batch", batch, "--steps", "6", "--threads", "16", "--device", "cuda", "--precision", precision]))
             theirs = float(run([args.torch_python, REFERENCE, config, batch, "6", "16", "cuda", precision]))
             rate = lambda ms: int(batch) / ms * 1000
-            rows.append((f"step, paper model, batch {batch}, {precision}", f"{ours:.1} / {theirs:.1} ms", f"rlmflow {rate(ours):.0} samples/s, PyTorch {rate(theirs):.0}: samples/s ratio {theirs / ours:.3}"))
+            rows.append((f"step, paper model, batch {batch}, {precision}", f"{ours:.1f} / {theirs:.1f} ms", f"rlmflow {rate(ours):.0f} samples/s, PyTorch {rate(theirs):.0f}: samples/s ratio {theirs / ours:.3f}"))
 
     table = "| check | time | result |\n|---|---|---|\n" + "\n".join(f"| {a} | {b} | {c} |" for a, b, c in rows)
     print(table)
