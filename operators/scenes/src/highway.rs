@@ -141,7 +141,7 @@ impl Operator for HighwayEnv {
         OperatorSpec {
             name: "highway-env",
             kind: "scenes",
-            version: 6,
+            version: 7,
             inputs: None,
             summary: "traffic simulated by highway-env (highway, merge, roundabout, intersection, two-way, divided), rendered by the radar model",
         }
