@@ -128,6 +128,7 @@ mod tests {
 
     #[test]
     fn a_batch_embedded_in_chunks_has_the_whole_batchs_loss_and_gradients() {
+        let _generator = crate::generator();
         tch::manual_seed(7);
         let vs = nn::VarStore::new(tch::Device::Cpu);
         let vision =

@@ -178,6 +178,7 @@ mod tests {
 
     #[test]
     fn gpt2_weights_load_transposed_and_a_foreign_vocabulary_is_skipped() {
+        let _generator = crate::generator();
         let config = GptConfig { vocab: 11, positions: 9, width: 8, layers: 2, heads: 2, mlp: 32 };
         let vs = nn::VarStore::new(tch::Device::Cpu);
         let _gpt = Gpt::new(&(vs.root() / "gpt"), &config);
@@ -231,6 +232,7 @@ mod tests {
 
     #[test]
     fn grouping_rows_by_length_keeps_the_loss_and_its_gradient() {
+        let _generator = crate::generator();
         tch::manual_seed(3);
         let config = GptConfig { vocab: 13, positions: 12, width: 16, layers: 2, heads: 2, mlp: 32 };
         let vs = nn::VarStore::new(tch::Device::Cpu);
@@ -266,6 +268,7 @@ mod tests {
 
     #[test]
     fn cached_decoding_gives_the_full_pass_logits() {
+        let _generator = crate::generator();
         tch::manual_seed(5);
         let config = GptConfig { vocab: 13, positions: 12, width: 16, layers: 2, heads: 2, mlp: 32 };
         let vs = nn::VarStore::new(tch::Device::Cpu);

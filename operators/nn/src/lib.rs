@@ -29,3 +29,12 @@ pub mod transformer;
 pub mod vision;
 
 pub use tch;
+
+/// Held for its whole body by every unit test that draws from libtorch's one global generator
+/// (or sets a global switch): the harness runs tests on threads, and another test's draws between
+/// a test's `manual_seed` and its own draws would change what it computes.
+#[cfg(test)]
+pub(crate) fn generator() -> std::sync::MutexGuard<'static, ()> {
+    static GENERATOR: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    GENERATOR.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}

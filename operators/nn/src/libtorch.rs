@@ -145,6 +145,7 @@ mod tests {
 
     #[test]
     fn autocast_computes_matmuls_in_bfloat16_inside_its_region_only() {
+        let _generator = crate::generator();
         let a = Tensor::randn([4, 8], (Kind::Float, Device::Cpu));
         let b = Tensor::randn([8, 3], (Kind::Float, Device::Cpu));
         assert!(!Autocast::enabled(Device::Cpu));
@@ -186,6 +187,7 @@ mod tests {
 
     #[test]
     fn the_fused_adamw_step_and_foreach_clipping_are_pytorchs_update() {
+        let _generator = crate::generator();
         tch::manual_seed(9);
         let params: Vec<Tensor> = [[3, 4], [5, 1]].iter().map(|s| Tensor::randn(*s, (Kind::Float, Device::Cpu))).collect();
         let grads: Vec<Tensor> = params.iter().map(|p| p.randn_like() * 10.0).collect();
@@ -204,6 +206,7 @@ mod tests {
 
     #[test]
     fn determinism_and_tf32_are_switches_libtorch_reports() {
+        let _generator = crate::generator();
         set_deterministic(true).unwrap();
         assert!(deterministic());
         set_deterministic(false).unwrap();

@@ -189,6 +189,7 @@ mod tests {
 
     #[test]
     fn the_fused_kernels_take_the_step_of_the_per_parameter_loop() {
+        let _generator = crate::generator();
         for (fused, looped) in three_steps(true).iter().zip(three_steps(false)) {
             assert!(fused.allclose(&looped, 1e-5, 1e-6, false), "{fused} against {looped}");
         }

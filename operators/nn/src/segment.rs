@@ -169,6 +169,7 @@ mod tests {
 
     #[test]
     fn upsampling_by_matrices_is_libtorchs_bilinear_upsampling() {
+        let _generator = crate::generator();
         for (from, to) in [(2, 4), (7, 14), (14, 224), (5, 12), (28, 32)] {
             let x = Tensor::randn([2, 3, from, from], (tch::Kind::Float, tch::Device::Cpu));
             let ours = upsample(&x, to);
@@ -179,6 +180,7 @@ mod tests {
 
     #[test]
     fn dice_bce_is_small_for_a_confident_right_answer_and_large_for_a_wrong_one() {
+        let _generator = crate::generator();
         let target = Tensor::from_slice(&[1.0f32, 0.0, 0.0, 0.0]).view([1, 1, 2, 2]);
         let right = &target * 20.0 - 10.0;
         let wrong = -&right;

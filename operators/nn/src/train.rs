@@ -350,10 +350,19 @@ mod tests {
 
     #[test]
     fn a_non_finite_loss_stops_training_naming_the_step() {
+        let _generator = crate::generator();
         assert_eq!(finite(2.5, 3, 1).unwrap(), 2.5);
         let err = finite(f64::NAN, 17, 2).unwrap_err().to_string();
         assert_eq!(err, "lr: the loss is NaN at step 17 (epoch 2); lower `lr` or raise `batch`");
         assert!(finite(f64::INFINITY, 1, 1).unwrap_err().to_string().contains("the loss is inf at step 1"));
+    }
+
+    /// A context for `fit` with its output and checkpoint directories under `dir`.
+    fn fit_context(dir: &Path, seed: u64) -> Context {
+        let (out, ckpt) = (dir.join("out"), dir.join("ckpt"));
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::create_dir_all(&ckpt).unwrap();
+        Context::standalone("fit", &[], &out, &ckpt, seed, 1)
     }
 
     /// One step of `fit` on a linear model under a mean squared error over 8 frames, with the
@@ -361,10 +370,7 @@ mod tests {
     /// so the step depends on the gradient's scale, not only its sign.
     fn one_step(accumulate: u64) -> Tensor {
         let dir = std::env::temp_dir().join(format!("rlmflow-nn-accumulate-{}-{accumulate}", std::process::id()));
-        let (out, ckpt) = (dir.join("out"), dir.join("ckpt"));
-        std::fs::create_dir_all(&out).unwrap();
-        std::fs::create_dir_all(&ckpt).unwrap();
-        let mut ctx = Context::standalone("fit", &[], &out, &ckpt, 5, 1);
+        let mut ctx = fit_context(&dir, 5);
         tch::manual_seed(3);
         let vs = nn::VarStore::new(tch::Device::Cpu);
         let layer = nn::linear(vs.root() / "fc", 3, 2, Default::default());
@@ -392,6 +398,7 @@ mod tests {
 
     #[test]
     fn accumulated_micro_batches_take_the_step_of_the_whole_batch() {
+        let _generator = crate::generator();
         let whole = one_step(1);
         for accumulate in [2, 4, 8] {
             let accumulated = one_step(accumulate);
@@ -403,10 +410,7 @@ mod tests {
     /// checkpoint; the loss fails at the first step of epoch `fail_at` (a killed run), if given.
     /// The trained weights, or the error.
     fn bf16_run(dir: &Path, epochs: u64, fail_at: Option<u64>) -> anyhow::Result<Vec<(String, Tensor)>> {
-        let (out, ckpt) = (dir.join("out"), dir.join("ckpt"));
-        std::fs::create_dir_all(&out).unwrap();
-        std::fs::create_dir_all(&ckpt).unwrap();
-        let mut ctx = Context::standalone("fit", &[], &out, &ckpt, 11, 1);
+        let mut ctx = fit_context(dir, 11);
         tch::manual_seed(4);
         let vs = nn::VarStore::new(tch::Device::Cpu);
         let hidden = nn::linear(vs.root() / "hidden", 6, 16, Default::default());
@@ -440,6 +444,7 @@ mod tests {
 
     #[test]
     fn bfloat16_training_keeps_float_weights_and_resumes_to_the_same_bytes() {
+        let _generator = crate::generator();
         let dir = std::env::temp_dir().join(format!("rlmflow-nn-bf16-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         let whole = bf16_run(&dir.join("whole"), 3, None).unwrap();
@@ -456,6 +461,7 @@ mod tests {
 
     #[test]
     fn a_checkpoint_restores_weights_moments_and_log() {
+        let _generator = crate::generator();
         let dir = std::env::temp_dir().join(format!("rlmflow-nn-checkpoint-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let build = || {

@@ -204,6 +204,7 @@ mod tests {
 
     #[test]
     fn the_step_by_step_attention_matches_the_fused_kernel_and_its_rows_sum_to_one() {
+        let _generator = crate::generator();
         tch::manual_seed(3);
         let vs = nn::VarStore::new(tch::Device::Cpu);
         let transformer = Transformer::new(&vs.root(), 16, 2, 4, 32, Activation::Gelu, false);
@@ -221,6 +222,7 @@ mod tests {
 
     #[test]
     fn decoding_with_the_cache_matches_the_full_causal_pass() {
+        let _generator = crate::generator();
         tch::manual_seed(4);
         let vs = nn::VarStore::new(tch::Device::Cpu);
         let transformer = Transformer::new(&vs.root(), 16, 2, 4, 32, Activation::GeluTanh, true);

@@ -131,6 +131,7 @@ mod tests {
 
     #[test]
     fn rollout_of_a_hand_computed_case() {
+        let _generator = crate::generator();
         // Two tokens; CLS attends half to itself and half to the patch, the patch to itself.
         let a = Tensor::from_slice(&[0.5f32, 0.5, 0.0, 1.0]).view([1, 2, 2]);
         // (A + I) with rows renormalised: [[0.75, 0.25], [0, 1]]; CLS -> patch 0.25.
