@@ -16,8 +16,9 @@ use rlmflow_nn::clip::{Clip, images_from_u8, logits};
 use rlmflow_nn::loss::{Distance, soft_clip_loss, soft_targets};
 use rlmflow_nn::optim::AdamW;
 use rlmflow_nn::tch::{self, Kind, Tensor, nn};
-use rlmflow_nn::train::{Placement, named_variables, resolve_device};
+use rlmflow_nn::train::{Placement, named_variables};
 use rlmflow_pretrain::{ClipSettings, model_config};
+use rlmflow_stages::Training;
 use rlmflow_stages::encoder::ModelConfig;
 use rlmflow_stages::numerics::{self, Cpu, Numerics, Precision, Target};
 
@@ -87,11 +88,9 @@ fn run(args: Step) -> anyhow::Result<ExitCode> {
     }
     let precision: Precision = serde_json::from_value(serde_json::json!(args.precision)).map_err(|_| anyhow::anyhow!("--precision {}: fp32, tf32 or bf16", args.precision))?;
     tch::set_num_threads(args.threads);
-    let device = resolve_device(target.device(), rlmflow_stages::Device::Cpu)?;
-    if device.is_cuda() {
-        rlmflow_nn::libtorch::set_tf32(precision == Precision::Tf32)?;
-    }
-    let (ms, vs) = train(&config, args.batch, args.steps, Placement { device, precision });
+    // The placement a training stage of these settings gets: CUDA's deterministic mode, TF32 as asked.
+    let placement = Placement::of(&Training { device: target.device(), precision, ..Training::default() }, rlmflow_stages::Device::Cpu)?;
+    let (ms, vs) = train(&config, args.batch, args.steps, placement);
     match args.digest {
         true => {
             let mut hasher = blake3::Hasher::new();
