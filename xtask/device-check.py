@@ -12,13 +12,14 @@ It runs, each part in its own processes, with the GPU's memory sampled by nvidia
    the report, into a fresh store.
 3. Pretraining of that pipeline twice more, into two fresh stores: the output digests must be
    equal (same key, same bytes on one GPU).
-4. Memory: pretraining at a batch of 160 in chunks of 80 (the paper's per-GPU batch) against the
-   dry run's estimate.
-5. The paper's training step, `rlmflow-torch step` against PyTorch
+4. The paper's training step, `rlmflow-torch step` against PyTorch
    (`worker/benches/step_reference.py` under --torch-python), batch 64 and 160, fp32 and bf16,
    each measurement in its own process.
+5. Memory: pretraining at a batch of 160 in chunks of 80 (the paper's per-GPU batch) against the
+   dry run's estimate.
 
-and prints one Markdown table (also written to --out). Without a CUDA device (or with --dry) it
+and prints one Markdown table, row by row (also written to --out after each row; a failed part
+is a row saying why, and the check goes on). Without a CUDA device (or with --dry) it
 checks its inputs (binaries run, the pipeline and its overrides validate, the reference script
 is there), says so and exits 0: the test suite runs it that way, so it cannot rot between loans.
 """
@@ -63,13 +64,50 @@ def binaries(directory):
     return found
 
 
+def torch_libraries(python):
+    """`torch/lib` of the torch `python` imports, found without importing it; None if none."""
+    if not shutil.which(python) and not Path(python).is_file():
+        return None
+    query = "import importlib.util, os; s = importlib.util.find_spec('torch'); print(os.path.join(os.path.dirname(s.origin), 'lib') if s else '')"
+    out = subprocess.run([python, "-c", query], capture_output=True, text=True)
+    found = out.stdout.strip()
+    return found if out.returncode == 0 and found and (Path(found) / "libtorch_cpu.so").is_file() else None
+
+
+class Failed(Exception):
+    """A command of the check failed: which, and its stderr's tail."""
+
+
 def run(command, **kwargs):
-    """Runs `command`; its stdout, or exits naming the command and its stderr's tail."""
+    """Runs `command`; its stdout, or raises `Failed` naming the command and its stderr's tail."""
     out = subprocess.run([str(c) for c in command], capture_output=True, text=True, **kwargs)
     if out.returncode != 0:
         tail = "\n".join((out.stderr or out.stdout).strip().splitlines()[-15:])
-        sys.exit(f"device-check: {' '.join(map(str, command))} failed ({out.returncode}):\n{tail}")
+        raise Failed(f"{' '.join(map(str, command))} failed ({out.returncode}):\n{tail}")
     return out.stdout
+
+
+class Table:
+    """The check's Markdown table, printed and written to `out` row by row: a loan that ends
+    mid-check still leaves every figure measured so far, and a failed part is a row, not the end."""
+
+    def __init__(self, out, doctor):
+        self.out, self.doctor, self.rows, self.failed = out, doctor, [], 0
+
+    def measure(self, check, part):
+        start = time.time()
+        try:
+            time_taken, result = part()
+        except Failed as failure:
+            self.failed += 1
+            print(failure, file=sys.stderr)
+            time_taken, result = f"{time.time() - start:.0f} s", "FAILED: " + str(failure).splitlines()[-1][:300].replace("|", "/")
+        self.rows.append((check, time_taken, result))
+        print(f"| {check} | {time_taken} | {result} |", flush=True)
+        if self.out:
+            self.out.mkdir(parents=True, exist_ok=True)
+            body = "\n".join(f"| {a} | {b} | {c} |" for a, b, c in self.rows)
+            (self.out / "device-check.md").write_text(f"{self.doctor}\n| check | time | result |\n|---|---|---|\n{body}\n")
 
 
 def overrides(sets):
@@ -105,15 +143,15 @@ class MemorySampler:
 
 def outputs(rlmflow, store, sets):
     """Each instance's output digest in `store`, from `status --json`."""
-    lines = run([rlmflow, "status", PIPELINE, "--json", "--store", store] + overrides([s for s in sets if "=" in s]))
-    return {line["stage"]: line.get("output") for line in map(json.loads, lines.splitlines()) if line.strip()}
+    lines = run([rlmflow, "status", PIPELINE, "--json", "--cache", store] + overrides([s for s in sets if "=" in s]))
+    return {line["stage"]: line.get("output") for line in map(json.loads, filter(str.strip, lines.splitlines()))}
 
 
 def pipeline(rlmflow, store, sets):
     """Runs the pipeline with `sets` into `store`: seconds and the GPU's peak MiB."""
     start = time.time()
     with MemorySampler() as memory:
-        run([rlmflow, "run", PIPELINE, "--store", store, "--device", "cuda"] + overrides(sets), cwd=ROOT)
+        run([rlmflow, "run", PIPELINE, "--cache", store, "--device", "cuda"] + overrides(sets), cwd=ROOT)
     return time.time() - start, memory.peak
 
 
@@ -130,6 +168,11 @@ def main():
     # The libpython rlmflow embeds, where it was carried beside the binaries.
     if list(args.bin.glob("libpython3*.so*")):
         os.environ["LD_LIBRARY_PATH"] = f"{args.bin}:{os.environ.get('LD_LIBRARY_PATH', '')}"
+    # The worker's run path names this machine's libtorch; a GPU machine has its own torch 2.11
+    # (the one the reference runs on), whose libraries it then loads, CUDA's with them.
+    libtorch = torch_libraries(args.torch_python)
+    if libtorch:
+        os.environ["LD_LIBRARY_PATH"] = ":".join(filter(None, [os.environ.get("LD_LIBRARY_PATH"), libtorch]))
     doctor = run([worker, "doctor"])
     print(doctor)
     for path in (PIPELINE, REFERENCE):
@@ -144,38 +187,48 @@ def main():
         print(f"device-check: dry mode, {why}: inputs checked (binaries run, {PIPELINE.name} and its overrides validate, the reference is there); nothing measured")
         return
 
-    rows, scratch = [], Path(tempfile.mkdtemp(prefix="rlmflow-device-check-"))
-    seconds, peak = pipeline(rlmflow, scratch / "smoke", CUDA)
-    rows.append(("paper-smoke, every model stage on cuda, through the report", f"{seconds:.0f} s", f"peak {peak} MiB"))
+    table, scratch = Table(args.out, doctor), Path(tempfile.mkdtemp(prefix="rlmflow-device-check-"))
 
-    first = pipeline(rlmflow, scratch / "a", CUDA + ["--only", "pretrain"])
-    second = pipeline(rlmflow, scratch / "b", CUDA + ["--only", "pretrain"])
-    a = outputs(rlmflow, scratch / "a", CUDA)
-    b = outputs(rlmflow, scratch / "b", CUDA)
-    same = a.get("pretrain") is not None and a.get("pretrain") == b.get("pretrain")
-    rows.append(("pretrain twice, two fresh stores", f"{first[0]:.0f} s / {second[0]:.0f} s", f"{'same bytes' if same else 'OTHER BYTES'}: {a.get('pretrain')} / {b.get('pretrain')}"))
+    def smoke():
+        seconds, peak = pipeline(rlmflow, scratch / "smoke", CUDA)
+        return f"{seconds:.0f} s", f"peak {peak} MiB"
 
-    dry = run([rlmflow, "run", PIPELINE, "--dry-run", "--json", "--store", scratch / "memory", "--device", "cuda"] + overrides(CUDA + MEMORY))
-    estimate = next((line["memory"]["peak_bytes"] for line in map(json.loads, dry.splitlines()) if line.get("stage") == "pretrain" and line.get("memory")), None)
-    seconds, peak = pipeline(rlmflow, scratch / "memory", CUDA + MEMORY)
-    estimate_mib = estimate / 2**20 if estimate else float("nan")
-    rows.append(("memory: pretrain, batch 160 in chunks of 80", f"{seconds:.0f} s", f"peak {peak} MiB (with the CUDA context) against the estimate {estimate_mib:.0f} MiB: {peak / estimate_mib:.2f}x"))
+    table.measure("paper-smoke, every model stage on cuda, through the report", smoke)
+
+    def twice():
+        first = pipeline(rlmflow, scratch / "a", CUDA + ["--only", "pretrain"])
+        second = pipeline(rlmflow, scratch / "b", CUDA + ["--only", "pretrain"])
+        digests = [outputs(rlmflow, scratch / store, CUDA).get("pretrain") for store in ("smoke", "a", "b")]
+        same = None not in digests[1:] and len(set(filter(None, digests))) == 1
+        return f"{first[0]:.0f} s / {second[0]:.0f} s", f"{'same bytes' if same else 'OTHER BYTES'} (smoke run, a, b): {' / '.join(map(str, digests))}"
+
+    table.measure("pretrain twice more, two fresh stores, each its own process", twice)
 
     config = run([worker, "step", "--model", "paper", "--config"]).strip()
     for batch in ("64", "160"):
         for precision in ("fp32", "bf16"):
-            ours = float(run([worker, "step", "--model", "paper", "--batch", batch, "--steps", "6", "--threads", "16", "--device", "cuda", "--precision", precision]))
-            theirs = float(run([args.torch_python, REFERENCE, config, batch, "6", "16", "cuda", precision]))
-            rate = lambda ms: int(batch) / ms * 1000
-            rows.append((f"step, paper model, batch {batch}, {precision}", f"{ours:.1f} / {theirs:.1f} ms", f"rlmflow {rate(ours):.0f} samples/s, PyTorch {rate(theirs):.0f}: samples/s ratio {theirs / ours:.3f}"))
+            def step(batch=batch, precision=precision):
+                ours = float(run([worker, "step", "--model", "paper", "--batch", batch, "--steps", "6", "--threads", "16", "--device", "cuda", "--precision", precision]))
+                theirs = float(run([args.torch_python, REFERENCE, config, batch, "6", "16", "cuda", precision]))
+                rate = lambda ms: int(batch) / ms * 1000
+                return f"{ours:.1f} / {theirs:.1f} ms", f"rlmflow {rate(ours):.0f} samples/s, PyTorch {rate(theirs):.0f}: samples/s ratio {theirs / ours:.3f}"
 
-    table = "| check | time | result |\n|---|---|---|\n" + "\n".join(f"| {a} | {b} | {c} |" for a, b, c in rows)
-    print(table)
-    if args.out:
-        args.out.mkdir(parents=True, exist_ok=True)
-        (args.out / "device-check.md").write_text(doctor + "\n" + table + "\n")
+            table.measure(f"step, paper model, batch {batch}, {precision}", step)
+
+    def memory():
+        dry = run([rlmflow, "run", PIPELINE, "--dry-run", "--json", "--cache", scratch / "memory", "--device", "cuda"] + overrides(CUDA + MEMORY))
+        estimate = next((line["memory"]["peak_bytes"] for line in map(json.loads, filter(str.strip, dry.splitlines())) if line.get("stage") == "pretrain" and line.get("memory")), None)
+        seconds, peak = pipeline(rlmflow, scratch / "memory", CUDA + MEMORY)
+        estimate_mib = estimate / 2**20 if estimate else float("nan")
+        return f"{seconds:.0f} s", f"peak {peak} MiB (with the CUDA context) against the estimate {estimate_mib:.0f} MiB: {peak / estimate_mib:.2f}x"
+
+    table.measure("memory: pretrain, batch 160 in chunks of 80", memory)
     shutil.rmtree(scratch, ignore_errors=True)
-
+    if table.failed:
+        sys.exit(f"device-check: {table.failed} checks failed (the table says which and why)")
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except Failed as failure:
+        sys.exit(f"device-check: {failure}")
