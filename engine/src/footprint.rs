@@ -54,17 +54,19 @@ pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> 
         let op = registry.get(&inst.operator).expect("validated operator");
         let inputs: InputOutlines = inst.inputs.iter().map(|i| (i.slot, i.providers.iter().map(|&p| outlines[p]).collect())).collect();
         outlines.push(op.outline(&inst.settings, &inputs).unwrap_or_default());
-        fits.push(op.footprint(&inst.settings, &inputs).filter(|_| runs[fits.len()]).map(|footprint| {
-            let resources = op.resources(&inst.settings);
-            let cuda = resources.needs_cuda || (resources.gpu && (matches!(device, Device::Cuda(_)) || crate::platform::cuda_present()));
-            // The device the stage names, else the run's, else the first.
-            let index = match (resources.kernels.map(|k| k.device), device) {
-                (Some(Device::Cuda(n)), _) | (_, Device::Cuda(n)) => n,
-                _ => 0,
-            };
-            let target = if cuda { Target::Cuda(index) } else { Target::Cpu };
-            Fit { footprint, target, capacity: capacity.of(target) }
-        }));
+        if !runs[fits.len()] {
+            fits.push(None);
+            continue;
+        }
+        let resources = op.resources(&inst.settings);
+        let cuda = resources.needs_cuda || (resources.gpu && (matches!(device, Device::Cuda(_)) || crate::platform::cuda_present()));
+        // The device the stage names, else the run's, else the first.
+        let index = match (resources.kernels.map(|k| k.device), device) {
+            (Some(Device::Cuda(n)), _) | (_, Device::Cuda(n)) => n,
+            _ => 0,
+        };
+        let target = if cuda { Target::Cuda(index) } else { Target::Cpu };
+        fits.push(op.footprint(&inst.settings, &inputs, target).map(|footprint| Fit { footprint, target, capacity: capacity.of(target) }));
     }
     fits
 }

@@ -5,11 +5,14 @@
 //! The estimate counts what dominates, in float32: every weight (4 bytes); for trained weights
 //! also the gradient and AdamW's two moments (16 bytes a parameter in all); and the activations
 //! a training step keeps for its backward pass, per sample, times the samples a step holds at
-//! once (the batch, or the chunk under gradient caching). Transient buffers, the allocator's
+//! once (the batch, or the chunk under gradient caching), in float32 or, under bf16 autocast,
+//! at [`activation_bytes`]' measured share. Transient buffers, the allocator's
 //! slack and the CUDA context are not counted: the refusal leaves [`HEADROOM`] of the device
 //! for them.
 
 use serde::Serialize;
+
+use crate::numerics::Precision;
 
 pub const FLOAT: u64 = 4;
 /// Bytes per trained parameter: the weight, its gradient and AdamW's two moments.
@@ -26,6 +29,17 @@ pub struct Footprint {
     pub peak_bytes: u64,
     /// The settings that lower the estimate, for the refusal: "`chunk` or `batch`".
     pub lower_with: &'static str,
+}
+
+/// Bytes `floats` kept activations take under `precision`. Under bf16 autocast the matmuls keep
+/// bfloat16 inputs while norms, softmax and the loss keep float32: on an H100 the paper model's
+/// activations took 52-59 % of their float32 bytes (three batch and chunk sizes, `cargo xtask
+/// device-check`; docs/guide/paper-scale.md), and 55 % puts all three peaks within 6 %.
+pub fn activation_bytes(floats: u64, precision: Precision) -> u64 {
+    match precision {
+        Precision::Bf16 => floats * FLOAT * 55 / 100,
+        Precision::Auto | Precision::Fp32 | Precision::Tf32 => floats * FLOAT,
+    }
 }
 
 /// A stack of pre-LN residual blocks (attention and an MLP of `mlp` units), as `rlmflow-nn`

@@ -10,6 +10,7 @@ use serde_json::Value;
 use crate::context::Context;
 use crate::kind::{Catalog, StageKind};
 use crate::memory::Footprint;
+use crate::numerics::Target;
 
 /// An operator's settings: a plain struct with defaults (`#[serde(default, deny_unknown_fields)]`).
 pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'static {
@@ -250,7 +251,7 @@ pub trait Operator: Send + Sync + 'static {
 
     /// Its estimated peak memory (see [`crate::memory`]), for operators that train models;
     /// `None` where it is small or unknown.
-    fn footprint(&self, _settings: &Self::Settings, _inputs: &InputOutlines) -> Option<Footprint> {
+    fn footprint(&self, _settings: &Self::Settings, _inputs: &InputOutlines, _target: Target) -> Option<Footprint> {
         None
     }
 
@@ -328,7 +329,7 @@ pub struct InWorker<S: Settings> {
     /// Its settings checked against its inputs' outlines (see [`Operator::outline`]).
     pub outline: fn(&S, &InputOutlines) -> Result<Outline, SettingError>,
     /// See [`Operator::footprint`].
-    pub footprint: fn(&S, &InputOutlines) -> Option<Footprint>,
+    pub footprint: fn(&S, &InputOutlines, Target) -> Option<Footprint>,
     /// What runs an action: attached in the worker only.
     pub run: Option<fn(&S, &mut Context) -> anyhow::Result<Outcome>>,
 }
@@ -359,8 +360,8 @@ impl<S: Settings> Operator for InWorker<S> {
         (self.outline)(settings, inputs)
     }
 
-    fn footprint(&self, settings: &S, inputs: &InputOutlines) -> Option<Footprint> {
-        (self.footprint)(settings, inputs)
+    fn footprint(&self, settings: &S, inputs: &InputOutlines, target: Target) -> Option<Footprint> {
+        (self.footprint)(settings, inputs, target)
     }
 
     fn run(&self, settings: &S, ctx: &mut Context) -> anyhow::Result<Outcome> {
@@ -394,7 +395,7 @@ pub trait DynOperator: Send + Sync {
     fn part(&self, settings: &Value, part: &Part) -> Option<Value>;
     /// The output's outline for valid `settings` and the inputs' outlines.
     fn outline(&self, settings: &Value, inputs: &InputOutlines) -> Result<Outline, SettingError>;
-    fn footprint(&self, settings: &Value, inputs: &InputOutlines) -> Option<Footprint>;
+    fn footprint(&self, settings: &Value, inputs: &InputOutlines, target: Target) -> Option<Footprint>;
     fn resumes_from(&self) -> &'static str;
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome>;
 }
@@ -463,8 +464,8 @@ impl<O: Operator> DynOperator for O {
         Operator::outline(self, &parse_settings::<O::Settings>(settings.clone())?, inputs)
     }
 
-    fn footprint(&self, settings: &Value, inputs: &InputOutlines) -> Option<Footprint> {
-        Operator::footprint(self, &parse_settings::<O::Settings>(settings.clone()).ok()?, inputs)
+    fn footprint(&self, settings: &Value, inputs: &InputOutlines, target: Target) -> Option<Footprint> {
+        Operator::footprint(self, &parse_settings::<O::Settings>(settings.clone()).ok()?, inputs, target)
     }
 
     fn resumes_from(&self) -> &'static str {

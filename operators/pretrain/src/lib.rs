@@ -17,8 +17,8 @@
 
 use rlmflow_stages::encoder::{Distance, Head, ModelConfig, Stem, TextConfig, VisionConfig};
 use rlmflow_stages::grid::CELLS;
-use rlmflow_stages::memory::{FLOAT, LOWER_BY_ACCUMULATING, TRAINED};
-use rlmflow_stages::numerics::Precision;
+use rlmflow_stages::memory::{FLOAT, LOWER_BY_ACCUMULATING, TRAINED, activation_bytes};
+use rlmflow_stages::numerics::{Precision, Target};
 use rlmflow_stages::weights::{Expected, check_init};
 use rlmflow_stages::{
     Device, Footprint, InWorker, InputOutlines, ModelOutline, Numerics, OperatorSpec, Outline, Resources, SettingError, Settings, Training,
@@ -208,7 +208,7 @@ fn configured(s: &ClipSettings, inputs: &InputOutlines) -> Result<Option<ModelCo
 
 /// Every weight with its gradient and AdamW's moments, and the activations of the frames a step
 /// embeds at once (the chunk under gradient caching, else the batch), with the batch's logits.
-fn footprint(s: &ClipSettings, inputs: &InputOutlines) -> Option<Footprint> {
+fn footprint(s: &ClipSettings, inputs: &InputOutlines, target: Target) -> Option<Footprint> {
     let config = configured(s, inputs).ok()??;
     let parameters = config.parameters();
     if s.training.epochs == 0 {
@@ -222,7 +222,7 @@ fn footprint(s: &ClipSettings, inputs: &InputOutlines) -> Option<Footprint> {
         (_, "vit-b16") => "`chunk` (gradient caching, the same loss) or `batch`",
         _ => "`batch`",
     };
-    Some(Footprint { parameters, peak_bytes: parameters * TRAINED + activations * FLOAT, lower_with })
+    Some(Footprint { parameters, peak_bytes: parameters * TRAINED + activation_bytes(activations, s.training.precision.on(target)), lower_with })
 }
 
 /// The operator as `rlmflow` registers it: validated and planned here, run by the worker.
@@ -283,6 +283,35 @@ mod tests {
         assert_eq!(model_config(&s, 64, 250, 2048, 1).unwrap_err().key, "text");
         let counts = ClipSettings { objective: Objective::Counts, ..s };
         assert!(model_config(&counts, 64, 250, 2048, 1).unwrap().text.is_none());
+    }
+
+    /// The H100's peaks (nvidia-smi, CUDA context included; docs/guide/paper-scale.md) for the
+    /// paper model at three batch and chunk sizes in float32 and under bf16 autocast: the
+    /// estimate is within 11 % of each. `auto` is bf16 on CUDA and float32 on the CPU.
+    #[test]
+    fn the_estimate_follows_the_precision_a_stage_computes_in() {
+        let scenes = Outline { image: Some(224), frames: Some(400), ..Outline::default() };
+        let tokens = Outline { context: Some(400), vocab: Some(2048), ..Outline::default() };
+        let inputs: InputOutlines = [("scenes", vec![scenes]), ("tokens", vec![tokens])].into_iter().collect();
+        let paper = ClipSettings { encoder: "vit-b16".into(), quick_gelu: true, text: "paper".into(), head: Head::Mlp, text_head: Head::Mlp, ..ClipSettings::default() };
+        let mib = |precision, batch, chunk, target| {
+            let s = ClipSettings { chunk, training: Training { precision, batch, ..paper.training.clone() }, ..paper.clone() };
+            footprint(&s, &inputs, target).unwrap().peak_bytes as f64 / 2f64.powi(20)
+        };
+        let measured = [
+            (Precision::Fp32, 160, 80, 30_397.0),
+            (Precision::Fp32, 64, 64, 25_505.0),
+            (Precision::Fp32, 160, 40, 18_769.0),
+            (Precision::Bf16, 160, 80, 18_509.0),
+            (Precision::Bf16, 64, 64, 15_227.0),
+            (Precision::Bf16, 160, 40, 11_271.0),
+        ];
+        for (precision, batch, chunk, peak) in measured {
+            let estimate = mib(precision, batch, chunk, Target::Cuda(0));
+            assert!((estimate / peak - 1.0).abs() < 0.11, "{precision} batch {batch} chunk {chunk}: {estimate:.0} MiB estimated, {peak} measured");
+        }
+        assert_eq!(mib(Precision::Auto, 160, 80, Target::Cuda(0)), mib(Precision::Bf16, 160, 80, Target::Cuda(0)));
+        assert_eq!(mib(Precision::Auto, 160, 80, Target::Cpu), mib(Precision::Fp32, 160, 80, Target::Cpu));
     }
 
     #[test]

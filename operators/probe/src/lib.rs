@@ -25,6 +25,7 @@
 //! scored per cell like `linear`.
 
 use rlmflow_stages::memory::{self, Blocks, FLOAT, TRAINED};
+use rlmflow_stages::numerics::Target;
 use rlmflow_stages::weights::{Expected, check_init};
 use rlmflow_stages::{
     Device, Footprint, InWorker, InputOutlines, Kernels, Numerics, OperatorSpec, Outline, Resources, SettingError, Settings, Training,
@@ -191,7 +192,7 @@ impl ClipcapSettings {
 /// the mapper's blocks over its 2 x `prefix` tokens, the decoder's over `prefix` + context
 /// tokens (GELU's tanh form keeps as much as QuickGELU), and the logits with their softmax and
 /// gradient over the vocabulary.
-fn clipcap_footprint(s: &ClipcapSettings, inputs: &InputOutlines) -> Option<Footprint> {
+fn clipcap_footprint(s: &ClipcapSettings, inputs: &InputOutlines, target: Target) -> Option<Footprint> {
     let tokens = Outline::of(inputs, "tokens")?;
     let (context, vocab, encoder) = (tokens.context?, tokens.vocab?, Outline::of(inputs, "encoder")?.model?);
     let (width, layers, _) = s.decoder_shape();
@@ -206,7 +207,7 @@ fn clipcap_footprint(s: &ClipcapSettings, inputs: &InputOutlines) -> Option<Foot
         + decoder.parameters()
         + 2 * width;
     let per_caption = mapper.activations(2 * prefix) + decoder.activations(positions) + 3 * positions * vocab;
-    let peak_bytes = encoder.parameters * FLOAT + trained * TRAINED + per_caption * s.training.micro_batch() * FLOAT;
+    let peak_bytes = encoder.parameters * FLOAT + trained * TRAINED + memory::activation_bytes(per_caption * s.training.micro_batch(), s.training.precision.on(target));
     Some(Footprint { parameters: encoder.parameters + trained, peak_bytes, lower_with: memory::LOWER_BY_ACCUMULATING })
 }
 
@@ -253,7 +254,7 @@ fn linear_resources(s: &LinearSettings) -> Resources {
 
 /// `linear` as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn linear() -> InWorker<LinearSettings> {
-    InWorker { spec: linear_spec(), worker: WORKER, resources: linear_resources, outline: Outline::pass_on, footprint: |_, _| None, run: None }
+    InWorker { spec: linear_spec(), worker: WORKER, resources: linear_resources, outline: Outline::pass_on, footprint: |_, _, _| None, run: None }
 }
 
 #[cfg(test)]

@@ -12,7 +12,8 @@
 //! Training: AdamW, warmup then cosine, global-norm clipping, loss `dice_weight` * soft Dice +
 //! (1 - `dice_weight`) * BCE against the labels' soft masks; one checkpoint per epoch.
 
-use rlmflow_stages::memory::{FLOAT, LOWER_BY_ACCUMULATING, TRAINED, conv3x3_bn};
+use rlmflow_stages::memory::{FLOAT, LOWER_BY_ACCUMULATING, TRAINED, activation_bytes, conv3x3_bn};
+use rlmflow_stages::numerics::Target;
 use rlmflow_stages::{Footprint, InWorker, InputOutlines, OperatorSpec, Outline, Resources, SettingError, Settings, Training};
 
 /// The most bytes of frozen-encoder tokens `pup` caches for every frame; beyond, it encodes each
@@ -179,7 +180,7 @@ pub fn pup_widths(grid: i64, side: i64) -> Vec<i64> {
 /// The frozen encoder held once (its tokens cached for every frame up to the worker's 2 GiB, else
 /// encoded per batch), and the decoder trained on `batch` frames: per frame the token map, each
 /// stage's convolution, BatchNorm and ReLU outputs and its upsampling, the full-size logits.
-fn pup_footprint(s: &PupSettings, inputs: &InputOutlines) -> Option<Footprint> {
+fn pup_footprint(s: &PupSettings, inputs: &InputOutlines, target: Target) -> Option<Footprint> {
     let scenes = Outline::passed_on(inputs);
     let (side, model) = (scenes.image?, Outline::of(inputs, "encoder")?.model?);
     let widths = if s.channels.is_empty() { pup_widths(model.grid as i64, side as i64) } else { s.channels.clone() };
@@ -197,13 +198,13 @@ fn pup_footprint(s: &PupSettings, inputs: &InputOutlines) -> Option<Footprint> {
     // MLP units (4 x width) at a time.
     let encoded = (model.grid * model.grid + 1) * 12 * model.width;
     let cached = if tokens <= TOKEN_CACHE_BYTES { tokens } else { s.training.micro_batch() * encoded * FLOAT };
-    let peak_bytes = model.parameters * FLOAT + decoder * TRAINED + cached + per_frame * s.training.micro_batch() * FLOAT;
+    let peak_bytes = model.parameters * FLOAT + decoder * TRAINED + cached + activation_bytes(per_frame * s.training.micro_batch(), s.training.precision.on(target));
     Some(Footprint { parameters: model.parameters + decoder, peak_bytes, lower_with: LOWER_BY_ACCUMULATING })
 }
 
 /// The U-Net trained on `batch` frames: per frame each level's two convolutions with their
 /// BatchNorm and ReLU outputs going down, pooled, and coming back up with the skip joined.
-fn unet_footprint(s: &UnetSettings, inputs: &InputOutlines) -> Option<Footprint> {
+fn unet_footprint(s: &UnetSettings, inputs: &InputOutlines, target: Target) -> Option<Footprint> {
     let side = Outline::passed_on(inputs).image?;
     let widths: Vec<u64> = s.channels.iter().map(|&w| w as u64).collect();
     let (mut parameters, mut per_frame, mut input) = (0, side * side, 1);
@@ -219,7 +220,7 @@ fn unet_footprint(s: &UnetSettings, inputs: &InputOutlines) -> Option<Footprint>
     }
     parameters += widths[0] + 1;
     per_frame += 4 * side * side;
-    Some(Footprint { parameters, peak_bytes: parameters * TRAINED + per_frame * s.training.micro_batch() * FLOAT, lower_with: LOWER_BY_ACCUMULATING })
+    Some(Footprint { parameters, peak_bytes: parameters * TRAINED + activation_bytes(per_frame * s.training.micro_batch(), s.training.precision.on(target)), lower_with: LOWER_BY_ACCUMULATING })
 }
 
 /// `pup` as `rlmflow` registers it: validated and planned here, run by the worker.
