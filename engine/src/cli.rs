@@ -234,6 +234,21 @@ enum Command {
         /// With --recompute: at most N actions, chosen by key.
         #[arg(long, value_name = "N")]
         sample: Option<usize>,
+        /// Also compare this store with another machine's digests file (`rlmflow digests`): each
+        /// of its keys that this store holds must have the same output. Exits 1 if one differs
+        /// or none is here to compare.
+        #[arg(long, value_name = "FILE")]
+        against: Option<PathBuf>,
+        #[command(flatten)]
+        store: StoreArg,
+    },
+    /// Print every instance's action key and output digest, with this machine's CPU and numeric
+    /// classes, for another machine to compare with (`rlmflow verify --against FILE`). Every
+    /// instance must be computed in the store.
+    Digests {
+        pipeline: PathBuf,
+        #[command(flatten)]
+        set: SetArg,
         #[command(flatten)]
         store: StoreArg,
     },
@@ -420,6 +435,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         command,
         Command::Operators { .. }
             | Command::Status { .. }
+            | Command::Digests { .. }
             | Command::Dag { .. }
             | Command::Explain { .. }
             | Command::Show { .. }
@@ -604,7 +620,16 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             print_store_warnings(Some(&store));
             Ok(ExitCode::SUCCESS)
         }
-        Command::Verify { pipeline, recompute, only, sample, store } => {
+        Command::Digests { pipeline, set, store } => {
+            let p = config::load_with(&pipeline, &set.set, registry)?;
+            let store = ran_store(&p, &store, "nothing to list")?;
+            let plan = planned(&p, Some(&store), Device::Cpu)?;
+            let states = assess(&plan, registry, Some(&store))?;
+            print!("{}", crate::digests::render(&p, &plan, &states, &rlmflow_stages::numerics::Cpu::detect())?);
+            print_store_warnings(Some(&store));
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Verify { pipeline, recompute, only, sample, against, store } => {
             let store = existing_store(registry, pipeline.as_deref(), &store)?;
             let mut n = 0;
             let report = store.verify(|_| n += 1)?;
@@ -639,7 +664,11 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                     disagree
                 }
             };
-            Ok(if report.is_clean() && forged == 0 && disagree == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+            let unlike = match against {
+                Some(file) => verify_against(&store, &file)?,
+                None => 0,
+            };
+            Ok(if report.is_clean() && forged == 0 && disagree == 0 && unlike == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
         }
         Command::Pin { pipeline, name, store } => {
             config::check_name(&name).map_err(|problem| anyhow::anyhow!("the pin name {problem}"))?;
@@ -767,6 +796,33 @@ fn verify_signatures(store: &Store, remote: &config::RemoteSettings) -> anyhow::
         }
     }
     Ok(bad)
+}
+
+/// `verify --against FILE`: each row's verdict, a summary line; how many rows failed (each that
+/// differs, or one when none was here to compare).
+fn verify_against(store: &Store, file: &Path) -> anyhow::Result<usize> {
+    use crate::digests::Verdict;
+    let rows = crate::digests::read(file)?;
+    let verdicts = crate::digests::compare(store, &rows)?;
+    let width = rows.iter().map(|r| r.instance.len()).max().unwrap_or(0);
+    for (row, verdict) in rows.iter().zip(&verdicts) {
+        match verdict {
+            Verdict::Same => println!("  same      {:width$}  key {}", row.instance, row.key.short()),
+            Verdict::Differs(here) => println!("  DIFFERS   {:width$}  key {}: there {}, here {}", row.instance, row.key.short(), row.output.short(), here.short()),
+            Verdict::Absent => println!("  absent    {:width$}  key {} is not in this store", row.instance, row.key.short()),
+        }
+    }
+    let count = |f: fn(&Verdict) -> bool| verdicts.iter().filter(|v| f(v)).count();
+    let (same, differ, absent) = (count(|v| *v == Verdict::Same), count(|v| matches!(v, Verdict::Differs(_))), count(|v| *v == Verdict::Absent));
+    println!(
+        "verify --against {}: {same} the same, {differ} differ, {absent} not in this store (not computed here, or other settings or versions: other keys)",
+        file.display()
+    );
+    if same + differ == 0 {
+        eprintln!("error: none of the {} keys of {} is in this store: nothing was compared", rows.len(), file.display());
+        return Ok(1);
+    }
+    Ok(differ)
 }
 
 fn existing_store(registry: &Registry, pipeline: Option<&Path>, arg: &StoreArg) -> anyhow::Result<Store> {

@@ -8,8 +8,8 @@
 //! `rlmflow exec` process (so hash seeds, allocator addresses and global RNGs differ; Python's
 //! hash seed is randomised) with a different thread count, into scratch directories, and
 //! compares the two output trees. The second process's environment asks every numeric library
-//! for other kernels than the first's (AVX-512 where the machine has it, older instruction sets
-//! where not; `rlmflow_stages::numerics::other_kernels`), so an operator whose bytes follow the
+//! for other kernels than both its pins and its own automatic choice (older instruction sets
+//! than AVX2; `rlmflow_stages::numerics::other_kernels`), so an operator whose bytes follow the
 //! CPU's kernels, unpinned, shows it here on one machine. A difference names the files and the first differing byte.
 //! Nothing is committed; the scratch outputs of a failed check stay in the store's `tmp/` for
 //! inspection (`gc` removes them).
@@ -40,7 +40,7 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
     }
     let states = assess(plan, registry, Some(store))?;
     let threads = [opts.jobs, (opts.jobs / 2).max(1)];
-    let other_kernels = rlmflow_stages::numerics::other_kernels(plan.platform.cpu());
+    let other_kernels = rlmflow_stages::numerics::other_kernels();
     let environments: [&[(&str, &str)]; 2] = [&[], &other_kernels];
     let mut all_same = true;
     for (i, inst) in plan.instances.iter().enumerate().filter(|(i, _)| targets[*i]) {

@@ -17,6 +17,7 @@ pub mod compare;
 pub mod config;
 pub mod dag;
 pub mod determinism;
+pub mod digests;
 pub mod dispatch;
 pub mod exec;
 pub mod footprint;

@@ -4,6 +4,7 @@
 mod bad_input;
 mod bounds;
 mod config_errors;
+mod digests;
 mod engine;
 mod harness;
 mod history;

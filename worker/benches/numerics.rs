@@ -50,7 +50,7 @@ fn main() {
     }
     let (_, unpinned) = measure("unpinned", &[]);
     println!("nothing pinned: weights {}", unpinned);
-    for (var, value) in other_kernels(&cpu) {
+    for (var, value) in other_kernels() {
         let (_, digest) = measure("unpinned", &[(var, value)]);
         let verdict = if digest == unpinned { "same bytes" } else { "other bytes: its pin is needed" };
         println!("  nothing pinned, {var}={value}: weights {} ({verdict})", digest);
