@@ -83,6 +83,22 @@ fn the_ci_pipeline_runs_and_a_second_run_reuses_every_stage() {
     assert!(ok, "{verify}");
 }
 
+/// The run computes, at every key, the bytes of the shipped digests (docs/digests/, another
+/// machine's run: its CPU is in the file's header). Every key must be there: a change that moves
+/// a key regenerates the file (`cargo xtask digests examples/ci.toml`). A machine outside the
+/// file's portable class (no AVX2 and FMA) has other model keys, and compares the rest.
+#[test]
+fn the_ci_pipeline_computes_the_shipped_digests_of_another_machine() {
+    let run = ci_run();
+    let shipped = root().join("docs/digests/ci.toml.digests");
+    let (ok, out) = rlmflow(&run.dir, &["verify", "ci.toml", "--against", shipped.to_str().unwrap()]);
+    assert!(ok && out.contains(" 0 differ"), "{out}");
+    let v3 = std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma");
+    if v3 {
+        assert!(out.contains(" 0 not in this store"), "a key of the shipped digests moved: `cargo xtask digests examples/ci.toml` regenerates them\n{out}");
+    }
+}
+
 /// One probe setting changed: only that probe's instances and the report run again.
 #[test]
 fn a_changed_probe_setting_reruns_only_that_probe_and_the_report() {

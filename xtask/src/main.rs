@@ -19,6 +19,10 @@
 //!                                  target/device-check/ for a GPU machine, then run
 //!                                  xtask/device-check.py ARGS on them (without a GPU: a dry
 //!                                  run that checks its inputs)
+//! cargo xtask digests [PIPELINE..] build (release), run each pipeline (default: examples/ci.toml
+//!                                  and pipeline.toml) into its store and write its digests to
+//!                                  docs/digests/NAME.digests (`rlmflow verify --against` reads
+//!                                  them; the test suite checks ci.toml's)
 //! cargo xtask llm-check            build rlmflow, then run tests/llm_check.py: the `llm`
 //!                                  operator against a real llama.cpp server (opt-in; it
 //!                                  compiles llama.cpp, about 11 minutes on 2 cores)
@@ -43,7 +47,7 @@ fn main() -> ExitCode {
 
 fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
     let Some((command, rest)) = args.split_first() else {
-        bail!("usage: cargo xtask <test|run|build|bench|rlmflow|libtorch|device-check|llm-check> [ARGS]");
+        bail!("usage: cargo xtask <test|run|build|bench|rlmflow|libtorch|device-check|digests|llm-check> [ARGS]");
     };
     let note = &mut |note: &str| eprintln!("xtask: {note}");
     let ours = std::env::var_os("LIBTORCH").is_none();
@@ -86,6 +90,29 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
             let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("device-check.py");
             status(Command::new("python3").arg(script).arg("--bin").arg(&packed).args(rest))
         }
+        "digests" => {
+            if !status(cargo().args(["build", "--release", "--bins", "-p", "rlmflow", "-p", "rlmflow-torch"]))?.eq(&ExitCode::SUCCESS) {
+                return Ok(ExitCode::FAILURE);
+            }
+            let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().context("xtask lives in the workspace")?.to_path_buf();
+            let pipelines: Vec<PathBuf> =
+                if rest.is_empty() { vec![root.join("examples/ci.toml"), root.join("pipeline.toml")] } else { rest.iter().map(PathBuf::from).collect() };
+            let rlmflow = target_dir()?.join("release/rlmflow");
+            for pipeline in pipelines {
+                if !status(Command::new(&rlmflow).arg("run").arg(&pipeline))?.eq(&ExitCode::SUCCESS) {
+                    return Ok(ExitCode::FAILURE);
+                }
+                let out = Command::new(&rlmflow).arg("digests").arg(&pipeline).output().context("running rlmflow digests")?;
+                if !out.status.success() {
+                    bail!("rlmflow digests {}: {}", pipeline.display(), String::from_utf8_lossy(&out.stderr).trim());
+                }
+                let name = pipeline.file_name().context("a pipeline file")?.to_string_lossy().into_owned();
+                let file = root.join("docs/digests").join(format!("{name}.digests"));
+                std::fs::write(&file, &out.stdout).with_context(|| format!("writing {}", file.display()))?;
+                println!("{}", file.display());
+            }
+            Ok(ExitCode::SUCCESS)
+        }
         "llm-check" => {
             if !status(cargo().args(["build", "--bin", "rlmflow", "-p", "rlmflow"]))?.eq(&ExitCode::SUCCESS) {
                 return Ok(ExitCode::FAILURE);
@@ -93,7 +120,7 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
             let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/llm_check.py");
             status(Command::new("python3").arg(script).arg(target_dir()?.join("debug/rlmflow")))
         }
-        other => bail!("unknown xtask `{other}`; valid: test, run, build, bench, rlmflow, libtorch, device-check, llm-check"),
+        other => bail!("unknown xtask `{other}`; valid: test, run, build, bench, rlmflow, libtorch, device-check, digests, llm-check"),
     }
 }
 
