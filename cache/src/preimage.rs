@@ -30,7 +30,7 @@ pub struct Preimage {
     /// Sorted by slot, then label.
     pub inputs: Vec<InputDigest>,
     /// The class of machines that compute the same bytes, for an action whose bytes depend on
-    /// its numeric kernels (`cpu/x86-64-v3/portable`); absent where they do not.
+    /// its numeric kernels (`cpu/x86-64-v3/amd/portable`); absent where they do not.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub platform: Option<String>,
 }
@@ -219,13 +219,13 @@ mod tests {
     fn a_platform_class_enters_the_key_and_the_diff() {
         let plain = preimage(json!({}));
         let mut portable = plain.clone();
-        portable.platform = Some("cpu/x86-64-v3/portable".into());
+        portable.platform = Some("cpu/x86-64-v3/amd/portable".into());
         let mut native = plain.clone();
         native.platform = Some("cpu/x86-64/native/AMD EPYC/avx2+fma".into());
         assert_ne!(plain.key(), portable.key());
         assert_ne!(portable.key(), native.key());
         let shown: Vec<String> = native.diff(&portable).iter().map(|c| c.to_string()).collect();
-        assert_eq!(shown, ["numeric platform cpu/x86-64-v3/portable -> cpu/x86-64/native/AMD EPYC/avx2+fma"]);
+        assert_eq!(shown, ["numeric platform cpu/x86-64-v3/amd/portable -> cpu/x86-64/native/AMD EPYC/avx2+fma"]);
     }
 
     #[test]

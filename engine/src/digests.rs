@@ -54,7 +54,7 @@ pub fn render(pipeline: &Pipeline, plan: &Plan, states: &[Freshness], cpu: &Cpu)
     let mut out = String::new();
     writeln!(out, "# Output digests of one run of {file} (pipeline `{}`), for comparing machines: `rlmflow verify --against THIS_FILE`", pipeline.name)?;
     let commit = commit(&pipeline.file).map(|c| format!("; commit {c}")).unwrap_or_default();
-    writeln!(out, "# rlmflow {}{commit}; CPU: {}, {}, {cores} cores; extensions: {}", env!("CARGO_PKG_VERSION"), cpu.model, cpu.arch, cpu.extensions.join(" "))?;
+    writeln!(out, "# rlmflow {}{commit}; CPU: {} ({}), {}, {cores} cores; extensions: {}", env!("CARGO_PKG_VERSION"), cpu.model, cpu.vendor, cpu.arch, cpu.extensions.join(" "))?;
     let portable = class(Numerics::Portable, cpu, Target::Cpu, None);
     let native = class(Numerics::Native, cpu, Target::Cpu, None);
     writeln!(out, "# classes: portable {portable}; native {native}")?;

@@ -9,11 +9,13 @@
 //! - its key carries the [`class`] of machines that compute the same bytes under those choices,
 //!   so two machines share a cache entry exactly when they compute the same bytes.
 //!
-//! `portable` (the default) pins one path for every x86-64 machine with AVX2 and FMA
-//! (`cpu/x86-64-v3/portable`): ATen's AVX2 kernels, oneDNN capped at AVX2 and MKL's conditional
-//! numerical reproducibility on its compatible branch (MKL's own AVX2 branch is honoured on Intel
-//! CPUs only, so it would part AMD from Intel). Older x86-64 machines and other architectures get
-//! their own pins and classes. `native` sets nothing, so each library takes the fastest kernels the
+//! `portable` (the default) pins one path for every x86-64 machine of one vendor with AVX2 and
+//! FMA (`cpu/x86-64-v3/intel/portable`, `cpu/x86-64-v3/amd/portable`): ATen's AVX2 kernels,
+//! oneDNN capped at AVX2 and MKL's conditional numerical reproducibility, on its AVX2 branch on
+//! Intel and its compatible branch elsewhere. The vendor is in the class because MKL parts them:
+//! it honours its AVX2 branch on Intel CPUs only, and its compatible branch computed other bytes
+//! on an AVX-512 Intel than on AVX-512 and AVX2 AMD machines, which agreed (docs/numerics.md).
+//! Older x86-64 machines and other architectures get their own pins and classes. `native` sets nothing, so each library takes the fastest kernels the
 //! machine has; its class names the CPU model and vector extensions. On a CUDA device the class
 //! names the GPU, its compute capability and driver.
 
@@ -144,12 +146,15 @@ pub struct Cpu {
     pub model: String,
     /// The vector extensions that change a library's kernel choice, in a fixed order.
     pub extensions: Vec<String>,
+    /// The vendor the CPU names itself by (`GenuineIntel`, `AuthenticAMD`; empty off x86).
+    #[serde(default)]
+    pub vendor: String,
 }
 
 impl Cpu {
     /// This machine's.
     pub fn detect() -> Cpu {
-        Cpu { arch: std::env::consts::ARCH.to_owned(), model: cpu_model(), extensions: extensions() }
+        Cpu { arch: std::env::consts::ARCH.to_owned(), model: cpuinfo(&["model name", "Model", "CPU part"]), extensions: extensions(), vendor: vendor() }
     }
 
     fn has(&self, extension: &str) -> bool {
@@ -160,12 +165,42 @@ impl Cpu {
     fn is_x86_64_v3(&self) -> bool {
         self.arch == "x86_64" && self.has("avx2") && self.has("fma")
     }
+
+    fn is_intel(&self) -> bool {
+        self.vendor == "GenuineIntel"
+    }
+
+    /// The vendor as a class names it: `intel`, `amd`, else its own name in lower case.
+    fn vendor_class(&self) -> String {
+        match self.vendor.as_str() {
+            "GenuineIntel" => "intel".to_owned(),
+            "AuthenticAMD" => "amd".to_owned(),
+            "" => "unknown".to_owned(),
+            other => other.chars().filter(char::is_ascii_alphanumeric).collect::<String>().to_lowercase(),
+        }
+    }
 }
 
-fn cpu_model() -> String {
+/// The first of `/proc/cpuinfo`'s lines named by `keys`, its value; `unknown` if none.
+fn cpuinfo(keys: &[&str]) -> String {
     let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
-    let line = info.lines().find(|l| l.starts_with("model name") || l.starts_with("Model") || l.starts_with("CPU part"));
+    let line = info.lines().find(|l| keys.iter().any(|k| l.starts_with(k)));
     line.and_then(|l| l.split_once(':')).map_or("unknown".to_owned(), |(_, v)| v.split_whitespace().collect::<Vec<_>>().join(" "))
+}
+
+/// CPUID's vendor string: what MKL reads to choose its branch.
+#[cfg(target_arch = "x86_64")]
+fn vendor() -> String {
+    // SAFETY: leaf 0 of CPUID exists on every x86-64 CPU.
+    #[allow(unused_unsafe)]
+    let id = unsafe { std::arch::x86_64::__cpuid(0) };
+    let bytes: Vec<u8> = [id.ebx, id.edx, id.ecx].iter().flat_map(|r| r.to_le_bytes()).collect();
+    String::from_utf8_lossy(&bytes).into_owned()
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+fn vendor() -> String {
+    String::new()
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -196,7 +231,9 @@ fn extensions() -> Vec<String> {
 pub fn pins(numerics: Numerics, cpu: &Cpu, target: Target) -> BTreeMap<&'static str, Option<&'static str>> {
     let mut env: BTreeMap<&'static str, Option<&'static str>> = KERNEL_VARIABLES.iter().map(|v| (*v, None)).collect();
     if numerics == Numerics::Portable {
-        let chosen: &[(&str, &str)] = if cpu.is_x86_64_v3() {
+        let chosen: &[(&str, &str)] = if cpu.is_x86_64_v3() && cpu.is_intel() {
+            &[("ATEN_CPU_CAPABILITY", "avx2"), ("ONEDNN_MAX_CPU_ISA", "AVX2"), ("MKL_CBWR", "AVX2"), ("MKL_DYNAMIC", "FALSE")]
+        } else if cpu.is_x86_64_v3() {
             &[("ATEN_CPU_CAPABILITY", "avx2"), ("ONEDNN_MAX_CPU_ISA", "AVX2"), ("MKL_CBWR", "COMPATIBLE"), ("MKL_DYNAMIC", "FALSE")]
         } else if cpu.arch == "x86_64" {
             &[("ATEN_CPU_CAPABILITY", "default"), ("ONEDNN_MAX_CPU_ISA", "SSE41"), ("MKL_CBWR", "COMPATIBLE"), ("MKL_DYNAMIC", "FALSE")]
@@ -266,7 +303,8 @@ pub fn class(numerics: Numerics, cpu: &Cpu, target: Target, gpu: Option<&Gpu>) -
         return format!("cuda/{gpu}/{numerics}");
     }
     match numerics {
-        Numerics::Portable if cpu.is_x86_64_v3() => "cpu/x86-64-v3/portable".to_owned(),
+        Numerics::Portable if cpu.is_x86_64_v3() => format!("cpu/x86-64-v3/{}/portable", cpu.vendor_class()),
+        Numerics::Portable if cpu.arch == "x86_64" => format!("cpu/x86-64/{}/portable", cpu.vendor_class()),
         Numerics::Portable => format!("cpu/{}/portable", cpu.arch.replace('_', "-")),
         Numerics::Native => format!("cpu/{}/native/{}/{}", cpu.arch.replace('_', "-"), cpu.model, cpu.extensions.join("+")),
     }
@@ -348,20 +386,28 @@ mod tests {
     use super::*;
 
     fn cpu(arch: &str, extensions: &[&str]) -> Cpu {
-        Cpu { arch: arch.into(), model: "Test CPU".into(), extensions: extensions.iter().map(|e| (*e).to_owned()).collect() }
+        let vendor = if arch == "x86_64" { "AuthenticAMD" } else { "" };
+        Cpu { arch: arch.into(), model: "Test CPU".into(), extensions: extensions.iter().map(|e| (*e).to_owned()).collect(), vendor: vendor.into() }
     }
 
     #[test]
-    fn every_avx2_machine_is_one_portable_class_whatever_its_model() {
+    fn every_avx2_machine_of_a_vendor_is_one_portable_class_whatever_its_model() {
         let zen3 = cpu("x86_64", &["sse4.2", "avx", "avx2", "fma"]);
         let zen4 = Cpu { model: "Other CPU".into(), ..cpu("x86_64", &["sse4.2", "avx", "avx2", "fma", "avx512f", "avx512bw"]) };
-        assert_eq!(class(Numerics::Portable, &zen3, Target::Cpu, None), "cpu/x86-64-v3/portable");
+        assert_eq!(class(Numerics::Portable, &zen3, Target::Cpu, None), "cpu/x86-64-v3/amd/portable");
         assert_eq!(class(Numerics::Portable, &zen4, Target::Cpu, None), class(Numerics::Portable, &zen3, Target::Cpu, None));
         assert_eq!(pins(Numerics::Portable, &zen3, Target::Cpu), pins(Numerics::Portable, &zen4, Target::Cpu));
         assert_ne!(class(Numerics::Native, &zen3, Target::Cpu, None), class(Numerics::Native, &zen4, Target::Cpu, None));
         assert!(class(Numerics::Native, &zen4, Target::Cpu, None).contains("Other CPU"));
         assert_eq!(class(Numerics::Portable, &cpu("aarch64", &["neon"]), Target::Cpu, None), "cpu/aarch64/portable");
-        assert_eq!(class(Numerics::Portable, &cpu("x86_64", &["sse4.2"]), Target::Cpu, None), "cpu/x86-64/portable");
+        assert_eq!(class(Numerics::Portable, &cpu("x86_64", &["sse4.2"]), Target::Cpu, None), "cpu/x86-64/amd/portable");
+        // Intel's AVX-512 and AVX2 machines share MKL's AVX2 branch, which MKL runs on Intel only.
+        let intel = |extensions: &[&str]| Cpu { vendor: "GenuineIntel".into(), ..cpu("x86_64", extensions) };
+        let (skylake_x, haswell) = (intel(&["avx2", "fma", "avx512f"]), intel(&["avx2", "fma"]));
+        assert_eq!(class(Numerics::Portable, &skylake_x, Target::Cpu, None), "cpu/x86-64-v3/intel/portable");
+        assert_eq!(pins(Numerics::Portable, &skylake_x, Target::Cpu), pins(Numerics::Portable, &haswell, Target::Cpu));
+        assert_eq!(pins(Numerics::Portable, &haswell, Target::Cpu)["MKL_CBWR"], Some("AVX2"));
+        assert_eq!(class(Numerics::Portable, &Cpu { vendor: "HygonGenuine".into(), ..zen3 }, Target::Cpu, None), "cpu/x86-64-v3/hygongenuine/portable");
     }
 
     #[test]
