@@ -34,7 +34,7 @@ pub enum Verdict {
 }
 
 /// The digests file of `pipeline` as `states` (its plan assessed against the store) hold it:
-/// a header naming the pipeline, rlmflow's version, the commit where the file is in git, and the
+/// a header naming the pipeline, rlmflow's version, the git commit where there is one, and the
 /// CPU with the numeric classes it computes in; then one row per instance. Every instance must
 /// be cached: a file of part of a pipeline would compare silently less.
 pub fn render(pipeline: &Pipeline, plan: &Plan, states: &[Freshness], cpu: &Cpu) -> anyhow::Result<String> {
@@ -53,7 +53,9 @@ pub fn render(pipeline: &Pipeline, plan: &Plan, states: &[Freshness], cpu: &Cpu)
     let file = pipeline.file.file_name().map_or_else(|| pipeline.file.display().to_string(), |f| f.to_string_lossy().into_owned());
     let mut out = String::new();
     writeln!(out, "# Output digests of one run of {file} (pipeline `{}`), for comparing machines: `rlmflow verify --against THIS_FILE`", pipeline.name)?;
-    let commit = commit(&pipeline.file).map(|c| format!("; commit {c}")).unwrap_or_default();
+    let commit = crate::history::git_state(&pipeline.file)
+        .map(|g| format!("; commit {}{}", &g.commit[..g.commit.len().min(12)], if g.dirty { " (dirty)" } else { "" }))
+        .unwrap_or_default();
     writeln!(out, "# rlmflow {}{commit}; CPU: {} ({}), {}, {cores} cores; extensions: {}", env!("CARGO_PKG_VERSION"), cpu.model, cpu.vendor, cpu.arch, cpu.extensions.join(" "))?;
     let portable = class(Numerics::Portable, cpu, Target::Cpu, None);
     let native = class(Numerics::Native, cpu, Target::Cpu, None);
@@ -105,14 +107,6 @@ pub fn compare(store: &Store, rows: &[Row]) -> anyhow::Result<Vec<Verdict>> {
             })
         })
         .collect()
-}
-
-/// The short commit of the git work tree holding `file`, where there is one.
-fn commit(file: &Path) -> Option<String> {
-    let dir = file.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let out = std::process::Command::new("git").arg("-C").arg(dir).args(["rev-parse", "--short", "HEAD"]).output().ok()?;
-    let commit = String::from_utf8(out.stdout).ok()?.trim().to_owned();
-    (out.status.success() && !commit.is_empty()).then_some(commit)
 }
 
 #[cfg(test)]

@@ -15,8 +15,9 @@
 //! Intel and its compatible branch elsewhere. The vendor is in the class because MKL parts them:
 //! it honours its AVX2 branch on Intel CPUs only, and its compatible branch computed other bytes
 //! on an AVX-512 Intel than on AVX-512 and AVX2 AMD machines, which agreed (docs/numerics.md).
-//! Older x86-64 machines and other architectures get their own pins and classes. `native` sets nothing, so each library takes the fastest kernels the
-//! machine has; its class names the CPU model and vector extensions. On a CUDA device the class
+//! Older x86-64 machines and other architectures get their own pins and classes. `native` sets
+//! nothing, so each library takes the fastest kernels the machine has; its class names the CPU
+//! model and vector extensions. On a CUDA device the class
 //! names the GPU, its compute capability and driver.
 
 use std::collections::BTreeMap;
@@ -231,10 +232,10 @@ fn extensions() -> Vec<String> {
 pub fn pins(numerics: Numerics, cpu: &Cpu, target: Target) -> BTreeMap<&'static str, Option<&'static str>> {
     let mut env: BTreeMap<&'static str, Option<&'static str>> = KERNEL_VARIABLES.iter().map(|v| (*v, None)).collect();
     if numerics == Numerics::Portable {
-        let chosen: &[(&str, &str)] = if cpu.is_x86_64_v3() && cpu.is_intel() {
-            &[("ATEN_CPU_CAPABILITY", "avx2"), ("ONEDNN_MAX_CPU_ISA", "AVX2"), ("MKL_CBWR", "AVX2"), ("MKL_DYNAMIC", "FALSE")]
-        } else if cpu.is_x86_64_v3() {
-            &[("ATEN_CPU_CAPABILITY", "avx2"), ("ONEDNN_MAX_CPU_ISA", "AVX2"), ("MKL_CBWR", "COMPATIBLE"), ("MKL_DYNAMIC", "FALSE")]
+        // MKL runs its AVX2 branch on Intel CPUs only.
+        let mkl = if cpu.is_intel() { "AVX2" } else { "COMPATIBLE" };
+        let chosen: &[(&str, &str)] = if cpu.is_x86_64_v3() {
+            &[("ATEN_CPU_CAPABILITY", "avx2"), ("ONEDNN_MAX_CPU_ISA", "AVX2"), ("MKL_CBWR", mkl), ("MKL_DYNAMIC", "FALSE")]
         } else if cpu.arch == "x86_64" {
             &[("ATEN_CPU_CAPABILITY", "default"), ("ONEDNN_MAX_CPU_ISA", "SSE41"), ("MKL_CBWR", "COMPATIBLE"), ("MKL_DYNAMIC", "FALSE")]
         } else {

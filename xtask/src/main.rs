@@ -61,6 +61,10 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
         cmd.env("LIBTORCH", &libtorch).env("LIBTORCH_CXX11_ABI", "1");
         cmd
     };
+    // rlmflow and its torch worker in release; whether they built.
+    let build_release = || -> anyhow::Result<bool> {
+        Ok(status(cargo().args(["build", "--release", "--bins", "-p", "rlmflow", "-p", "rlmflow-torch"]))? == ExitCode::SUCCESS)
+    };
     match command.as_str() {
         "libtorch" => {
             println!("{}", libtorch.display());
@@ -68,7 +72,7 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
         }
         "test" | "build" | "bench" => status(cargo().arg(command).args(rest)),
         "run" | "rlmflow" => {
-            if !status(cargo().args(["build", "--release", "--bins", "-p", "rlmflow", "-p", "rlmflow-torch"]))?.eq(&ExitCode::SUCCESS) {
+            if !build_release()? {
                 return Ok(ExitCode::FAILURE);
             }
             let mut rlmflow = Command::new(target_dir()?.join("release/rlmflow"));
@@ -78,7 +82,7 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
             status(rlmflow.args(rest))
         }
         "device-check" => {
-            if !status(cargo().args(["build", "--release", "--bins", "-p", "rlmflow", "-p", "rlmflow-torch"]))?.eq(&ExitCode::SUCCESS) {
+            if !build_release()? {
                 return Ok(ExitCode::FAILURE);
             }
             let packed = target_dir()?.join("device-check");
@@ -91,7 +95,7 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
             status(Command::new("python3").arg(script).arg("--bin").arg(&packed).args(rest))
         }
         "digests" => {
-            if !status(cargo().args(["build", "--release", "--bins", "-p", "rlmflow", "-p", "rlmflow-torch"]))?.eq(&ExitCode::SUCCESS) {
+            if !build_release()? {
                 return Ok(ExitCode::FAILURE);
             }
             let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().context("xtask lives in the workspace")?.to_path_buf();
