@@ -21,7 +21,10 @@ fn run() -> anyhow::Result<ExitCode> {
     }
     let status = Command::new(&worker).arg("doctor").status().with_context(|| format!("running {}", worker.display()))?;
     if !status.success() {
-        bail!("{} doctor failed ({status}): it could not start, so no model stage can run (is libtorch where its run path or LD_LIBRARY_PATH says?)", worker.display());
+        bail!(
+            "{} doctor failed ({status}): it could not start, so no model stage can run (is libtorch where its run path or LD_LIBRARY_PATH says?)",
+            worker.display()
+        );
     }
     Ok(ExitCode::SUCCESS)
 }

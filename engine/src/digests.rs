@@ -52,11 +52,23 @@ pub fn render(pipeline: &Pipeline, plan: &Plan, states: &[Freshness], cpu: &Cpu)
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let file = pipeline.file.file_name().map_or_else(|| pipeline.file.display().to_string(), |f| f.to_string_lossy().into_owned());
     let mut out = String::new();
-    writeln!(out, "# Output digests of one run of {file} (pipeline `{}`), for comparing machines: `rlmflow verify --against THIS_FILE`", pipeline.name)?;
+    writeln!(
+        out,
+        "# Output digests of one run of {file} (pipeline `{}`), for comparing machines: `rlmflow verify --against THIS_FILE`",
+        pipeline.name
+    )?;
     let commit = crate::history::git_state(&pipeline.file)
         .map(|g| format!("; commit {}{}", &g.commit[..g.commit.len().min(12)], if g.dirty { " (dirty)" } else { "" }))
         .unwrap_or_default();
-    writeln!(out, "# rlmflow {}{commit}; CPU: {} ({}), {}, {cores} cores; extensions: {}", env!("CARGO_PKG_VERSION"), cpu.model, cpu.vendor, cpu.arch, cpu.extensions.join(" "))?;
+    writeln!(
+        out,
+        "# rlmflow {}{commit}; CPU: {} ({}), {}, {cores} cores; extensions: {}",
+        env!("CARGO_PKG_VERSION"),
+        cpu.model,
+        cpu.vendor,
+        cpu.arch,
+        cpu.extensions.join(" ")
+    )?;
     let portable = class(Numerics::Portable, cpu, Target::Cpu, None);
     let native = class(Numerics::Native, cpu, Target::Cpu, None);
     writeln!(out, "# classes: portable {portable}; native {native}")?;

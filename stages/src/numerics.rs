@@ -155,7 +155,12 @@ pub struct Cpu {
 impl Cpu {
     /// This machine's.
     pub fn detect() -> Cpu {
-        Cpu { arch: std::env::consts::ARCH.to_owned(), model: cpuinfo(&["model name", "Model", "CPU part"]), extensions: extensions(), vendor: vendor() }
+        Cpu {
+            arch: std::env::consts::ARCH.to_owned(),
+            model: cpuinfo(&["model name", "Model", "CPU part"]),
+            extensions: extensions(),
+            vendor: vendor(),
+        }
     }
 
     fn has(&self, extension: &str) -> bool {
@@ -408,7 +413,10 @@ mod tests {
         assert_eq!(class(Numerics::Portable, &skylake_x, Target::Cpu, None), "cpu/x86-64-v3/intel/portable");
         assert_eq!(pins(Numerics::Portable, &skylake_x, Target::Cpu), pins(Numerics::Portable, &haswell, Target::Cpu));
         assert_eq!(pins(Numerics::Portable, &haswell, Target::Cpu)["MKL_CBWR"], Some("AVX2"));
-        assert_eq!(class(Numerics::Portable, &Cpu { vendor: "HygonGenuine".into(), ..zen3 }, Target::Cpu, None), "cpu/x86-64-v3/hygongenuine/portable");
+        assert_eq!(
+            class(Numerics::Portable, &Cpu { vendor: "HygonGenuine".into(), ..zen3 }, Target::Cpu, None),
+            "cpu/x86-64-v3/hygongenuine/portable"
+        );
     }
 
     #[test]

@@ -53,7 +53,10 @@ fn another_machines_digests_agree_where_keys_match_and_a_differing_output_fails(
     let (code, stdout, _) = verify(&changed.join("\n"));
     assert_eq!(code, Some(1), "{stdout}");
     assert!(stdout.contains("DIFFERS   map") && stdout.contains("there 000000000000"), "{stdout}");
-    assert!(stdout.contains("absent    other") && stdout.contains(&format!("{} the same, 1 differ, 1 not in this store", rows.len() - 2)), "{stdout}");
+    assert!(
+        stdout.contains("absent    other") && stdout.contains(&format!("{} the same, 1 differ, 1 not in this store", rows.len() - 2)),
+        "{stdout}"
+    );
 
     // Nothing comparable is a failure, not a pass; a malformed row names its line.
     let (code, _, stderr) = verify(&format!("map {} {}\n", "1".repeat(64), "2".repeat(64)));

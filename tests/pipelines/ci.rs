@@ -98,7 +98,10 @@ fn the_ci_pipeline_computes_the_shipped_digests_of_another_machine() {
     assert!(ok, "{mine}");
     let portable = |text: &str| text.lines().find(|l| l.starts_with("# classes: ")).and_then(|l| l.split(';').next()).map(str::to_owned);
     if portable(&mine) == portable(&std::fs::read_to_string(&shipped).unwrap()) {
-        assert!(out.contains(" 0 not in this store"), "a key of the shipped digests moved: `cargo xtask digests examples/ci.toml` regenerates them\n{out}");
+        assert!(
+            out.contains(" 0 not in this store"),
+            "a key of the shipped digests moved: `cargo xtask digests examples/ci.toml` regenerates them\n{out}"
+        );
     }
 }
 

@@ -58,7 +58,8 @@ fn main() {
                 // Rounds alternate between the two, so a drift in the machine's speed hits both alike.
                 let (mut ours, mut theirs) = (Vec::new(), Vec::new());
                 for _ in 0..rounds {
-                    let args = ["--model", model, "--batch", batch, "--steps", &steps, "--threads", &threads, "--device", &device, "--precision", precision];
+                    let args =
+                        ["--model", model, "--batch", batch, "--steps", &steps, "--threads", &threads, "--device", &device, "--precision", precision];
                     ours.push(measure(Command::new(WORKER).arg("step").args(args)));
                     if let Some(python) = &python {
                         theirs.push(measure(Command::new(python).args([reference, &config, batch, &steps, &threads, &device, precision])));

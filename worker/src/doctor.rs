@@ -19,7 +19,11 @@ fn run() -> anyhow::Result<ExitCode> {
     println!("{status}");
     let cpu = Cpu::detect();
     println!("cpu            {} ({})", cpu.model, cpu.extensions.join(" "));
-    println!("classes        {} (numerics = \"portable\"), {}", class(Numerics::Portable, &cpu, Target::Cpu, None), class(Numerics::Native, &cpu, Target::Cpu, None));
+    println!(
+        "classes        {} (numerics = \"portable\"), {}",
+        class(Numerics::Portable, &cpu, Target::Cpu, None),
+        class(Numerics::Native, &cpu, Target::Cpu, None)
+    );
     for n in 0..status.devices {
         let gpu = Gpu::detect(n as usize);
         println!("cuda:{n}         {}", class(Numerics::Portable, &cpu, Target::Cuda(n as usize), gpu.as_ref()));

@@ -86,7 +86,8 @@ fn run(args: Step) -> anyhow::Result<ExitCode> {
         "unpinned" => {}
         other => anyhow::bail!("--numerics {other}: portable, native or unpinned"),
     }
-    let precision: Precision = serde_json::from_value(serde_json::json!(args.precision)).map_err(|_| anyhow::anyhow!("--precision {}: fp32, tf32 or bf16", args.precision))?;
+    let precision: Precision = serde_json::from_value(serde_json::json!(args.precision))
+        .map_err(|_| anyhow::anyhow!("--precision {}: fp32, tf32 or bf16", args.precision))?;
     tch::set_num_threads(args.threads);
     // The placement a training stage of these settings gets: CUDA's deterministic mode, TF32 as asked.
     let placement = Placement::of(&Training { device: target.device(), precision, ..Training::default() }, rlmflow_stages::Device::Cpu)?;

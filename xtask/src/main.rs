@@ -88,7 +88,11 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
             let packed = target_dir()?.join("device-check");
             pack(&target_dir()?.join("release"), &packed)?;
             if rest.iter().any(|a| a == "--build-only") {
-                println!("{}: carry it to the GPU machine and run `python3 xtask/device-check.py --bin {}` there", packed.display(), packed.display());
+                println!(
+                    "{}: carry it to the GPU machine and run `python3 xtask/device-check.py --bin {}` there",
+                    packed.display(),
+                    packed.display()
+                );
                 return Ok(ExitCode::SUCCESS);
             }
             let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("device-check.py");
@@ -99,8 +103,11 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
                 return Ok(ExitCode::FAILURE);
             }
             let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().context("xtask lives in the workspace")?.to_path_buf();
-            let pipelines: Vec<PathBuf> =
-                if rest.is_empty() { vec![root.join("examples/ci.toml"), root.join("pipeline.toml")] } else { rest.iter().map(PathBuf::from).collect() };
+            let pipelines: Vec<PathBuf> = if rest.is_empty() {
+                vec![root.join("examples/ci.toml"), root.join("pipeline.toml")]
+            } else {
+                rest.iter().map(PathBuf::from).collect()
+            };
             let rlmflow = target_dir()?.join("release/rlmflow");
             for pipeline in pipelines {
                 if !status(Command::new(&rlmflow).arg("run").arg(&pipeline))?.eq(&ExitCode::SUCCESS) {

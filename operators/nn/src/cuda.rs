@@ -35,7 +35,10 @@ impl Status {
         }
         let Some(dir) = &self.libtorch else { return Some("libtorch is not loaded from a file this process can name".into()) };
         let Some(built_for) = &self.built_for else {
-            return Some(format!("the libtorch at {} is a CPU build (no lib/libtorch_cuda.so): use the CUDA wheel's (`cargo xtask` installs it)", dir.display()));
+            return Some(format!(
+                "the libtorch at {} is a CPU build (no lib/libtorch_cuda.so): use the CUDA wheel's (`cargo xtask` installs it)",
+                dir.display()
+            ));
         };
         let driver = match &self.driver {
             Err(why) => return Some(format!("no NVIDIA driver: {why}")),
@@ -98,7 +101,10 @@ fn dlopen(path: &str, flags: c_int) -> Result<*mut c_void, String> {
 /// `LD_LIBRARY_PATH` chose it).
 fn libtorch_lib_dir() -> Option<PathBuf> {
     let maps = std::fs::read_to_string("/proc/self/maps").ok()?;
-    maps.lines().filter_map(|line| line.split_whitespace().nth(5)).find(|path| path.ends_with("/libtorch_cpu.so")).map(|p| Path::new(p).parent().expect("a file in a directory").to_path_buf())
+    maps.lines()
+        .filter_map(|line| line.split_whitespace().nth(5))
+        .find(|path| path.ends_with("/libtorch_cpu.so"))
+        .map(|p| Path::new(p).parent().expect("a file in a directory").to_path_buf())
 }
 
 /// The CUDA version a libtorch at `lib` (its `lib/` directory) was built for, from the wheel's
@@ -108,7 +114,9 @@ fn built_for(lib: &Path) -> Option<String> {
         return None;
     }
     let version = std::fs::read_to_string(lib.join("../version.py")).unwrap_or_default();
-    let recorded = version.lines().find_map(|l| l.strip_prefix("cuda").and_then(|rest| rest.split_once('=')).map(|(_, v)| v.trim().trim_matches(['\'', '"']).to_owned()));
+    let recorded = version
+        .lines()
+        .find_map(|l| l.strip_prefix("cuda").and_then(|rest| rest.split_once('=')).map(|(_, v)| v.trim().trim_matches(['\'', '"']).to_owned()));
     Some(recorded.filter(|v| v != "None").unwrap_or_else(|| "an unrecorded version".into()))
 }
 
@@ -158,7 +166,13 @@ pub fn status() -> Status {
     let libtorch = libtorch_lib_dir();
     let built_for = libtorch.as_deref().and_then(built_for);
     let devices = if library.is_ok() { tch::Cuda::device_count() } else { 0 };
-    Status { libtorch: libtorch.map(|lib| lib.parent().map_or(lib.clone(), Path::to_path_buf)), built_for, driver: driver_version(), library, devices }
+    Status {
+        libtorch: libtorch.map(|lib| lib.parent().map_or(lib.clone(), Path::to_path_buf)),
+        built_for,
+        driver: driver_version(),
+        library,
+        devices,
+    }
 }
 
 /// Whether libtorch can compute on CUDA in this process.
@@ -185,7 +199,9 @@ mod tests {
         let why = |s: Status| s.why_not().unwrap_or_default();
         assert!(why(status(None, Ok("13.0"), Ok(()), 0)).contains("is a CPU build"));
         assert!(why(status(Some("13.0"), Err("libcuda.so.1 cannot be loaded"), Err("x"), 0)).starts_with("no NVIDIA driver: libcuda.so.1"));
-        assert!(why(status(Some("13.0"), Ok("12.8"), Ok(()), 0)).contains("supports CUDA 12.8, and this libtorch needs CUDA 13.0: update the driver"));
+        assert!(
+            why(status(Some("13.0"), Ok("12.8"), Ok(()), 0)).contains("supports CUDA 12.8, and this libtorch needs CUDA 13.0: update the driver")
+        );
         let missing = why(status(Some("13.0"), Ok("13.1"), Err("libcudnn.so.9: cannot open shared object file"), 0));
         assert!(missing.contains("libcudnn.so.9") && missing.contains("cargo xtask libtorch --cuda"), "{missing}");
         assert!(why(status(Some("13.0"), Ok("13.0"), Ok(()), 0)).contains("no CUDA device is visible"));

@@ -94,7 +94,19 @@ pub fn fused_adamw(params: &[&Tensor], grads: &[&Tensor], exp_avgs: &[&Tensor], 
     let (p, g, m, v) = (handles(params), handles(grads), handles(exp_avgs), handles(exp_avg_sqs));
     // SAFETY: four arrays of n live tensor handles, borrowed for the call.
     let message = tch::no_grad(|| unsafe {
-        rlmflow_fused_adamw(p.as_ptr(), g.as_ptr(), m.as_ptr(), v.as_ptr(), n as i32, s.step as f64, s.lr, s.betas.0, s.betas.1, s.weight_decay, s.eps)
+        rlmflow_fused_adamw(
+            p.as_ptr(),
+            g.as_ptr(),
+            m.as_ptr(),
+            v.as_ptr(),
+            n as i32,
+            s.step as f64,
+            s.lr,
+            s.betas.0,
+            s.betas.1,
+            s.weight_decay,
+            s.eps,
+        )
     });
     checked(message, "take a fused AdamW step")
 }

@@ -108,8 +108,9 @@ impl AdamW {
     /// one for the rest.
     fn fused_step(&mut self, grads: &[Tensor], lr: f64) -> anyhow::Result<()> {
         for decayed in [true, false] {
-            let chosen: Vec<usize> =
-                (0..self.params.len()).filter(|&i| grads[i].defined() && (self.weight_decay > 0.0 && self.params[i].1.dim() >= 2) == decayed).collect();
+            let chosen: Vec<usize> = (0..self.params.len())
+                .filter(|&i| grads[i].defined() && (self.weight_decay > 0.0 && self.params[i].1.dim() >= 2) == decayed)
+                .collect();
             let params: Vec<&Tensor> = chosen.iter().map(|&i| &self.params[i].1).collect();
             let weight_decay = if decayed { self.weight_decay } else { 0.0 };
             let s = AdamWStep { step: self.steps, lr, betas: self.betas, weight_decay, eps: self.eps };

@@ -47,7 +47,9 @@ pub fn resolve_device(setting: Device, engine: Device) -> anyhow::Result<tch::De
         Target::Cpu => Ok(tch::Device::Cpu),
         Target::Cuda(_) if !cuda::available() => {
             let why = cuda::status().why_not().unwrap_or_else(|| "libtorch reports no CUDA device".into());
-            bail!("device `{setting}`: libtorch cannot compute on CUDA here: {why}; or set the stage's `device = \"cpu\"` (`rlmflow-torch doctor` says more)")
+            bail!(
+                "device `{setting}`: libtorch cannot compute on CUDA here: {why}; or set the stage's `device = \"cpu\"` (`rlmflow-torch doctor` says more)"
+            )
         }
         Target::Cuda(n) => {
             libtorch::set_deterministic(true)?;
@@ -417,7 +419,8 @@ mod tests {
         let head = nn::linear(vs.root() / "head", 16, 2, Default::default());
         let inputs = Tensor::randn([32, 6], (tch::Kind::Float, tch::Device::Cpu));
         let targets = Tensor::randn([32, 2], (tch::Kind::Float, tch::Device::Cpu));
-        let training = Training { epochs, batch: 8, warmup_epochs: 0.0, lr: 0.01, precision: Precision::Bf16, device: Device::Cpu, ..Training::default() };
+        let training =
+            Training { epochs, batch: 8, warmup_epochs: 0.0, lr: 0.01, precision: Precision::Bf16, device: Device::Cpu, ..Training::default() };
         let placement = Placement::of(&training, Device::Cpu)?;
         assert_eq!(placement, Placement { device: tch::Device::Cpu, precision: Precision::Bf16 });
         let frames: Vec<usize> = (0..32).collect();

@@ -293,7 +293,14 @@ mod tests {
         let scenes = Outline { image: Some(224), frames: Some(400), ..Outline::default() };
         let tokens = Outline { context: Some(400), vocab: Some(2048), ..Outline::default() };
         let inputs: InputOutlines = [("scenes", vec![scenes]), ("tokens", vec![tokens])].into_iter().collect();
-        let paper = ClipSettings { encoder: "vit-b16".into(), quick_gelu: true, text: "paper".into(), head: Head::Mlp, text_head: Head::Mlp, ..ClipSettings::default() };
+        let paper = ClipSettings {
+            encoder: "vit-b16".into(),
+            quick_gelu: true,
+            text: "paper".into(),
+            head: Head::Mlp,
+            text_head: Head::Mlp,
+            ..ClipSettings::default()
+        };
         let mib = |precision, batch, chunk, target| {
             let s = ClipSettings { chunk, training: Training { precision, batch, ..paper.training.clone() }, ..paper.clone() };
             footprint(&s, &inputs, target).unwrap().peak_bytes as f64 / 2f64.powi(20)

@@ -207,7 +207,9 @@ fn clipcap_footprint(s: &ClipcapSettings, inputs: &InputOutlines, target: Target
         + decoder.parameters()
         + 2 * width;
     let per_caption = mapper.activations(2 * prefix) + decoder.activations(positions) + 3 * positions * vocab;
-    let peak_bytes = encoder.parameters * FLOAT + trained * TRAINED + memory::activation_bytes(per_caption * s.training.micro_batch(), s.training.precision.on(target));
+    let peak_bytes = encoder.parameters * FLOAT
+        + trained * TRAINED
+        + memory::activation_bytes(per_caption * s.training.micro_batch(), s.training.precision.on(target));
     Some(Footprint { parameters: encoder.parameters + trained, peak_bytes, lower_with: memory::LOWER_BY_ACCUMULATING })
 }
 

@@ -198,7 +198,10 @@ fn pup_footprint(s: &PupSettings, inputs: &InputOutlines, target: Target) -> Opt
     // MLP units (4 x width) at a time.
     let encoded = (model.grid * model.grid + 1) * 12 * model.width;
     let cached = if tokens <= TOKEN_CACHE_BYTES { tokens } else { s.training.micro_batch() * encoded * FLOAT };
-    let peak_bytes = model.parameters * FLOAT + decoder * TRAINED + cached + activation_bytes(per_frame * s.training.micro_batch(), s.training.precision.on(target));
+    let peak_bytes = model.parameters * FLOAT
+        + decoder * TRAINED
+        + cached
+        + activation_bytes(per_frame * s.training.micro_batch(), s.training.precision.on(target));
     Some(Footprint { parameters: model.parameters + decoder, peak_bytes, lower_with: LOWER_BY_ACCUMULATING })
 }
 
@@ -220,7 +223,11 @@ fn unet_footprint(s: &UnetSettings, inputs: &InputOutlines, target: Target) -> O
     }
     parameters += widths[0] + 1;
     per_frame += 4 * side * side;
-    Some(Footprint { parameters, peak_bytes: parameters * TRAINED + activation_bytes(per_frame * s.training.micro_batch(), s.training.precision.on(target)), lower_with: LOWER_BY_ACCUMULATING })
+    Some(Footprint {
+        parameters,
+        peak_bytes: parameters * TRAINED + activation_bytes(per_frame * s.training.micro_batch(), s.training.precision.on(target)),
+        lower_with: LOWER_BY_ACCUMULATING,
+    })
 }
 
 /// `pup` as `rlmflow` registers it: validated and planned here, run by the worker.

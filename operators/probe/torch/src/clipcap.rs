@@ -129,7 +129,8 @@ fn clipcap_on(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome>
         });
         Ok(vec![("validation_loss", sum / data.split.validation.len() as f64)])
     };
-    let Fitted { log, .. } = fit(&vs, Fit { training: &s.training, placement, frames: &data.split.train, per_batch: false }, ctx, batch_loss, validation_loss)?;
+    let Fitted { log, .. } =
+        fit(&vs, Fit { training: &s.training, placement, frames: &data.split.train, per_batch: false }, ctx, batch_loss, validation_loss)?;
 
     // Generate the validation and test captions.
     let context = captions.context as usize;
