@@ -85,38 +85,55 @@ impl RangeAzimuthMap {
     /// and azimuth looked up in the map's bins (bilinear); outside them, black.
     pub fn resample(&self, side: usize, range_max_m: f64) -> Vec<f32> {
         let projection = Projection { view: View::RangeAzimuth, size: side, range_max_m, half_fov: 0.0 };
-        let start = match &self.azimuth {
-            Bins::Even { from, to } => from.min(*to),
-            _ => -PI,
-        };
         (0..side * side)
             .map(|p| {
                 let (x, y) = projection.point((p / side) as f64 + 0.5, (p % side) as f64 + 0.5);
-                let mut azimuth = y.atan2(x);
-                if self.wraps {
-                    azimuth = start + (azimuth - start).rem_euclid(2.0 * PI);
-                }
-                let row = self.range.coordinate(x.hypot(y), self.rows);
-                let col = self.azimuth.coordinate(azimuth, self.cols);
-                match (row, col) {
-                    (Some(row), Some(col)) => sample(&self.values, self.rows, self.cols, row, col),
-                    _ => 0.0,
-                }
+                self.at(x, y)
             })
             .collect()
+    }
+
+    /// The map's value at the point `x` metres ahead and `y` to the left (bilinear between bins,
+    /// across the seam of a map that wraps); outside its bins, 0.
+    pub fn at(&self, x: f64, y: f64) -> f32 {
+        let mut azimuth = y.atan2(x);
+        if self.wraps {
+            let start = match &self.azimuth {
+                Bins::Even { from, to } => from.min(*to),
+                _ => -PI,
+            };
+            azimuth = start + (azimuth - start).rem_euclid(2.0 * PI);
+        }
+        match (self.range.coordinate(x.hypot(y), self.rows), self.azimuth.coordinate(azimuth, self.cols)) {
+            (Some(row), Some(col)) => bilinear(&self.values, self.rows, self.cols, row, col, self.wraps),
+            _ => 0.0,
+        }
     }
 }
 
 /// Bilinear sample of `values` (height x width) at continuous (row, col), pixel centres at
 /// integer + 0.5; 0 outside.
 pub fn sample(values: &[f32], height: usize, width: usize, row: f64, col: f64) -> f32 {
+    bilinear(values, height, width, row, col, false)
+}
+
+/// [`sample`], where `wraps` makes the last column the first's neighbour (a full turn of
+/// azimuth) instead of an edge.
+fn bilinear(values: &[f32], height: usize, width: usize, row: f64, col: f64, wraps: bool) -> f32 {
     let (r, c) = (row - 0.5, col - 0.5);
-    if r < -0.5 || c < -0.5 || r > height as f64 - 0.5 || c > width as f64 - 0.5 {
+    if r < -0.5 || r > height as f64 - 0.5 || (!wraps && (c < -0.5 || c > width as f64 - 0.5)) {
         return 0.0;
     }
-    let (r0, c0) = (r.floor().max(0.0) as usize, c.floor().max(0.0) as usize);
-    let (r1, c1) = ((r0 + 1).min(height - 1), (c0 + 1).min(width - 1));
-    let (fr, fc) = ((r - r0 as f64).clamp(0.0, 1.0) as f32, (c - c0 as f64).clamp(0.0, 1.0) as f32);
+    let r0 = r.floor().max(0.0) as usize;
+    let (r1, fr) = ((r0 + 1).min(height - 1), (r - r0 as f64).clamp(0.0, 1.0) as f32);
+    let (c0, c1, fc) = if wraps {
+        let c = c.rem_euclid(width as f64);
+        let c0 = c.floor() as usize % width;
+        (c0, (c0 + 1) % width, (c - c.floor()) as f32)
+    } else {
+        let c0 = c.floor().max(0.0) as usize;
+        (c0, (c0 + 1).min(width - 1), (c - c0 as f64).clamp(0.0, 1.0) as f32)
+    };
     let at = |r: usize, c: usize| values[r * width + c];
     (at(r0, c0) * (1.0 - fc) + at(r0, c1) * fc) * (1.0 - fr) + (at(r1, c0) * (1.0 - fc) + at(r1, c1) * fc) * fr
 }
@@ -141,5 +158,28 @@ mod tests {
         assert_eq!(listed.coordinate(4.5, 3), Some(2.75));
         assert_eq!(listed.coordinate(5.5, 3), None);
         assert!(Bins::Centres(vec![1.0, 3.0, 2.0]).check(3).is_err());
+    }
+
+    /// A scanning radar's turn has no edge: straight ahead, between the last column and the
+    /// first, is interpolated across the seam, not clamped to either side.
+    #[test]
+    fn a_full_turn_interpolates_across_its_seam() {
+        // Four columns clockwise from ahead (0-90, 90-180, ... degrees), one range bin.
+        let map = RangeAzimuthMap {
+            values: vec![1.0, 0.0, 0.0, 0.0],
+            rows: 1,
+            cols: 4,
+            range: Bins::Even { from: 0.0, to: 10.0 },
+            azimuth: Bins::Even { from: 0.0, to: -2.0 * PI },
+            wraps: true,
+        };
+        let at = |degrees_left: f64| {
+            let a = degrees_left.to_radians();
+            map.at(5.0 * a.cos(), 5.0 * a.sin())
+        };
+        assert_eq!(at(-45.0), 1.0, "the first column's centre, 45 degrees to the right");
+        assert!((at(0.0) - 0.5).abs() < 1e-6, "ahead: half the first column, half the last ({})", at(0.0));
+        assert!((at(22.5) - 0.25).abs() < 1e-6, "{}", at(22.5));
+        assert_eq!(at(45.0), 0.0, "the last column's centre");
     }
 }

@@ -253,7 +253,7 @@ impl Operator for Import {
         OperatorSpec {
             name: "import",
             kind: "scenes",
-            version: 1,
+            version: 2,
             inputs: None,
             summary: "your own recordings (a manifest of .npy/.png radar images with actors or grids, or an MCAP file) as a Scenes artifact",
         }
@@ -267,7 +267,7 @@ impl Operator for Import {
         let source = ctx.input("path")?.to_path_buf();
         let mcap = std::fs::read_dir(&source)?.flatten().map(|e| e.path()).find(|p| p.extension().is_some_and(|e| e == "mcap"));
         let mut sink = Sink { checkpoint: ctx.checkpoint_dir.clone(), batch: s.batch as usize, writer: None, pending: Vec::new(), seen: 0 };
-        let mut skipped = BTreeMap::new();
+        let (mut skipped, mut warnings) = (BTreeMap::new(), Vec::new());
         let from = match mcap {
             _ if s.format != Format::Auto => {
                 let (shown, wanted, unknown) = (Path::new(&s.path), &s.sequences, s.unknown_classes);
@@ -277,7 +277,7 @@ impl Operator for Import {
                     Format::Carrada => (carrada::open(&source, shown, wanted, unknown, &s.axes)?, "carrada"),
                     Format::Auto => unreachable!("a dataset format"),
                 };
-                skipped = read_dataset(opened, s, ctx, &mut sink)?;
+                (skipped, warnings) = read_dataset(opened, s, ctx, &mut sink)?;
                 name
             }
             Some(file) if !source.join(&s.manifest).exists() => {
@@ -301,9 +301,13 @@ impl Operator for Import {
             let named: Vec<String> = skipped.iter().map(|(class, n)| format!("{n} {class}")).collect();
             format!("; skipped objects of unknown classes: {}", named.join(", "))
         };
+        let warned: String = warnings.iter().map(|w| format!("; warning: {w}")).collect();
         Ok(Outcome {
-            metrics: json!({"frames": summary.frames, "vehicles": summary.vehicles(), "frames_without_positions": without, "skipped_classes": skipped}),
-            summary: format!("{} frames from {from}{grids}, {} vehicles{skips}", summary.frames, summary.vehicles()),
+            metrics: json!({
+                "frames": summary.frames, "vehicles": summary.vehicles(), "frames_without_positions": without,
+                "skipped_classes": skipped, "warnings": warnings,
+            }),
+            summary: format!("{} frames from {from}{grids}, {} vehicles{skips}{warned}", summary.frames, summary.vehicles()),
         })
     }
 }
@@ -504,8 +508,9 @@ fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink)
 }
 
 /// A dataset's frames through the sink, each map resampled into rlmflow's range-azimuth image
-/// and each object placed on its pixel; returns the objects skipped by class.
-fn read_dataset(dataset: Opened, s: &ImportSettings, ctx: &Context, sink: &mut Sink) -> anyhow::Result<BTreeMap<String, usize>> {
+/// and each object placed on its pixel; returns the objects skipped by class and the reader's
+/// warnings (each also in the event log).
+fn read_dataset(dataset: Opened, s: &ImportSettings, ctx: &Context, sink: &mut Sink) -> anyhow::Result<(BTreeMap<String, usize>, Vec<String>)> {
     if dataset.frames.is_empty() {
         bail!("{}: no frames", s.path);
     }
@@ -532,7 +537,10 @@ fn read_dataset(dataset: Opened, s: &ImportSettings, ctx: &Context, sink: &mut S
         progress.inc(1);
     }
     progress.finish();
-    Ok(dataset.skipped)
+    for warning in &dataset.warnings {
+        ctx.event("warning", json!({ "message": warning }));
+    }
+    Ok((dataset.skipped, dataset.warnings))
 }
 
 /// `Ok` for a path that names a file inside the recording: relative, without `..`; else what

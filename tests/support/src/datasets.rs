@@ -67,10 +67,12 @@ pub fn write_radiate(root: &Path) -> Vec<Vec<Placed>> {
 /// frame's objects out.
 pub type WriteSized = fn(&Path, &[&str], usize) -> Vec<Vec<Placed>>;
 
-/// A RADIATE root with `names` sequences of `frames` radar frames each:
-/// `Navtech_Polar/00000k.png` (400 azimuths x 576 range bins, uint8), `Navtech_Polar.txt`,
-/// `annotations/annotations.json` (boxes in the 1152-pixel Cartesian image, `{}` where an object is
-/// absent) and `meta.json`. Returns each frame's objects.
+/// A RADIATE root with `names` sequences of `frames` radar frames each, in the published layout
+/// (checked against the SDK's own sample by `tests/pipelines/radiate.rs`):
+/// `Navtech_Polar/00000k.png` (uint8, 400 wide (azimuths) x 576 high (range bins)),
+/// `Navtech_Polar.txt`, `annotations/annotations.json` (boxes in the 1152-pixel Cartesian image,
+/// `[]` where an object is absent, entries running two frames past the last radar frame as the
+/// published ones do) and `meta.json`. Returns each frame's objects.
 pub fn write_radiate_sized(root: &Path, names: &[&str], frames: usize) -> Vec<Vec<Placed>> {
     let classes = [("car", "car", 4.5, 1.8), ("bus", "truck", 11.0, 2.6), ("group_of_pedestrians", "walker", 1.6, 1.6), ("van", "car", 5.0, 2.0)];
     let mut all = Vec::new();
@@ -82,17 +84,17 @@ pub fn write_radiate_sized(root: &Path, names: &[&str], frames: usize) -> Vec<Ve
         let mut annotations = Vec::new();
         for k in 0..frames {
             let objects = scene(s, k, 45.0, false, &classes);
-            let mut polar = vec![0u8; 400 * 576];
-            for (a, row) in polar.chunks_mut(576).enumerate() {
-                // Row a looks a * 0.9 degrees clockwise of ahead; column r is r * 0.173611 m out.
-                let clockwise = a as f64 * 2.0 * PI / 400.0;
-                for (r, v) in row.iter_mut().enumerate() {
-                    let range = r as f64 * RADIATE_RES;
+            let mut polar = vec![0u8; 576 * 400];
+            for (r, row) in polar.chunks_mut(400).enumerate() {
+                // Row r is r * 0.173611 m out; column a looks (a + 0.5) * 0.9 degrees clockwise of ahead.
+                let range = r as f64 * RADIATE_RES;
+                for (a, v) in row.iter_mut().enumerate() {
+                    let clockwise = (a as f64 + 0.5) * 2.0 * PI / 400.0;
                     let (ahead, left) = (range * clockwise.cos(), -range * clockwise.sin());
                     *v = if objects.iter().any(|o| inside(o, ahead, left)) { 250 } else { 20 + ((a * 7 + r * 3 + k) % 40) as u8 };
                 }
             }
-            write_png(&dir.join(format!("Navtech_Polar/{:06}.png", k + 1)), 576, 400, &polar);
+            write_png(&dir.join(format!("Navtech_Polar/{:06}.png", k + 1)), 400, 576, &polar);
             // To the nanosecond, as the published files have them (more digits than an f64 holds).
             let ns = 1_574_859_771_744_660_272 + k as u64 * 250_000_000;
             stamps += &format!("Frame: {:06} Time: {}.{:09}\n", k + 1, ns / 1_000_000_000, ns % 1_000_000_000);
@@ -100,7 +102,7 @@ pub fn write_radiate_sized(root: &Path, names: &[&str], frames: usize) -> Vec<Ve
                 // The Cartesian image: the radar at pixel 576, ahead up, the left to the left.
                 let (col, row) = (576.0 - o.left / RADIATE_RES, 576.0 - o.ahead / RADIATE_RES);
                 let (w, h) = (o.width / RADIATE_RES, o.length / RADIATE_RES);
-                let mut bboxes = vec![serde_json::json!({}); frames];
+                let mut bboxes = vec![serde_json::json!([]); frames + 2];
                 bboxes[k] = serde_json::json!({"position": [col - w / 2.0, row - h / 2.0, w, h], "rotation": 0.0});
                 annotations.push(serde_json::json!({"id": annotations.len() + 1, "class_name": o.theirs, "bboxes": bboxes}));
             }

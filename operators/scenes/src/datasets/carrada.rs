@@ -45,6 +45,12 @@ fn angle_of_column(j: usize) -> f64 {
     if k == 0.0 { 0.0 } else { (k + 0.5 * k.signum()) * ANGLE_RES }
 }
 
+/// Where a map's rows and columns lie (see the module doc).
+pub fn bins() -> (Bins, Bins) {
+    // Counter-clockwise: column 0 is the left.
+    (Bins::Centres((0..SIZE).map(|i| range_of_row(i as f64)).collect()), Bins::Centres((0..SIZE).map(|j| -angle_of_column(j)).collect()))
+}
+
 #[derive(Deserialize)]
 struct Annotated {
     range_angle: Option<View>,
@@ -116,7 +122,7 @@ pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: UnknownClasse
             }));
         }
     }
-    Ok(Opened { frames, skipped })
+    Ok(Opened { frames, skipped, warnings: Vec::new() })
 }
 
 /// Frame `frame`'s range-angle map in the sequence at `dir` (`shown` in messages), its values
@@ -133,13 +139,13 @@ fn range_angle_map(dir: &Path, shown: &Path, frame: &str, axes: &Axes) -> anyhow
         bail!("{}: {} at row {}, column {}; every value must be a finite number", shown.display(), values[p], p / SIZE, p % SIZE);
     }
     let raw = Raw { height: SIZE, width: SIZE, values, integer_max: None };
+    let (range, azimuth) = bins();
     Ok(RangeAzimuthMap {
         values: normalise(&raw, axes).with_context(|| format!("{}", shown.display()))?,
         rows: SIZE,
         cols: SIZE,
-        range: Bins::Centres((0..SIZE).map(|i| range_of_row(i as f64)).collect()),
-        // Counter-clockwise: column 0 is the left.
-        azimuth: Bins::Centres((0..SIZE).map(|j| -angle_of_column(j)).collect()),
+        range,
+        azimuth,
         wraps: false,
     })
 }

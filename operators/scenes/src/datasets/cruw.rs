@@ -37,6 +37,12 @@ pub fn range_of_row(k: usize) -> f64 {
     (k + CROP) as f64 * SAMPLE_RATE / bins * SPEED_OF_LIGHT / SWEEP_SLOPE / 2.0
 }
 
+/// Where a map's rows and columns lie (see the module doc).
+pub fn bins() -> (Bins, Bins) {
+    // Column 0 is -90 degrees, to the right: +90 counter-clockwise.
+    (Bins::Centres((0..SIZE).map(range_of_row).collect()), Bins::Sine { first: PI / 2.0, last: -PI / 2.0 })
+}
+
 /// Length and width the labels draw an object of `class` with (CRUW annotates centres only).
 fn size_of(class: &str) -> (f64, f64) {
     match class {
@@ -68,7 +74,7 @@ pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: UnknownClasse
             }));
         }
     }
-    Ok(Opened { frames, skipped })
+    Ok(Opened { frames, skipped, warnings: Vec::new() })
 }
 
 /// A sequence's frames with a chirp-0 map, in order, each with its objects from the annotation
@@ -136,13 +142,6 @@ fn complex_map(dir: &Path, shown: &Path, number: u64, dynamic_range_db: f64) -> 
     let power = complex.chunks_exact(2).map(|c| c[0] * c[0] + c[1] * c[1]).collect();
     let raw = Raw { height: SIZE, width: SIZE, values: power, integer_max: None };
     let axes = Axes { power: Power::Linear, dynamic_range_db, ..Axes::default() };
-    Ok(RangeAzimuthMap {
-        values: normalise(&raw, &axes)?,
-        rows: SIZE,
-        cols: SIZE,
-        range: Bins::Centres((0..SIZE).map(range_of_row).collect()),
-        // Column 0 is -90 degrees, to the right: +90 counter-clockwise.
-        azimuth: Bins::Sine { first: PI / 2.0, last: -PI / 2.0 },
-        wraps: false,
-    })
+    let (range, azimuth) = bins();
+    Ok(RangeAzimuthMap { values: normalise(&raw, &axes)?, rows: SIZE, cols: SIZE, range, azimuth, wraps: false })
 }

@@ -8,7 +8,11 @@
 
 pub mod carrada;
 pub mod cruw;
+#[cfg(test)]
+mod devkit_grids;
 pub mod radiate;
+#[cfg(test)]
+mod radiate_sample;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -27,7 +31,7 @@ pub struct Recorded {
 }
 
 /// An annotated object in the ego frame, of an rlmflow class.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Debug)]
 pub struct Object {
     pub class: &'static str,
     pub x: f64,
@@ -38,11 +42,13 @@ pub struct Object {
     pub width: f64,
 }
 
-/// A dataset opened for reading: a reader for each frame, in sequence order, and the objects of
-/// classes with no rlmflow class skipped meanwhile (`unknown_classes = "skip"`), by class.
+/// A dataset opened for reading: a reader for each frame, in sequence order, the objects of
+/// classes with no rlmflow class skipped meanwhile (`unknown_classes = "skip"`), by class, and
+/// what was read but left out as the devkit leaves it out, each a sentence for the user.
 pub struct Opened {
     pub frames: Vec<FrameReader>,
     pub skipped: BTreeMap<String, usize>,
+    pub warnings: Vec<String>,
 }
 
 /// Reads one frame's map; its objects were read when the dataset was opened.
