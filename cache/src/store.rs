@@ -41,23 +41,33 @@ pub struct ActionRecord {
     pub signatures: Vec<RecordSignature>,
 }
 
-/// One signer's signature of a record: the signer's key name and its ed25519 signature, base64.
+/// One signer's signature of a record: the signer's key name, its ed25519 signature (base64),
+/// and the format of the message it signed.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct RecordSignature {
     pub key: String,
     pub signature: String,
+    /// [`SIGNED_FORMAT`] for a signature of [`ActionRecord::signed_message`]; 1 (absent) for the
+    /// first format, which covered the key, operator and output only.
+    #[serde(default = "first_signed_format")]
+    pub format: u32,
+}
+
+/// The format of the message a signature made now signs.
+pub const SIGNED_FORMAT: u32 = 2;
+
+fn first_signed_format() -> u32 {
+    1
 }
 
 impl ActionRecord {
-    /// What a signature vouches for: this action key (the BLAKE3 of its preimage: operator,
-    /// version, settings, seed and inputs) has this output (its tree digest, file count and
-    /// size), computed by this operator (what type of artifact it is).
+    /// What a signature vouches for: every field of the record but the signatures themselves
+    /// (the action key and preimage, the output, its times, metrics, summary and platform: all a
+    /// command shows or a decision reads), as the record's canonical JSON, under the format's name.
     pub fn signed_message(&self) -> Vec<u8> {
-        format!(
-            "rlmflow action record v1\nkey {}\noperator {} {}\noutput {} {} {}\n",
-            self.key, self.preimage.operator, self.preimage.operator_version, self.output, self.files, self.bytes
-        )
-        .into_bytes()
+        let unsigned = ActionRecord { signatures: Vec::new(), ..self.clone() };
+        let json = serde_json::to_value(&unsigned).expect("a record is JSON");
+        format!("rlmflow action record v{SIGNED_FORMAT}\n{}", crate::preimage::canonical_json(&json)).into_bytes()
     }
 }
 

@@ -472,8 +472,12 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             pre.refuse_cuda_stages(registry, device)?;
             pre.refuse_oversized()?;
             let (plan, selected) = (pre.plan, pre.selected);
-            let store = Store::open(&root)?;
             let opts = RunOptions { jobs, json, device, verify_inputs, remote: remote.settings(&p)? };
+            // A pushing run that cannot sign stops before anything runs, as `push` does.
+            if let Some(settings) = &opts.remote {
+                settings.signing_key().map_err(|e| UsageError(format!("{e:#}")))?;
+            }
+            let store = Store::open(&root)?;
             if !check_determinism.is_empty() {
                 let same = crate::determinism::check(&plan, registry, &store, &check_determinism, &opts)?;
                 print_store_warnings(Some(&store));
@@ -523,6 +527,10 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
                 }
                 if let Some(why) = sent.as_ref().and_then(|p| p.disagrees.as_ref()) {
                     println!("  WARNING  {}: {why}", plan.instances[i].label);
+                }
+                if let Some(why) = sent.as_ref().and_then(|p| p.refused.as_ref()) {
+                    println!("  warning  {}: {why}", plan.instances[i].label);
+                    continue;
                 }
                 let sent = sent.map_or(0, |p| p.bytes);
                 println!("  {}  {}  {:.1} MB", if sent > 0 { "pushed" } else { "held  " }, plan.instances[i].label, sent as f64 / 1e6);
@@ -808,7 +816,9 @@ fn verify_against(store: &Store, file: &Path) -> anyhow::Result<usize> {
     for (row, verdict) in rows.iter().zip(&verdicts) {
         match verdict {
             Verdict::Same => println!("  same      {:width$}  key {}", row.instance, row.key.short()),
-            Verdict::Differs(here) => println!("  DIFFERS   {:width$}  key {}: there {}, here {}", row.instance, row.key.short(), row.output.short(), here.short()),
+            Verdict::Differs(here) => {
+                println!("  DIFFERS   {:width$}  key {}: there {}, here {}", row.instance, row.key.short(), row.output.short(), here.short())
+            }
             Verdict::Absent => println!("  absent    {:width$}  key {} is not in this store", row.instance, row.key.short()),
         }
     }

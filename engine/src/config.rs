@@ -163,6 +163,9 @@ pub const SEED_DIMENSION: &str = "seed";
 /// The default of `[pipeline] max_instances`: the most instances (variants, seeds and shards
 /// fanned out) a plan may have, checked before it is expanded. The paper's pipelines have tens.
 pub const MAX_INSTANCES: u64 = 10_000;
+/// The most `[pipeline] max_instances` may raise the bound to: a plan this large still fits in
+/// a few hundred megabytes (a larger one would exhaust memory while it is expanded).
+pub const INSTANCES_CEILING: u64 = 100_000;
 
 /// The longest pipeline, stage, variant or pin name: names become file names in the store.
 pub const MAX_NAME: usize = 128;
@@ -195,13 +198,23 @@ pub fn load_with(file: &Path, overrides: &[String], registry: &Registry) -> anyh
     parse_with(file, &text, overrides, registry).map_err(anyhow::Error::new)
 }
 
-/// Checks a pipeline, stage, variant or pin name; the error says what is wrong.
+/// Checks a pipeline, stage, variant or pin name; the error says what is wrong. Names become file
+/// names and the labels every listing, log and provenance table shows (`probe[pretrain=alpha4]`,
+/// `scenes#2`), so they hold letters, digits, `-`, `_` and `.` only, and begin with neither `.`
+/// nor `-`: a name can then neither climb out of a folder nor forge a row or a label.
 pub fn check_name(name: &str) -> Result<(), String> {
+    const VALID: &str = "valid: ASCII letters, digits, `-`, `_` and `.`, not first `.` or `-`";
     if name.is_empty() {
         return Err("must not be empty".into());
     }
     if name.len() > MAX_NAME {
         return Err(format!("is {} bytes long; at most {MAX_NAME} (names become file names in the store)", name.len()));
+    }
+    if let Some(c) = name.chars().find(|c| !(c.is_ascii_alphanumeric() || "-_.".contains(*c))) {
+        return Err(format!("{:?} holds {c:?}; {VALID}", name));
+    }
+    if name.starts_with(['.', '-']) {
+        return Err(format!("{name:?} begins with {:?}; {VALID}", &name[..1]));
     }
     Ok(())
 }
@@ -290,8 +303,8 @@ impl Checker {
         let seeds = self.seeds(header);
         let max_instances = match header.get("max_instances") {
             None => MAX_INSTANCES,
-            Some(v) => v.as_u64().filter(|n| *n >= 1).unwrap_or_else(|| {
-                let msg = format!("must be a positive integer, not {v}");
+            Some(v) => v.as_u64().filter(|n| (1..=INSTANCES_CEILING).contains(n)).unwrap_or_else(|| {
+                let msg = format!("must be a positive integer up to {INSTANCES_CEILING}, not {v}");
                 self.error(self.line("pipeline.max_instances"), "pipeline.max_instances", msg, None);
                 MAX_INSTANCES
             }),

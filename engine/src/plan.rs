@@ -183,6 +183,23 @@ pub fn label(stage: &str, a: &BTreeMap<String, String>) -> String {
 }
 
 impl Plan<'_> {
+    /// Every instance, in the order a run starts the ready ones: the longest chain of instances
+    /// waiting on it first, so the work the rest of the pipeline waits for is not queued behind
+    /// work nothing waits for (cargo's job queue favours a unit by what waits on it too); plan
+    /// order among equals.
+    pub fn start_order(&self) -> Vec<usize> {
+        let mut chain = vec![1usize; self.instances.len()];
+        // Providers come before consumers: a consumer's chain is final before its providers'.
+        for i in (0..self.instances.len()).rev() {
+            for &p in self.instances[i].inputs.iter().flat_map(|input| &input.providers) {
+                chain[p] = chain[p].max(chain[i] + 1);
+            }
+        }
+        let mut order: Vec<usize> = (0..self.instances.len()).collect();
+        order.sort_by_key(|&i| std::cmp::Reverse(chain[i]));
+        order
+    }
+
     /// Instances of the named stages and everything upstream of them.
     pub fn select(&self, stages: &[String]) -> anyhow::Result<Vec<bool>> {
         let mut keep = vec![stages.is_empty(); self.instances.len()];

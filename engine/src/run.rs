@@ -89,6 +89,8 @@ struct Executor<'a> {
     live_linked: std::collections::BTreeSet<usize>,
     /// How many times each instance's action was started in this run.
     attempts: Vec<u32>,
+    /// Which ready instance starts first ([`Plan::start_order`]).
+    start_order: Vec<usize>,
 }
 
 /// Runs the plan; returns its summary.
@@ -125,6 +127,7 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
         links,
         live_linked: Default::default(),
         attempts: vec![0; n],
+        start_order: plan.start_order(),
     };
     ex.execute()?;
     Ok(ex.summary())
@@ -187,8 +190,9 @@ impl Executor<'_> {
         loop {
             self.resolve(&tx)?;
             self.write_plan_if_dirty()?;
-            // Start what fits in the budget, in plan order.
-            for i in 0..self.states.len() {
+            // Start what fits in the budget, the longest chains first.
+            for k in 0..self.start_order.len() {
+                let i = self.start_order[k];
                 let State::Ready { key } = self.states[i] else { continue };
                 let op = self.registry.get(&self.plan.instances[i].operator).unwrap();
                 let wants = op.resources(&self.plan.instances[i].settings);
@@ -532,6 +536,11 @@ impl Executor<'_> {
             return self.warn_remote_down(&why);
         }
         if let Some(pushed) = pushed {
+            if let Some(why) = &pushed.refused {
+                self.events.write("push_refused", json!({"stage": label, "key": record.key, "why": why}))?;
+                self.ui.say(format!("  warning  {label}: {why}"));
+                return Ok(());
+            }
             if let Some(why) = &pushed.disagrees {
                 self.events.write("remote_disagrees", json!({"stage": label, "key": record.key, "output": record.output, "why": why}))?;
                 self.ui.say(format!("  WARNING  {label}: {why}"));

@@ -38,9 +38,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context as _, bail};
 use link::{Watch, WatchedConnector};
+use object_store::aws::{AmazonS3Builder, AmazonS3ConfigKey};
 use object_store::path::Path as Key;
 use object_store::{ClientOptions, ObjectStore, ObjectStoreExt, PutPayload, RetryConfig};
-use rlmflow_cache::{ActionRecord, Digest, Store, hash_tree};
+use rlmflow_cache::{ActionRecord, Digest, SIGNED_FORMAT, Store, hash_tree};
 use signing::{SigningKey, Trust, TrustedKeys};
 
 /// A remote cache at one URL. Shared by threads: pulls run beside the stages that compute.
@@ -81,6 +82,9 @@ pub struct Pushed {
     /// The remote already held a record of this key naming another output: what it says (left
     /// as it was: a disagreement is an alarm for a person, not something to overwrite).
     pub disagrees: Option<String>,
+    /// Why nothing was pushed though the remote is up: the record is larger than a reader takes
+    /// ([`MAX_RECORD_BYTES`]; a setting holding megabytes of text makes one).
+    pub refused: Option<String>,
 }
 
 /// What a pull found.
@@ -112,10 +116,11 @@ pub fn check_url(url: &str) -> Result<(), String> {
         if rest.split('/').next().is_none_or(str::is_empty) {
             return Err(format!("`{url}` names no bucket; {VALID}"));
         }
-        // The variables the S3 client reads its endpoint from.
+        // Every variable the S3 client reads, and the endpoint it names.
+        s3_from_env()?;
         for var in ["AWS_ENDPOINT_URL", "AWS_ENDPOINT"] {
             if let Ok(endpoint) = std::env::var(var) {
-                check_endpoint(&format!("the environment variable {var}"), &endpoint)?;
+                check_endpoint(&format!("the environment variable {var}"), &aws_value(var, &endpoint)?)?;
             }
         }
         Ok(())
@@ -129,6 +134,32 @@ pub fn check_url(url: &str) -> Result<(), String> {
         }
     } else {
         Err(format!("`{url}`: unknown scheme; {VALID}"))
+    }
+}
+
+/// The S3 client's settings from the standard `AWS_*` variables, read as
+/// `AmazonS3Builder::from_env` reads them, but each value without surrounding whitespace (a value
+/// from a secrets file ends with a newline more often than not) and a control character inside a
+/// value refused by the variable's name: the client panics on either.
+fn s3_from_env() -> Result<AmazonS3Builder, String> {
+    let mut builder = AmazonS3Builder::new();
+    for (name, value) in std::env::vars_os().filter_map(|(k, v)| Some((k.into_string().ok()?, v.into_string().ok()?))) {
+        if let Some(key) = name.starts_with("AWS_").then(|| name.to_ascii_lowercase().parse::<AmazonS3ConfigKey>().ok()).flatten() {
+            builder = builder.with_config(key, aws_value(&name, &value)?);
+        }
+    }
+    Ok(builder)
+}
+
+/// The value of the environment variable `name` without surrounding whitespace; an error naming
+/// the variable (never its value: it may be a secret) for a control character inside it.
+fn aws_value(name: &str, value: &str) -> Result<String, String> {
+    let trimmed = value.trim();
+    match trimmed.char_indices().find(|(_, c)| c.is_control()) {
+        Some((at, c)) => Err(format!(
+            "the environment variable {name} holds the control character {c:?} at byte {at} of its value; valid: a value without control characters (surrounding whitespace is dropped)"
+        )),
+        None => Ok(trimmed.to_owned()),
     }
 }
 
@@ -158,7 +189,8 @@ impl Remote {
         let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
         let objects: Arc<dyn ObjectStore> = if let Some(rest) = url.strip_prefix("s3://") {
             let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
-            let store = object_store::aws::AmazonS3Builder::from_env()
+            let store = s3_from_env()
+                .map_err(|problem| anyhow::anyhow!("remote {problem}"))?
                 .with_bucket_name(bucket)
                 .with_client_options(client)
                 .with_http_connector(WatchedConnector { timeout })
@@ -171,7 +203,9 @@ impl Remote {
             if let Some(Err(e)) = listed
                 && (matches!(e, object_store::Error::NotFound { .. }) || e.to_string().contains("NoSuchBucket"))
             {
-                let endpoint = std::env::var("AWS_ENDPOINT_URL").or_else(|_| std::env::var("AWS_ENDPOINT")).unwrap_or_else(|_| "AWS".into());
+                let endpoint = std::env::var("AWS_ENDPOINT_URL")
+                    .or_else(|_| std::env::var("AWS_ENDPOINT"))
+                    .map_or_else(|_| "AWS".into(), |e| e.trim().to_owned());
                 bail!("remote `{url}`: bucket `{bucket}` does not exist at {endpoint}");
             }
             Arc::new(object_store::prefix::PrefixStore::new(store, prefix))
@@ -276,46 +310,64 @@ impl Remote {
         Err(())
     }
 
-    /// The whole body of `key`; `None` when it is absent or the remote is down. `progress`
-    /// hears the bytes received and the total as they arrive; the timeout bounds the wait for
-    /// each chunk, so a large artifact on a slow link is not cut off while it flows.
-    fn get(&self, what: &str, key: &Key, progress: &mut dyn FnMut(u64, u64)) -> Option<Vec<u8>> {
+    /// The whole body of `key` if it is at most `limit` bytes: `None` when it is absent or the
+    /// remote is down, `Some(Err(size))` when it is larger (refused by its declared size before
+    /// its bytes are read, or by what arrived).
+    fn get(&self, what: &str, key: &Key, limit: u64) -> Option<Result<Vec<u8>, u64>> {
         let mut body = Vec::new();
         let mut sink = |chunk: &[u8]| {
             body.extend_from_slice(chunk);
             Ok(())
         };
-        self.stream(what, key, &mut sink, progress).ok()??;
-        Some(body)
+        match self.stream(what, key, limit, &mut sink, &mut |_, _| {}).ok()?? {
+            Streamed::Whole(_) => Some(Ok(body)),
+            Streamed::TooLarge(size) => Some(Err(size)),
+        }
     }
 
     /// The body of `key`, chunk by chunk into `sink` as it arrives (so nothing holds all of a
-    /// large artifact); `Ok(None)` when it is absent or the remote is down. The timeout bounds
-    /// the wait for each chunk.
+    /// large artifact), if it is at most `limit` bytes; `Ok(None)` when it is absent or the remote
+    /// is down. The timeout bounds the wait for each chunk.
     fn stream(
         &self,
         what: &str,
         key: &Key,
+        limit: u64,
         sink: &mut dyn FnMut(&[u8]) -> std::io::Result<()>,
         progress: &mut dyn FnMut(u64, u64),
-    ) -> std::io::Result<Option<u64>> {
+    ) -> std::io::Result<Option<Streamed>> {
         use futures_util::StreamExt as _;
         let watch = Watch::new();
         let Ok(Some(found)) = self.watched(what, &watch, self.objects.get(key), &mut |_| {}) else { return Ok(None) };
         let total = found.meta.size;
+        if total > limit {
+            return Ok(Some(Streamed::TooLarge(total)));
+        }
         let mut stream = found.into_stream();
         let mut received = 0u64;
         loop {
             match self.watched(what, &watch, async { stream.next().await.transpose() }, &mut |_| {}) {
                 Ok(Some(Some(chunk))) => {
-                    sink(&chunk)?;
                     received += chunk.len() as u64;
+                    if received > limit {
+                        return Ok(Some(Streamed::TooLarge(received)));
+                    }
+                    sink(&chunk)?;
                     progress(received, total);
                 }
-                Ok(Some(None)) => return Ok(Some(received)),
+                Ok(Some(None)) => return Ok(Some(Streamed::Whole(received))),
                 _ => return Ok(None),
             }
         }
+    }
+
+    /// `key`'s record on the remote: `None` when it is absent or the remote is down,
+    /// `Some(Err(why))` when it is larger than [`MAX_RECORD_BYTES`] or is no record.
+    fn record(&self, key: &Digest) -> Option<Result<ActionRecord, String>> {
+        Some(match self.get("reading a record", &Self::record_key(key), MAX_RECORD_BYTES)? {
+            Ok(bytes) => serde_json::from_slice::<ActionRecord>(&bytes).map_err(|e| format!("the record of {} is not a record ({e})", key.short())),
+            Err(size) => Err(format!("the record of {} has {size} bytes; a record has at most {MAX_RECORD_BYTES}", key.short())),
+        })
     }
 
     fn record_key(key: &Digest) -> Key {
@@ -328,8 +380,7 @@ impl Remote {
 
     /// Whether the remote holds `key`'s record and the object it names (a miss when it is down).
     pub fn holds(&self, key: &Digest) -> bool {
-        let Some(bytes) = self.get("reading a record", &Self::record_key(key), &mut |_, _| {}) else { return false };
-        let Ok(record) = serde_json::from_slice::<ActionRecord>(&bytes) else { return false };
+        let Some(Ok(record)) = self.record(key) else { return false };
         self.trusts(&record).is_ok() && matches!(self.call("checking an object", self.objects.head(&Self::object_key(&record.output))), Ok(Some(_)))
     }
 
@@ -344,15 +395,16 @@ impl Remote {
         progress: &mut dyn FnMut(u64, u64),
     ) -> anyhow::Result<Pulled> {
         let clock = Instant::now();
-        let Some(bytes) = self.get("reading a record", &Self::record_key(key), &mut |_, _| {}) else { return Ok(Pulled::Miss) };
-        let record = match serde_json::from_slice::<ActionRecord>(&bytes) {
-            Ok(r) if r.key == *key && r.preimage.key() == *key => r,
-            _ => return Ok(Pulled::Corrupt { why: format!("the record of {} is not that key's", key.short()) }),
+        let record = match self.record(key) {
+            None => return Ok(Pulled::Miss),
+            Some(Ok(r)) if r.key == *key && r.preimage.key() == *key => r,
+            Some(Ok(_)) => return Ok(Pulled::Corrupt { why: format!("the record of {} is not that key's", key.short()) }),
+            Some(Err(why)) => return Ok(Pulled::Corrupt { why }),
         };
         if let Err(why) = self.trusts(&record) {
             return Ok(Pulled::Untrusted { why });
         }
-        let bytes = match self.fetch_accepted(store, &record.output, accept, progress)? {
+        let bytes = match self.fetch_accepted(store, &record.output, Some((record.files, record.bytes)), accept, progress)? {
             Fetched::Present => 0,
             Fetched::Downloaded(bytes) => bytes,
             Fetched::Missing => return Ok(Pulled::Miss),
@@ -365,15 +417,17 @@ impl Remote {
     /// Fetches the artifact `digest` into `store`, verified, unless the store has it: what a
     /// cluster task does for each input it lacks.
     pub fn fetch_object(&self, store: &Store, digest: &Digest, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Fetched> {
-        self.fetch_accepted(store, digest, &|_| Ok(()), progress)
+        self.fetch_accepted(store, digest, None, &|_| Ok(()), progress)
     }
 
     /// [`Remote::fetch_object`], the unpacked artifact also checked by `accept` before it is
-    /// committed.
+    /// committed. With `expected` (its record's files and bytes), the object is refused when its
+    /// size could not be such a tar's, and its entries when they declare more.
     fn fetch_accepted(
         &self,
         store: &Store,
         digest: &Digest,
+        expected: Option<(u64, u64)>,
         accept: &dyn Fn(&Path) -> Result<(), String>,
         progress: &mut dyn FnMut(u64, u64),
     ) -> anyhow::Result<Fetched> {
@@ -390,16 +444,26 @@ impl Remote {
         let dir = store.work_dir(digest)?;
         let tar_path = scratch.join("artifact.tar");
         let mut file = std::io::BufWriter::new(std::fs::File::create(&tar_path).with_context(|| format!("creating {}", tar_path.display()))?);
+        let limit = expected.map_or(u64::MAX, |(files, bytes)| largest_tar(files, bytes));
         let received =
-            self.stream("reading an object", &Self::object_key(digest), &mut |chunk| std::io::Write::write_all(&mut file, chunk), progress);
+            self.stream("reading an object", &Self::object_key(digest), limit, &mut |chunk| std::io::Write::write_all(&mut file, chunk), progress);
         let received = received.and_then(|r| std::io::Write::flush(&mut file).map(|()| r));
         drop(file);
-        let Some(tar_bytes) = received.with_context(|| format!("writing {}", tar_path.display()))? else {
-            remove_dir(&scratch);
-            remove_dir(&dir);
-            return Ok(Fetched::Missing);
+        let tar_bytes = match received.with_context(|| format!("writing {}", tar_path.display()))? {
+            Some(Streamed::Whole(bytes)) => bytes,
+            outcome => {
+                remove_dir(&scratch);
+                remove_dir(&dir);
+                return Ok(match outcome {
+                    Some(Streamed::TooLarge(size)) => {
+                        Fetched::Corrupt(format!("its artifact's tar has {size} bytes, more than its record's files could take ({limit})"))
+                    }
+                    _ => Fetched::Missing,
+                });
+            }
         };
-        let unpacked = std::fs::File::open(&tar_path).and_then(|f| tar::Archive::new(std::io::BufReader::new(f)).unpack(&dir));
+        let (files, bytes) = expected.unwrap_or((u64::MAX, tar_bytes));
+        let unpacked = unpack_bounded(&tar_path, &dir, files, bytes);
         remove_dir(&scratch);
         match unpacked.map_err(anyhow::Error::from).and_then(|()| Ok(hash_tree(&dir)?.digest)) {
             Ok(found)
@@ -429,13 +493,19 @@ impl Remote {
     /// agrees but lacks this client's signature gets it. `Ok(None)` when the remote is down or
     /// this client does not push. `progress` hears the artifact's bytes as they leave.
     pub fn push(&self, store: &Store, record: &ActionRecord, replace: bool, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Option<Pushed>> {
+        let signed = self.signer.as_ref().map(|key| key.sign(record));
+        let body = serde_json::to_vec_pretty(signed.as_ref().unwrap_or(record))?;
+        if body.len() as u64 > MAX_RECORD_BYTES {
+            let why = format!("its record has {} bytes; readers take records of at most {MAX_RECORD_BYTES}, so it is not pushed", body.len());
+            return Ok(Some(Pushed { bytes: 0, disagrees: None, refused: Some(why) }));
+        }
         let Some(mut bytes) = self.push_object(store, &record.output, replace, progress)? else { return Ok(None) };
         let key = Self::record_key(&record.key);
         let Ok(present) = self.call("checking a record", self.objects.head(&key)) else { return Ok(None) };
         let mut write = present.is_none() || replace;
         let mut disagrees = None;
         if !write {
-            let theirs = self.get("reading a record", &key, &mut |_, _| {}).and_then(|b| serde_json::from_slice::<ActionRecord>(&b).ok());
+            let theirs = self.record(&record.key).and_then(Result::ok);
             match theirs {
                 Some(theirs) if theirs.output != record.output => {
                     let signers = signing::signers(&theirs);
@@ -446,19 +516,19 @@ impl Remote {
                         record.output.short()
                     ));
                 }
-                Some(theirs) => write = self.signer.as_ref().is_some_and(|s| !theirs.signatures.iter().any(|t| t.key == s.name())),
+                Some(theirs) => {
+                    write = self.signer.as_ref().is_some_and(|s| !theirs.signatures.iter().any(|t| t.key == s.name() && t.format == SIGNED_FORMAT))
+                }
                 None => {}
             }
         }
         if write {
-            let signed = self.signer.as_ref().map(|key| key.sign(record));
-            let body = serde_json::to_vec_pretty(signed.as_ref().unwrap_or(record))?;
             bytes += body.len() as u64;
             if self.call("uploading a record", self.objects.put(&key, PutPayload::from(body))).is_err() {
                 return Ok(None);
             }
         }
-        Ok(Some(Pushed { bytes, disagrees }))
+        Ok(Some(Pushed { bytes, disagrees, refused: None }))
     }
 
     /// Uploads the artifact `digest` from `store` unless the remote has it (or `replace`): what
@@ -537,7 +607,8 @@ impl Remote {
 
     /// A transcript [`Remote::put_transcript`] wrote, if the remote has it.
     pub fn transcript(&self, name: &str) -> Option<String> {
-        self.get("reading a transcript", &Self::transcript_key(name), &mut |_, _| {}).map(|bytes| String::from_utf8_lossy(&bytes).into_owned())
+        let bytes = self.get("reading a transcript", &Self::transcript_key(name), MAX_TRANSCRIPT_BYTES)?.ok()?;
+        Some(String::from_utf8_lossy(&bytes).into_owned())
     }
 
     /// Removes a transcript its engine has read (and kept in the stage's log).
@@ -567,6 +638,57 @@ fn pack(dir: &Path, to: &Path) -> anyhow::Result<u64> {
     Ok(std::fs::metadata(to)?.len())
 }
 
+/// The most bytes an action record may have on the remote, checked before it is read: the
+/// shipped pipelines' largest is under 4 kB, and a report gathering a thousand inputs stays
+/// under 200 kB.
+pub const MAX_RECORD_BYTES: u64 = 256 << 10;
+
+/// The most bytes a cluster task's transcript (its protocol lines and output) may have.
+const MAX_TRANSCRIPT_BYTES: u64 = 64 << 20;
+
+/// How a body with a size limit was read.
+enum Streamed {
+    /// All of it, this many bytes.
+    Whole(u64),
+    /// Not read on: it has (or had sent) this many bytes, more than the limit.
+    TooLarge(u64),
+}
+
+/// The largest tar [`pack`] makes of `files` files holding `bytes` bytes: each file's data
+/// padded to 512-byte blocks with a header block, and as many again for its folders and long
+/// names, plus the end of the archive and the writer's padding.
+fn largest_tar(files: u64, bytes: u64) -> u64 {
+    bytes.saturating_add(files.saturating_mul(4 * 512)).saturating_add(64 << 10)
+}
+
+/// Unpacks the tar at `path` into `dir`, entry by entry, each checked before any of its bytes
+/// are written: only regular files and folders (no links, devices or sparse files), within
+/// `dir`, at most `files` files declaring at most `bytes` bytes in all. Memory stays bounded
+/// whatever the tar declares.
+fn unpack_bounded(path: &Path, dir: &Path, files: u64, bytes: u64) -> anyhow::Result<()> {
+    let mut archive = tar::Archive::new(std::io::BufReader::new(std::fs::File::open(path)?));
+    let (mut seen_files, mut seen_bytes) = (0u64, 0u64);
+    for entry in archive.entries()? {
+        let mut entry = entry?;
+        let name = entry.path()?.display().to_string();
+        match entry.header().entry_type() {
+            tar::EntryType::Directory => {}
+            tar::EntryType::Regular => {
+                seen_files += 1;
+                seen_bytes = seen_bytes.saturating_add(entry.header().size()?);
+                if seen_files > files || seen_bytes > bytes {
+                    bail!("`{name}` takes it past its record's {files} files and {bytes} bytes");
+                }
+            }
+            other => bail!("`{name}` is a {other:?} entry; an artifact holds regular files and folders only"),
+        }
+        if !entry.unpack_in(dir)? {
+            bail!("`{name}` would land outside the artifact");
+        }
+    }
+    Ok(())
+}
+
 fn remove_dir(dir: &Path) {
     let _ = std::fs::remove_dir_all(dir);
 }
@@ -593,6 +715,63 @@ mod tests {
         assert_eq!(done, total);
         assert!(heard.windows(2).all(|w| w[0].0 < w[1].0));
         assert!(b.has_object(&digest));
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    /// What the remote declares is checked before its bytes are taken: a tar whose entries
+    /// declare more than its record's files and bytes, a sparse file, a link, a tar larger than
+    /// those files could make, a record past the cap. Nothing enters the store.
+    #[test]
+    fn a_remote_object_or_record_is_refused_by_what_it_declares_before_its_bytes() {
+        let root = std::env::temp_dir().join(format!("rlmflow-remote-bounds-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let (a, b) = (Store::open(&root.join("a")).unwrap(), Store::open(&root.join("b")).unwrap());
+        let dir = a.work_dir(&Digest::of(b"y")).unwrap();
+        std::fs::write(dir.join("data.bin"), vec![1u8; 1000]).unwrap();
+        let digest = a.commit_tree(&dir).unwrap().digest;
+        let remote = Remote::open(&format!("file://{}", root.join("remote").display()), true, Duration::from_secs(5)).unwrap();
+        assert!(remote.push_object(&a, &digest, false, &mut |_, _| {}).unwrap().is_some());
+        let object = root.join("remote").join(format!("cas/{}.tar", digest.hex()));
+        let refused = |tar: Vec<u8>| -> String {
+            std::fs::write(&object, tar).unwrap();
+            match remote.fetch_accepted(&b, &digest, Some((1, 1000)), &|_| Ok(()), &mut |_, _| {}).unwrap() {
+                Fetched::Corrupt(why) => why,
+                _ => panic!("a crafted tar was used"),
+            }
+        };
+        let entry = |kind: tar::EntryType, size: u64| -> Vec<u8> {
+            let mut header = tar::Header::new_gnu();
+            header.set_path("data.bin").unwrap();
+            header.set_entry_type(kind);
+            header.set_size(size);
+            header.set_mode(0o644);
+            if kind == tar::EntryType::GNUSparse {
+                // 4 GiB as its GNU header declares it, from one block of data at its end.
+                let gnu = header.as_gnu_mut().unwrap();
+                gnu.set_real_size(4 << 30);
+                gnu.sparse[0].set_offset((4 << 30) - 512);
+                gnu.sparse[0].set_length(512);
+            }
+            header.set_cksum();
+            let mut bytes = header.as_bytes().to_vec();
+            bytes.extend(vec![0u8; 1024]);
+            bytes
+        };
+        let why = refused(entry(tar::EntryType::Regular, 4 << 30));
+        assert!(why.contains("`data.bin` takes it past its record's 1 files and 1000 bytes"), "{why}");
+        let why = refused(entry(tar::EntryType::GNUSparse, 512));
+        assert!(why.contains("`data.bin` is a GNUSparse entry"), "{why}");
+        let why = refused(entry(tar::EntryType::Symlink, 0));
+        assert!(why.contains("`data.bin` is a Symlink entry"), "{why}");
+        let why = refused(vec![0u8; 2 << 20]);
+        assert!(why.contains("its artifact's tar has 2097152 bytes, more than its record's files could take"), "{why}");
+        assert!(!b.has_object(&digest));
+        // A record past the cap is refused by its size.
+        let key = Digest::of(b"a key");
+        std::fs::create_dir_all(root.join("remote/ac")).unwrap();
+        std::fs::write(root.join(format!("remote/ac/{}.json", key.hex())), vec![b' '; 300_000]).unwrap();
+        let why = remote.record(&key).unwrap().unwrap_err();
+        assert!(why.contains("has 300000 bytes; a record has at most 262144"), "{why}");
         std::fs::remove_dir_all(&root).unwrap();
     }
 }

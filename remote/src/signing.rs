@@ -10,7 +10,7 @@ use anyhow::{Context as _, bail};
 use base64::Engine as _;
 use base64::engine::general_purpose::STANDARD as BASE64;
 use ring::signature::{ED25519, Ed25519KeyPair, KeyPair as _, UnparsedPublicKey};
-use rlmflow_cache::{ActionRecord, RecordSignature};
+use rlmflow_cache::{ActionRecord, RecordSignature, SIGNED_FORMAT};
 
 /// A pusher's secret key.
 pub struct SigningKey {
@@ -58,7 +58,7 @@ impl SigningKey {
         let signature = BASE64.encode(self.pair.sign(&record.signed_message()).as_ref());
         let mut signed = record.clone();
         signed.signatures.retain(|s| s.key != self.name);
-        signed.signatures.push(RecordSignature { key: self.name.clone(), signature });
+        signed.signatures.push(RecordSignature { key: self.name.clone(), signature, format: SIGNED_FORMAT });
         signed
     }
 }
@@ -78,6 +78,9 @@ pub enum Trust {
     Untrusted(Vec<String>),
     /// A trusted key's name with a signature that does not match the record: forged or altered.
     Forged(String),
+    /// A trusted key's name with a signature in an earlier format, which left fields of the
+    /// record unsigned: not used, whether genuine or not.
+    Outdated(String),
 }
 
 impl TrustedKeys {
@@ -104,17 +107,30 @@ impl TrustedKeys {
             return Trust::Unsigned;
         }
         let message = record.signed_message();
-        let mut forged = None;
+        let (mut forged, mut outdated) = (None, None);
         for s in &record.signatures {
-            let Some((name, key)) = self.0.iter().find(|(name, _)| *name == s.key) else { continue };
-            match BASE64.decode(&s.signature) {
-                Ok(sig) if UnparsedPublicKey::new(&ED25519, key).verify(&message, &sig).is_ok() => return Trust::Signed(name.clone()),
-                _ => forged = Some(name.clone()),
+            // Every trusted key of the signature's name: while a key is rotated, the old and the
+            // new are trusted side by side under one name, as Nix's `trusted-public-keys` allows.
+            let mut keys = self.0.iter().filter(|(name, _)| *name == s.key).map(|(_, key)| key).peekable();
+            if keys.peek().is_none() {
+                continue;
             }
+            if s.format != SIGNED_FORMAT {
+                outdated = Some(s.key.clone());
+                continue;
+            }
+            let signature = BASE64.decode(&s.signature).ok();
+            if let Some(sig) = signature
+                && keys.any(|key| UnparsedPublicKey::new(&ED25519, key).verify(&message, &sig).is_ok())
+            {
+                return Trust::Signed(s.key.clone());
+            }
+            forged = Some(s.key.clone());
         }
-        match forged {
-            Some(name) => Trust::Forged(name),
-            None => Trust::Untrusted(record.signatures.iter().map(|s| s.key.clone()).collect()),
+        match (forged, outdated) {
+            (Some(name), _) => Trust::Forged(name),
+            (None, Some(name)) => Trust::Outdated(name),
+            (None, None) => Trust::Untrusted(record.signatures.iter().map(|s| s.key.clone()).collect()),
         }
     }
 }
@@ -134,6 +150,10 @@ impl std::fmt::Display for Trust {
             Trust::Unsigned => f.write_str("unsigned"),
             Trust::Untrusted(names) => write!(f, "signed only by keys not trusted here ({})", names.join(", ")),
             Trust::Forged(name) => write!(f, "its signature by `{name}` does not match it (forged or altered)"),
+            Trust::Outdated(name) => write!(
+                f,
+                "signed by `{name}` in record format 1, which leaves its metrics, summary, times and platform unsigned (push it again to sign it whole)"
+            ),
         }
     }
 }
@@ -166,7 +186,7 @@ mod tests {
         let (ci_secret, ci_public) = generate("ci").unwrap();
         let (other_secret, _) = generate("laptop").unwrap();
         let ci = SigningKey::parse(&ci_secret).unwrap();
-        let trusted = TrustedKeys::parse(&[ci_public]).unwrap();
+        let trusted = TrustedKeys::parse(std::slice::from_ref(&ci_public)).unwrap();
         let good = ci.sign(&record(b"trained"));
         assert_eq!(trusted.check(&good), Trust::Signed("ci".into()));
         assert_eq!(trusted.check(&record(b"trained")), Trust::Unsigned);
@@ -175,9 +195,36 @@ mod tests {
         let mut forged = record(b"random init");
         forged.signatures = good.signatures.clone();
         assert_eq!(trusted.check(&forged), Trust::Forged("ci".into()));
+        // Every field a reader is shown is signed: metrics, summary, times, platform.
+        let alterations: [fn(&mut ActionRecord); 5] = [
+            |r| r.metrics = serde_json::json!({"top1": 0.99}),
+            |r| r.summary = "FORGED".into(),
+            |r| r.duration_s = 1.0,
+            |r| r.started = "2020-01-01T00:00:00Z".into(),
+            |r| r.platform = Some(serde_json::json!({"cpu": "forged"})),
+        ];
+        for alter in alterations {
+            let mut altered = good.clone();
+            alter(&mut altered);
+            assert_eq!(trusted.check(&altered), Trust::Forged("ci".into()), "{altered:?}");
+        }
+        // A signature of the first format, which covered the output only: named as old, not used.
+        let mut old = good.clone();
+        old.signatures[0].format = 1;
+        assert_eq!(trusted.check(&old), Trust::Outdated("ci".into()));
+        let parsed: RecordSignature = serde_json::from_str(r#"{"key": "ci", "signature": "AAAA"}"#).unwrap();
+        assert_eq!(parsed.format, 1, "a signature without its format is of the first");
         // Signing again replaces the signer's own signature.
         assert_eq!(ci.sign(&good).signatures.len(), 1);
         assert!(TrustedKeys::parse(&["ci:AAAA".into()]).unwrap_err().to_string().contains("has 3 bytes"));
+        // Rotation: the old and the new key trusted under one name, each one's records trusted; a
+        // third key of that name, not trusted, is still a forgery.
+        let (new_secret, new_public) = generate("ci").unwrap();
+        let both = TrustedKeys::parse(&[ci_public, new_public]).unwrap();
+        assert_eq!(both.check(&good), Trust::Signed("ci".into()));
+        assert_eq!(both.check(&SigningKey::parse(&new_secret).unwrap().sign(&record(b"trained"))), Trust::Signed("ci".into()));
+        let (impostor, _) = generate("ci").unwrap();
+        assert_eq!(both.check(&SigningKey::parse(&impostor).unwrap().sign(&record(b"trained"))), Trust::Forged("ci".into()));
         assert!(SigningKey::parse("no colon").is_err());
     }
 }

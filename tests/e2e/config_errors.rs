@@ -202,6 +202,12 @@ fn variants_that_multiply_past_the_instance_bound_are_refused_before_expanding()
         ],
     );
     assert!(started.elapsed() < std::time::Duration::from_secs(20), "refused in {:?}", started.elapsed());
+    // Raised past what a plan can hold in memory (the largest integer TOML has, or just past the
+    // ceiling): refused as a setting, never an allocation failure.
+    for max in ["9223372036854775807", "100001", "0"] {
+        let err = error_for(&format!("[pipeline]\nmax_instances = {max}\n{pipeline}"));
+        assert_has(&err, &[&format!("p.toml:2: pipeline.max_instances: must be a positive integer up to 100000, not {max}")]);
+    }
     // The bound is a setting: raised, 8,000 of one stage's variants plan (and are listed).
     let many = (0..8000).map(|v| format!("v{v} = {{}}")).collect::<Vec<_>>().join(", ");
     let s = Scratch::new("cfg-many-variants");
@@ -253,6 +259,23 @@ fn names_too_long_for_a_file_name_are_config_errors() {
     assert_has(&err, &[&format!("p.toml:1: stages.{long}: the name is 5000 bytes long")]);
     let err = error_for(&format!("[stages.source]\noperator = \"write-text\"\n[stages.source.variants]\n{long} = {{ text = \"a\" }}\n"));
     assert_has(&err, &["the name is 5000 bytes long"]);
+}
+
+/// A name that would forge a provenance row or a label (a newline, a NUL, `|`, brackets), or
+/// climb out of a results folder (`.`, `..`): refused with the character named, nothing run.
+#[test]
+fn names_that_could_forge_a_row_or_leave_a_folder_are_config_errors() {
+    let cases = [
+        ("[stages.\"s\\n| forged | ran |\"]\nkind = \"source\"\noperator = \"write-text\"\n", "holds '\\n'"),
+        ("[stages.\"s\\u0000\"]\nkind = \"source\"\noperator = \"write-text\"\n", "holds '\\0'"),
+        ("[stages.\"p[x=y]\"]\nkind = \"source\"\noperator = \"write-text\"\n", "holds '['"),
+        ("[stages.source]\noperator = \"write-text\"\n[stages.source.variants]\n\".\" = { text = \"a\" }\n", "begins with \".\""),
+        ("[stages.source]\noperator = \"write-text\"\n[stages.source.variants]\n\"..\" = { text = \"a\" }\n", "begins with \".\""),
+        ("[pipeline]\nname = \"a/b\"\n[stages.source]\noperator = \"write-text\"\n", "holds '/'"),
+    ];
+    for (pipeline, problem) in cases {
+        assert_has(&error_for(pipeline), &[problem, "valid: ASCII letters, digits, `-`, `_` and `.`"]);
+    }
 }
 
 #[test]

@@ -227,6 +227,28 @@ fn independent_stages_share_the_thread_budget() {
     assert_eq!(order(&gpu), ["start", "finish", "start", "finish"]);
 }
 
+/// With one thread, of two ready stages the one a longer chain waits on starts first, though
+/// plan order (`alone`, `head`, `tail`) puts the other first; among equals, plan order.
+#[test]
+fn the_stage_a_longer_chain_waits_on_starts_first() {
+    let s = Scratch::new("critical-first");
+    s.pipeline(
+        "[pipeline]\nname = \"c\"\n[stages.alone]\nkind = \"source\"\noperator = \"write-text\"\ntext = \"independent\"\n\
+         [stages.head]\nkind = \"source\"\noperator = \"write-text\"\ntext = \"radar\"\n\
+         [stages.tail]\nkind = \"map\"\noperator = \"shout\"\ninputs = { text = \"head\" }\nsuffix = \"!\"\n",
+    );
+    let planned = s.cli(&["status", "p.toml", "--json"]);
+    let listed: Vec<String> = std::str::from_utf8(&planned.stdout)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["stage"].as_str().unwrap().to_owned())
+        .collect();
+    assert_eq!(listed, ["alone", "head", "tail"], "plan order");
+    let events = s.run_expecting(0, &["--jobs", "1"]);
+    let started: Vec<&str> = events.of("stage_started").iter().map(|e| e["stage"].as_str().unwrap()).collect();
+    assert_eq!(started, ["head", "alone", "tail"]);
+}
+
 /// Waits until the trace has a line containing `needle`.
 fn wait_for(s: &Scratch, needle: &str) {
     let t0 = Instant::now();

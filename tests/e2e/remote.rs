@@ -93,6 +93,23 @@ fn a_fresh_store_pulls_everything_a_pusher_computed_and_a_reader_writes_nothing(
     assert!(warm.of("remote_down").is_empty());
 }
 
+/// A record larger than readers take (a setting holding 300 kB of text makes one) is not
+/// pushed: one warning, the run succeeds, and the remote holds neither it nor its object.
+#[test]
+fn a_record_too_large_for_readers_is_not_pushed() {
+    let s = Scratch::new("remote-record-too-large");
+    let remote = s.dir.join("remote");
+    s.pipeline(&CHAIN.replace("text = \"radar\"", &format!("text = \"{}\"", "r".repeat(300_000))));
+    let events = s.run_expecting(0, &["--remote", &file_url(&remote), "--push"]);
+    let refused = events.of("push_refused");
+    assert_eq!(refused.len(), 1, "{:?}", events.0);
+    assert_eq!(refused[0]["stage"], "source");
+    assert!(refused[0]["why"].as_str().unwrap().contains("readers take records of at most 262144, so it is not pushed"), "{refused:?}");
+    assert_eq!(events.of("pushed").len(), 4);
+    let (records, objects) = held(&remote);
+    assert_eq!((records.len(), objects.len()), (4, 4));
+}
+
 #[test]
 fn a_corrupt_or_truncated_remote_object_is_never_used_and_a_pusher_replaces_it() {
     let pusher = Scratch::new("remote-corrupt-pusher");
@@ -231,6 +248,28 @@ fn s3_and_webdav_servers_on_loopback_share_results_and_a_stopped_server_costs_on
     let pulled = run(&reader, &["--remote", "s3://rlmflow/ci"]);
     assert_eq!(pulled.with_status("pulled").len(), 5, "{:?}", pulled.finished());
     assert_eq!(outputs(&pulled), outputs(&computed));
+    // Values as secrets files and shells leave them (a trailing newline, CRLF, a leading space or
+    // tab): the same cache, on every command that opens it.
+    let stray: Vec<(&str, String)> = s3_env.iter().zip(["\n", "\r\n", " ", "\t"]).map(|((k, v), pad)| (*k, format!("{pad}{v}{pad}"))).collect();
+    let padded = Scratch::new("remote-s3-padded");
+    padded.pipeline(&CHAIN.replace("seed = 7", "seed = 7\nremote = \"s3://rlmflow/ci\""));
+    for command in [&["status", "p.toml"][..], &["pull", "p.toml"], &["dag", "p.toml"]] {
+        let out = padded.command(command).envs(stray.clone()).output().unwrap();
+        assert!(out.status.success() && !text(&out.stderr).contains("panicked"), "{command:?}: {}{}", text(&out.stdout), text(&out.stderr));
+    }
+    let out = padded.command(&["run", "p.toml", "--json"]).envs(stray.clone()).output().unwrap();
+    assert!(out.status.success(), "{}{}", text(&out.stdout), text(&out.stderr));
+    assert_eq!(crate::harness::Events::parse(&out.stdout).with_status("reused").len(), 5, "pulled by `pull` above, reused");
+    // A control character inside a value: exit 2 naming the variable, not its value.
+    for var in ["AWS_REGION", "AWS_ACCESS_KEY_ID", "AWS_SESSION_TOKEN"] {
+        let out = padded.command(&["run", "p.toml"]).envs(s3_env.clone()).env(var, "secret\nvalue").output().unwrap();
+        let err = text(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{var}: {err}");
+        assert!(
+            err.contains(&format!("the environment variable {var} holds the control character '\\n' at byte 6")) && !err.contains("secret"),
+            "{var}: {err}"
+        );
+    }
     // A 20 MB artifact goes up in 8 MiB parts (S3's multipart upload) and comes back whole.
     let big = "[pipeline]\nname = \"big\"\n[stages.source]\noperator = \"write-text\"\ntext = \"0123456789abcdef\"\nrepeat = 1250000\n";
     let big_pusher = Scratch::new("remote-s3-big-pusher");
@@ -379,6 +418,21 @@ fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
     assert!(untrusted[0]["why"].as_str().unwrap().contains("its signature by `ci` does not match it (forged or altered)"), "{:?}", untrusted);
     assert_eq!(outputs(&events), outputs(&computed), "the outputs of a local run");
 
+    // A signed record whose numbers were rewritten (what `show`, `runs` and `compare` print, and
+    // `verify --recompute` compares): forged too, never used.
+    let mut altered: serde_json::Value = serde_json::from_slice(&fs::read(ac(&records[2])).unwrap()).unwrap();
+    altered["metrics"] = serde_json::json!({"top1": 0.99});
+    altered["summary"] = "FORGED".into();
+    fs::write(ac(&records[2]), serde_json::to_vec(&altered).unwrap()).unwrap();
+    let victim = Scratch::new("remote-altered-reader");
+    victim.pipeline(&trusting);
+    let events = run_signing(&victim, &["--remote", &url], None);
+    let untrusted = events.of("remote_untrusted");
+    assert_eq!(untrusted.len(), 2, "{:?}", events.0);
+    assert!(untrusted.iter().all(|u| u["why"].as_str().unwrap().contains("(forged or altered)")), "{untrusted:?}");
+    assert!(events.of("stage_finished").iter().all(|e| e["summary"] != "FORGED"));
+    assert_eq!(outputs(&events), outputs(&computed));
+
     // Unsigned, or signed by a key the reader does not trust: never used.
     for (name, signer, why) in [
         ("unsigned", None, "its record is unsigned"),
@@ -402,6 +456,26 @@ fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
     let verify = reader.cli(&["verify", "p.toml"]);
     assert_eq!(verify.status.code(), Some(1));
     assert!(text(&verify.stdout).contains("does not match it (forged or altered): quarantined"), "{}", text(&verify.stdout));
+
+    // A pushing run whose signing key is unreadable or no key stops before anything runs, as
+    // `push` does: exit 2 naming the variable, nothing computed or pushed.
+    let bad = Scratch::new("remote-bad-signing-key");
+    bad.pipeline(CHAIN);
+    fs::write(bad.dir.join("garbage.secret"), "not a key\n").unwrap();
+    let bad_url = file_url(&bad.dir.join("remote"));
+    let keys_refused = |command: &[&str]| {
+        for key in [bad.dir.join("garbage.secret"), bad.dir.join("missing.secret")] {
+            let out = bad.command(command).env("RLMFLOW_SIGNING_KEY", &key).output().unwrap();
+            let err = text(&out.stderr);
+            assert_eq!(out.status.code(), Some(2), "{command:?} {}: {err}", key.display());
+            assert!(err.contains("RLMFLOW_SIGNING_KEY") && !err.contains("panicked"), "{err}");
+        }
+    };
+    keys_refused(&["run", "p.toml", "--remote", &bad_url, "--push"]);
+    assert!(fs::read_dir(bad.store().join("objects")).map_or(true, |mut d| d.next().is_none()), "nothing ran");
+    bad.run_expecting(0, &[]);
+    keys_refused(&["push", "p.toml", "--remote", &bad_url]);
+    assert!(!bad.dir.join("remote/ac").exists(), "nothing pushed");
 
     // Without trusted keys the records are used, and the run and status say they are unverified.
     let plain = Scratch::new("remote-unverified");
@@ -537,7 +611,7 @@ fn slow_server(root: PathBuf, chunk: usize, pause: Duration) -> u16 {
 fn a_download_longer_than_the_timeout_completes_while_its_bytes_keep_coming() {
     // A 3 MB artifact, served 256 kB every 0.3 s (about 3.6 s in all) to a client whose
     // timeout is 1 s: the timeout bounds each wait, not the whole download.
-    let big = CHAIN.replace("text = \"radar\"", &format!("text = \"{}\"", "r".repeat(3_000_000)));
+    let big = CHAIN.replace("text = \"radar\"", "text = \"r\"\nrepeat = 3000000");
     let pusher = Scratch::new("remote-slow-pusher");
     let remote = pusher.dir.join("remote");
     pusher.pipeline(&big);
@@ -729,7 +803,7 @@ fn a_64_mb_artifact_crosses_a_4_mb_per_s_link_with_a_2_s_timeout_and_a_stalled_l
 fn a_pull_runs_beside_a_stage_that_computes() {
     // `other` is computed (nothing for it on the remote) while `source`'s artifact arrives over
     // a slow link: the run takes about the longer of the two, not their sum.
-    let big = CHAIN.replace("text = \"radar\"", &format!("text = \"{}\"", "r".repeat(3_000_000)));
+    let big = CHAIN.replace("text = \"radar\"", "text = \"r\"\nrepeat = 3000000");
     let pusher = Scratch::new("remote-beside-pusher");
     let remote = pusher.dir.join("remote");
     pusher.pipeline(&big);

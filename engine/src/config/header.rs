@@ -32,17 +32,17 @@ impl RemoteSettings {
     /// of [`SIGNING_KEY_VARIABLE`].
     pub fn open(&self) -> anyhow::Result<rlmflow_remote::Remote> {
         let trusted = rlmflow_remote::signing::TrustedKeys::parse(&self.trusted_keys).context("pipeline.remote_trusted_keys")?;
-        let signer = match std::env::var_os(SIGNING_KEY_VARIABLE).filter(|_| self.push) {
-            None => None,
-            Some(file) => {
-                let text = std::fs::read_to_string(&file).with_context(|| format!("{SIGNING_KEY_VARIABLE}: reading {}", file.to_string_lossy()))?;
-                Some(
-                    rlmflow_remote::signing::SigningKey::parse(&text)
-                        .with_context(|| format!("{SIGNING_KEY_VARIABLE} ({})", file.to_string_lossy()))?,
-                )
-            }
-        };
-        Ok(self.open_transport()?.with_trust(trusted, signer))
+        Ok(self.open_transport()?.with_trust(trusted, self.signing_key()?))
+    }
+
+    /// When pushing, the key of [`SIGNING_KEY_VARIABLE`] (if set) the records are signed with;
+    /// an error for a file that cannot be read or holds no key.
+    pub fn signing_key(&self) -> anyhow::Result<Option<rlmflow_remote::signing::SigningKey>> {
+        let Some(file) = std::env::var_os(SIGNING_KEY_VARIABLE).filter(|_| self.push) else { return Ok(None) };
+        let text = std::fs::read_to_string(&file).with_context(|| format!("{SIGNING_KEY_VARIABLE}: reading {}", file.to_string_lossy()))?;
+        let key =
+            rlmflow_remote::signing::SigningKey::parse(&text).with_context(|| format!("{SIGNING_KEY_VARIABLE} ({})", file.to_string_lossy()))?;
+        Ok(Some(key))
     }
 
     /// The remote as a transport between this engine and its own cluster tasks (their inputs and
