@@ -39,6 +39,18 @@ pub struct ActionRecord {
     /// outside the key, over [`ActionRecord::signed_message`].
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub signatures: Vec<RecordSignature>,
+    /// Where this store got it, when it was pulled from a remote cache rather than computed
+    /// here: local provenance, outside the key and the signatures, never pushed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pulled: Option<PulledFrom>,
+}
+
+/// The remote cache a record was pulled from, and the trusted key that vouched for it (`None`:
+/// used unverified, the remote having no trusted keys set, so its numbers are the remote's word).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PulledFrom {
+    pub remote: String,
+    pub signed_by: Option<String>,
 }
 
 /// One signer's signature of a record: the signer's key name, its ed25519 signature (base64),
@@ -61,11 +73,18 @@ fn first_signed_format() -> u32 {
 }
 
 impl ActionRecord {
+    /// Where a person reading its numbers should know they were not checked here: pulled from a
+    /// remote cache with no trusted keys (`None` when it was computed here or a trusted key
+    /// signed it).
+    pub fn unverified_origin(&self) -> Option<&str> {
+        self.pulled.as_ref().filter(|p| p.signed_by.is_none()).map(|p| p.remote.as_str())
+    }
+
     /// What a signature vouches for: every field of the record but the signatures themselves
     /// (the action key and preimage, the output, its times, metrics, summary and platform: all a
     /// command shows or a decision reads), as the record's canonical JSON, under the format's name.
     pub fn signed_message(&self) -> Vec<u8> {
-        let unsigned = ActionRecord { signatures: Vec::new(), ..self.clone() };
+        let unsigned = ActionRecord { signatures: Vec::new(), pulled: None, ..self.clone() };
         let json = serde_json::to_value(&unsigned).expect("a record is JSON");
         format!("rlmflow action record v{SIGNED_FORMAT}\n{}", crate::preimage::canonical_json(&json)).into_bytes()
     }
@@ -570,6 +589,7 @@ pub(crate) mod tests {
             summary: String::new(),
             platform: None,
             signatures: Vec::new(),
+            pulled: None,
         };
         store.write_record(&record).unwrap();
         record

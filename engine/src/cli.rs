@@ -916,11 +916,21 @@ fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow
                 println!("  files:   {} ({:.1} MB)", r.files, r.bytes as f64 / 1e6);
                 println!("  key:     {}", r.key);
                 println!("  ran:     {} for {:.1}s", r.started, r.duration_s);
+                match &r.pulled {
+                    None => println!("  origin:  computed here"),
+                    Some(rlmflow_cache::PulledFrom { remote, signed_by: Some(key) }) => {
+                        println!("  origin:  pulled from {remote}, signed by `{key}`")
+                    }
+                    Some(rlmflow_cache::PulledFrom { remote, signed_by: None }) => {
+                        println!("  origin:  pulled from {remote} UNVERIFIED (no trusted keys): its summary and metrics are the remote's word")
+                    }
+                }
+                let unverified = if r.unverified_origin().is_some() { " (unverified)" } else { "" };
                 if !r.summary.is_empty() {
-                    println!("  summary: {}", r.summary);
+                    println!("  summary{unverified}: {}", r.summary);
                 }
                 if !r.metrics.is_null() {
-                    println!("  metrics: {}", canonical_json(&r.metrics));
+                    println!("  metrics{unverified}: {}", canonical_json(&r.metrics));
                 }
                 // A record from before its operator kept one, or a damaged one, shows none.
                 if let Some(platform) = r.platform.clone().and_then(|p| serde_json::from_value::<rlmflow_stages::numerics::PlatformRecord>(p).ok()) {

@@ -75,6 +75,9 @@ pub struct Table {
     pub rows: Vec<Row>,
     /// Instances left out because nothing about them differs (same keys in both runs).
     pub identical: Vec<String>,
+    /// The columns' instances whose records were pulled from a remote cache unverified (no
+    /// trusted keys): their numbers are the remote's word, and the table says so.
+    pub unverified: Vec<String>,
 }
 
 /// One metric of an instance: each member's seed (`None` without seeds) and value.
@@ -89,6 +92,12 @@ struct Group<'r> {
 }
 
 impl Group<'_> {
+    /// `label` (in `run`), when a member's record was pulled unverified.
+    fn unverified(&self, run: &str) -> Option<String> {
+        let from = self.members.iter().find_map(|(_, _, record)| record.as_ref()?.unverified_origin())?;
+        Some(format!("{} in run {run} (from {from})", self.label))
+    }
+
     fn keys(&self) -> Vec<(Option<&String>, Option<Digest>)> {
         self.members.iter().map(|(seed, entry, _)| (seed.as_ref(), entry.key)).collect()
     }
@@ -147,9 +156,12 @@ pub fn runs(store: &Store, a: &PastRun, b: &PastRun, all: bool) -> anyhow::Resul
         columns: vec![a.id().to_owned(), b.id().to_owned()],
         rows: Vec::new(),
         identical: Vec::new(),
+        unverified: Vec::new(),
     };
     for label in labels {
         let sides = [ga.iter().find(|g| g.label == label), gb.iter().find(|g| g.label == label)];
+        let ids = [a.id(), b.id()];
+        table.unverified.extend(sides.iter().zip(ids).filter_map(|(g, id)| g.and_then(|g| g.unverified(id))));
         if let [Some(x), Some(y)] = sides
             && x.keys() == y.keys()
             && !all
@@ -189,7 +201,8 @@ pub fn variants(store: &Store, run: &PastRun, all: bool) -> anyhow::Result<Vec<T
         }
         rows.extend(metric_rows(stage, &sides, all, false));
         let title = format!("{stage} in run {}", run.id());
-        tables.push(Table { title, columns: columns.iter().map(|g| g.label.clone()).collect(), rows, identical: Vec::new() });
+        let unverified = columns.iter().filter_map(|g| g.unverified(run.id())).collect();
+        tables.push(Table { title, columns: columns.iter().map(|g| g.label.clone()).collect(), rows, identical: Vec::new(), unverified });
     }
     Ok(tables)
 }
@@ -379,7 +392,15 @@ impl Table {
         if !self.identical.is_empty() {
             out += &format!("  same keys, same results: {}\n", self.identical.join(", "));
         }
+        if !self.unverified.is_empty() {
+            out += &format!("  {}\n", self.unverified_note());
+        }
         out
+    }
+
+    /// The line naming the instances whose numbers were pulled unverified.
+    fn unverified_note(&self) -> String {
+        format!("UNVERIFIED: the numbers of {} come from records pulled without trusted keys (the remote's word)", self.unverified.join(", "))
     }
 
     /// A Markdown table, for pasting into a note or an issue.
@@ -397,6 +418,9 @@ impl Table {
         }
         if !self.identical.is_empty() {
             out += &format!("\nSame keys, same results: {}.\n", self.identical.join(", "));
+        }
+        if !self.unverified.is_empty() {
+            out += &format!("\n{}.\n", self.unverified_note());
         }
         out
     }

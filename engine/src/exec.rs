@@ -125,6 +125,7 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
         summary: outcome.summary,
         platform: platform.map(|p| serde_json::to_value(p).expect("a platform record serialises")),
         signatures: Vec::new(),
+        pulled: None,
     })?;
     let _ = std::fs::remove_dir_all(&checkpoint_dir);
     let _ = std::fs::remove_dir_all(&work);

@@ -41,7 +41,7 @@ use link::{Watch, WatchedConnector};
 use object_store::aws::{AmazonS3Builder, AmazonS3ConfigKey};
 use object_store::path::Path as Key;
 use object_store::{ClientOptions, ObjectStore, ObjectStoreExt, PutPayload, RetryConfig};
-use rlmflow_cache::{ActionRecord, Digest, SIGNED_FORMAT, Store, hash_tree};
+use rlmflow_cache::{ActionRecord, Digest, PulledFrom, SIGNED_FORMAT, Store, hash_tree};
 use signing::{SigningKey, Trust, TrustedKeys};
 
 /// A remote cache at one URL. Shared by threads: pulls run beside the stages that compute.
@@ -252,13 +252,15 @@ impl Remote {
         !self.trusted.is_empty()
     }
 
-    /// Whether a record may be used here: `Err(why)` when trusted keys are set and none signed it.
-    fn trusts(&self, record: &ActionRecord) -> Result<(), String> {
+    /// Whether a record may be used here, and the trusted key that signed it (`None`: no trusted
+    /// keys are set, so it is used unverified); `Err(why)` when trusted keys are set and none
+    /// signed it.
+    fn trusts(&self, record: &ActionRecord) -> Result<Option<String>, String> {
         if self.trusted.is_empty() {
-            return Ok(());
+            return Ok(None);
         }
         match self.trusted.check(record) {
-            Trust::Signed(_) => Ok(()),
+            Trust::Signed(name) => Ok(Some(name)),
             other => Err(format!("its record is {other}")),
         }
     }
@@ -395,15 +397,17 @@ impl Remote {
         progress: &mut dyn FnMut(u64, u64),
     ) -> anyhow::Result<Pulled> {
         let clock = Instant::now();
-        let record = match self.record(key) {
+        let mut record = match self.record(key) {
             None => return Ok(Pulled::Miss),
             Some(Ok(r)) if r.key == *key && r.preimage.key() == *key => r,
             Some(Ok(_)) => return Ok(Pulled::Corrupt { why: format!("the record of {} is not that key's", key.short()) }),
             Some(Err(why)) => return Ok(Pulled::Corrupt { why }),
         };
-        if let Err(why) = self.trusts(&record) {
-            return Ok(Pulled::Untrusted { why });
-        }
+        let signed_by = match self.trusts(&record) {
+            Ok(signed_by) => signed_by,
+            Err(why) => return Ok(Pulled::Untrusted { why }),
+        };
+        record.pulled = Some(PulledFrom { remote: self.url.clone(), signed_by });
         let bytes = match self.fetch_accepted(store, &record.output, Some((record.files, record.bytes)), accept, progress)? {
             Fetched::Present => 0,
             Fetched::Downloaded(bytes) => bytes,
@@ -493,6 +497,8 @@ impl Remote {
     /// agrees but lacks this client's signature gets it. `Ok(None)` when the remote is down or
     /// this client does not push. `progress` hears the artifact's bytes as they leave.
     pub fn push(&self, store: &Store, record: &ActionRecord, replace: bool, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Option<Pushed>> {
+        // Where this store got it is this store's business, not the remote's readers'.
+        let record = &ActionRecord { pulled: None, ..record.clone() };
         let signed = self.signer.as_ref().map(|key| key.sign(record));
         let body = serde_json::to_vec_pretty(signed.as_ref().unwrap_or(record))?;
         if body.len() as u64 > MAX_RECORD_BYTES {

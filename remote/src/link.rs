@@ -170,6 +170,17 @@ struct Watched<B> {
     taken: u64,
 }
 
+impl<B> Watched<B> {
+    /// A request body handed over whole: from now until its response the wait may also last as
+    /// long as it would take at [`SLOWEST_LINK`] (see [`Watch`]).
+    fn ended(&self) {
+        if self.counts {
+            self.watch.grace.store(self.taken * 1000 / SLOWEST_LINK, Ordering::Relaxed);
+            self.watch.touch();
+        }
+    }
+}
+
 impl<B> Body for Watched<B>
 where
     B: Body<Data = Bytes> + Unpin,
@@ -187,7 +198,12 @@ where
                     Err(trailers) => return Poll::Ready(Some(Ok(trailers))),
                 },
                 Poll::Ready(Some(Err(e))) => return Poll::Ready(Some(Err(HttpError::new_boxed(HttpErrorKind::Interrupted, e.into())))),
-                Poll::Ready(None) => return Poll::Ready(None),
+                Poll::Ready(None) => {
+                    // A body that learns its end only when asked again: its last bytes may still
+                    // be in the kernel's buffer, so the grace starts here too.
+                    this.ended();
+                    return Poll::Ready(None);
+                }
                 Poll::Pending => return Poll::Pending,
             }
         }
@@ -198,7 +214,7 @@ where
             watch.sent.fetch_add(slice.len() as u64, Ordering::Relaxed);
             this.taken += slice.len() as u64;
             if this.pending.is_empty() && this.inner.is_end_stream() {
-                watch.grace.store(this.taken * 1000 / SLOWEST_LINK, Ordering::Relaxed);
+                this.ended();
             }
         }
         Poll::Ready(Some(Ok(Frame::data(slice))))
@@ -217,5 +233,46 @@ where
             hint.set_upper(upper + pending);
         }
         hint
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A body that knows it has ended only when asked for another frame, as a stream does.
+    struct Streamed(Option<Bytes>);
+
+    impl Body for Streamed {
+        type Data = Bytes;
+        type Error = std::io::Error;
+
+        fn poll_frame(mut self: Pin<&mut Self>, _: &mut Context<'_>) -> Poll<Option<Result<Frame<Bytes>, std::io::Error>>> {
+            Poll::Ready(self.0.take().map(|b| Ok(Frame::data(b))))
+        }
+    }
+
+    /// Once a request body has been handed over whole, the wait for its response has the grace
+    /// of the body at the slowest link, whether the body said it was ending with its last frame
+    /// or only when asked again (the cause of an upload cut at the timeout while the kernel still
+    /// sent its last megabytes).
+    #[test]
+    fn a_body_handed_over_whole_gets_its_grace_however_it_ends() {
+        let body = Bytes::from(vec![0u8; 640_000]);
+        let watch = Watch::new();
+        let mut watched = Watched { inner: Streamed(Some(body)), pending: Bytes::new(), watch: watch.clone(), counts: true, taken: 0 };
+        let mut cx = Context::from_waker(std::task::Waker::noop());
+        let mut frames = 0;
+        while let Poll::Ready(Some(frame)) = Pin::new(&mut watched).poll_frame(&mut cx) {
+            frame.unwrap();
+            frames += 1;
+            if frames == 10 {
+                assert_eq!(watch.grace.load(Ordering::Relaxed), 0, "the last slice is out, but the body has not said it ended");
+            }
+        }
+        assert_eq!(frames, 10, "handed over in slices of 64 kB");
+        assert_eq!(watch.sent(), 640_000);
+        assert_eq!(watch.grace.load(Ordering::Relaxed), 10_000, "640 kB at 64 kB/s: 10 s");
+        assert_eq!(watch.allowed(Duration::from_secs(2)), Duration::from_secs(12));
     }
 }

@@ -178,6 +178,7 @@ mod tests {
             summary: String::new(),
             platform: None,
             signatures: Vec::new(),
+            pulled: None,
         }
     }
 

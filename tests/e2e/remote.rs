@@ -404,6 +404,8 @@ fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
     assert_eq!(outputs(&pulled), outputs(&computed));
     let verify = reader.cli(&["verify", "p.toml"]);
     assert!(verify.status.success(), "{}", text(&verify.stdout));
+    let show = text(&reader.cli(&["show", "p.toml", "source"]).stdout);
+    assert!(show.contains(&format!("origin:  pulled from {url}, signed by `ci`")) && show.contains("  metrics: "), "{show}");
 
     // A forged record: another valid object under a key, the signature kept. Not used, named;
     // the run computes it, and its outputs are a local run's.
@@ -484,6 +486,15 @@ fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
     assert!(format!("{}{}", text(&out.stdout), text(&out.stderr)).contains("its records are used unverified (no `remote_trusted_keys`)"));
     let status = plain.cli(&["status", "p.toml", "--remote", &url]);
     assert!(text(&status.stdout).contains("its records are used unverified"), "{}", text(&status.stdout));
+    // Its numbers are marked as the remote's word wherever they are shown.
+    let show = text(&plain.cli(&["show", "p.toml", "source"]).stdout);
+    assert!(show.contains(&format!("origin:  pulled from {url} UNVERIFIED")) && show.contains("  metrics (unverified): "), "{show}");
+    plain.cli(&["run", "p.toml", "--remote", &url]);
+    let compare = text(&plain.cli(&["compare", "p.toml"]).stdout);
+    assert!(
+        compare.contains("UNVERIFIED: the numbers of") && compare.contains("source in run ") && compare.contains(&format!("(from {url})")),
+        "{compare}"
+    );
 }
 
 /// Points the record in `file` at the output of the record in `donor` (digest, files, bytes),
