@@ -8,18 +8,21 @@
 //! `checker` holds the diagnostics and the TOML reading they share.
 
 mod checker;
+mod diagnostic;
 mod graph;
 mod header;
 mod hyperqueue;
 mod overrides;
 mod stages;
 
-pub use checker::{ConfigError, Diagnostic};
+pub use checker::ConfigError;
+pub use diagnostic::Diagnostic;
 pub use graph::dimensions;
 pub use header::{Executor, RemoteSettings, SIGNING_KEY_VARIABLE, resolve_remote};
 pub use hyperqueue::{HyperQueueSettings, WorkerStore};
 
-use checker::{Checker, MAX_DEPTH, line_starts, to_json_table, too_deep};
+use checker::{Checker, line_starts, to_json_table};
+use diagnostic::{MAX_DEPTH, too_deep};
 use header::PIPELINE_KEYS;
 pub use overrides::Override;
 

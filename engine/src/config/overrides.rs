@@ -3,7 +3,7 @@
 
 use serde_json::{Map, Value};
 
-use super::checker::{Diagnostic, MAX_DEPTH, too_deep};
+use super::diagnostic::{Diagnostic, MAX_DEPTH, too_deep};
 
 #[derive(Clone, Debug)]
 pub struct Override {

@@ -26,14 +26,14 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context as _, bail};
 use rlmflow_radar::{Projection, View};
 use rlmflow_stages::grid::Grid;
-use rlmflow_stages::npy::Npy;
 use rlmflow_stages::scenes::{ACTORS_TOPIC, Actor, Frame, Image};
 use rlmflow_stages::{Context, InputOutlines, Operator, OperatorSpec, Outcome, Outline, SettingError, Settings};
 use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
-use crate::datasets::{Opened, carrada, cruw, radiate};
+use crate::datasets::{Opened, UnknownClasses, carrada, cruw, radiate};
 use crate::geometry::{Bins, RangeAzimuthMap, sample};
+use crate::raw::{Power, Raw, inside_recording, normalise, read_image};
 use crate::render::Rendered;
 use crate::writer::SceneWriter;
 
@@ -130,24 +130,6 @@ pub enum Format {
     Radiate,
     Cruw,
     Carrada,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum UnknownClasses {
-    Error,
-    Skip,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Power {
-    /// Received power (non-negative), shown in dB.
-    Linear,
-    /// Power already in dB.
-    Db,
-    /// Already an image: uint8 as it is, floats in [0, 1].
-    Normalised,
 }
 
 impl Default for ImportSettings {
@@ -274,7 +256,7 @@ impl Operator for Import {
                 let (opened, name) = match s.format {
                     Format::Radiate => (radiate::open(&source, shown, wanted, unknown)?, "radiate"),
                     Format::Cruw => (cruw::open(&source, shown, wanted, unknown, s.axes.dynamic_range_db)?, "cruw"),
-                    Format::Carrada => (carrada::open(&source, shown, wanted, unknown, &s.axes)?, "carrada"),
+                    Format::Carrada => (carrada::open(&source, shown, wanted, unknown, s.axes.power, s.axes.dynamic_range_db)?, "carrada"),
                     Format::Auto => unreachable!("a dataset format"),
                 };
                 (skipped, warnings) = read_dataset(opened, s, ctx, &mut sink)?;
@@ -387,15 +369,6 @@ struct LineActor {
     col: Option<f64>,
 }
 
-/// A recording's image: its shape and values, as stored.
-pub(crate) struct Raw {
-    pub(crate) height: usize,
-    pub(crate) width: usize,
-    pub(crate) values: Vec<f32>,
-    /// The largest value its type holds (255 for uint8, 65,535 for 16-bit PNG), for `normalised`.
-    pub(crate) integer_max: Option<f32>,
-}
-
 fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink) -> anyhow::Result<()> {
     let shown = Path::new(&s.path).join(&s.manifest);
     let text = std::fs::read_to_string(dir.join(&s.manifest)).with_context(|| {
@@ -463,7 +436,7 @@ fn read_manifest(dir: &Path, s: &ImportSettings, ctx: &Context, sink: &mut Sink)
             }
             side = raw.width;
         }
-        let unit = normalise(&raw, &s.axes).with_context(|| format!("{at}: image `{}`", line.image))?;
+        let unit = normalise(&raw, s.axes.power, s.axes.dynamic_range_db).with_context(|| format!("{at}: image `{}`", line.image))?;
         let pixels = match s.axes.layout {
             Layout::RangeAzimuth => {
                 let map = manifest_map(unit, raw.height, raw.width, &s.axes);
@@ -541,95 +514,6 @@ fn read_dataset(dataset: Opened, s: &ImportSettings, ctx: &Context, sink: &mut S
         ctx.event("warning", json!({ "message": warning }));
     }
     Ok((dataset.skipped, dataset.warnings))
-}
-
-/// `Ok` for a path that names a file inside the recording: relative, without `..`; else what
-/// is wrong with it. The recording is tracked by content, so a file outside it would be read
-/// without entering the key.
-fn inside_recording(name: &str) -> Result<(), &'static str> {
-    use std::path::Component;
-    let components: Vec<Component> = Path::new(name).components().collect();
-    if components.iter().any(|c| matches!(c, Component::RootDir | Component::Prefix(_))) {
-        return Err("is an absolute path, outside the recording");
-    }
-    if components.contains(&Component::ParentDir) {
-        return Err("climbs out of the recording with `..`");
-    }
-    if !components.iter().any(|c| matches!(c, Component::Normal(_))) {
-        return Err("names no file");
-    }
-    Ok(())
-}
-
-/// An image file of the recording in `dir` (its snapshot), named `name` by the manifest of the
-/// user's recording `shown`: `.npy` (2-D, float32 or uint8) or `.png` (grayscale, 8 or 16
-/// bits), at least one pixel.
-pub(crate) fn read_image(dir: &Path, shown: &Path, name: &str) -> anyhow::Result<Raw> {
-    if let Err(problem) = inside_recording(name) {
-        bail!("{problem}; images are named relative to the recording's directory");
-    }
-    let path = dir.join(name);
-    if !path.is_file() {
-        bail!("no such file in the recording");
-    }
-    let raw = match path.extension().and_then(|e| e.to_str()) {
-        Some("npy") => {
-            let npy = Npy::open_as(&path, &shown.join(name))?;
-            let [height, width] = npy.shape[..] else {
-                bail!("shape {:?}; valid: a 2-D array (rows, columns)", npy.shape);
-            };
-            let integer_max = (npy.dtype == rlmflow_stages::npy::Dtype::U8).then_some(255.0);
-            Raw { height, width, values: npy.all_f32()?, integer_max }
-        }
-        Some("png") => {
-            let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&path)?));
-            let mut reader = decoder.read_info()?;
-            let mut buf = vec![0u8; reader.output_buffer_size().context("the PNG is too large")?];
-            let info = reader.next_frame(&mut buf)?;
-            let (width, height) = (info.width as usize, info.height as usize);
-            let (values, max) = match (info.color_type, info.bit_depth) {
-                (png::ColorType::Grayscale, png::BitDepth::Eight) => (buf[..width * height].iter().map(|&v| f32::from(v)).collect(), 255.0),
-                (png::ColorType::Grayscale, png::BitDepth::Sixteen) => {
-                    (buf[..width * height * 2].chunks_exact(2).map(|b| f32::from(u16::from_be_bytes([b[0], b[1]]))).collect(), 65_535.0)
-                }
-                (color, depth) => bail!("a {color:?} PNG of {depth:?} bits; valid: grayscale, 8 or 16 bits"),
-            };
-            Raw { height, width, values, integer_max: Some(max) }
-        }
-        _ => bail!("unknown image type; valid: .npy (float32 or uint8) or .png (grayscale)"),
-    };
-    if raw.height == 0 || raw.width == 0 {
-        bail!("an image of {}x{} pixels; an image needs at least one row and one column", raw.height, raw.width);
-    }
-    Ok(raw)
-}
-
-/// Values in [0, 1] as `axes.power` says to read them.
-pub(crate) fn normalise(raw: &Raw, axes: &Axes) -> anyhow::Result<Vec<f32>> {
-    let db: Vec<f32> = match axes.power {
-        Power::Normalised => {
-            return match raw.integer_max {
-                Some(max) => Ok(raw.values.iter().map(|v| v / max).collect()),
-                None => {
-                    let (lo, hi) = raw.values.iter().fold((f32::MAX, f32::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
-                    if lo < 0.0 || hi > 1.0 {
-                        bail!("its values span [{lo}, {hi}], but power = \"normalised\" needs floats in [0, 1]; say power = \"linear\" or \"db\"");
-                    }
-                    Ok(raw.values.clone())
-                }
-            };
-        }
-        Power::Linear => {
-            if let Some(v) = raw.values.iter().find(|v| **v < 0.0) {
-                bail!("it holds a negative power ({v}); power = \"linear\" needs received power >= 0 (say power = \"db\" for decibels)");
-            }
-            raw.values.iter().map(|&v| if v > 0.0 { 10.0 * v.log10() } else { f32::NEG_INFINITY }).collect()
-        }
-        Power::Db => raw.values.clone(),
-    };
-    let peak = db.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
-    let range = axes.dynamic_range_db as f32;
-    Ok(db.iter().map(|&v| if peak.is_finite() && v.is_finite() { ((v - (peak - range)) / range).clamp(0.0, 1.0) } else { 0.0 }).collect())
 }
 
 /// rlmflow's range-azimuth image of `side` pixels out to `range_max_m`, where actors are placed.
@@ -855,7 +739,7 @@ mod tests {
                 }
             }
             let raw = Raw { height: rows, width: cols, values, integer_max: None };
-            let unit = normalise(&raw, &s.axes).unwrap();
+            let unit = normalise(&raw, s.axes.power, s.axes.dynamic_range_db).unwrap();
             let image = manifest_map(unit, rows, cols, &s.axes).resample(64, s.range_max_m);
             let placed = actor(
                 0,
@@ -891,7 +775,8 @@ mod tests {
         let raw = Raw { height: rows, width: cols, values, integer_max: None };
         let brightness = |axes: Axes| {
             let s = ImportSettings { image: 128, axes, ..ImportSettings::default() };
-            let image = manifest_map(normalise(&raw, &s.axes).unwrap(), rows, cols, &s.axes).resample(128, s.range_max_m);
+            let image =
+                manifest_map(normalise(&raw, s.axes.power, s.axes.dynamic_range_db).unwrap(), rows, cols, &s.axes).resample(128, s.range_max_m);
             let (r, c) = range_azimuth(128, &s).pixel(x, y);
             image[r as usize * 128 + c as usize]
         };

@@ -11,13 +11,16 @@ mod highway;
 mod import;
 mod layout;
 mod procedural;
+mod raw;
 mod render;
 mod writer;
 
 pub use concat::{Concat, ConcatSettings};
+pub use datasets::UnknownClasses;
 #[cfg(feature = "highway")]
 pub use highway::{HighwayEnv, HighwaySettings, SCENARIOS, ScenarioMix};
-pub use import::{Axes, AzimuthBins, Format, Import, ImportSettings, Layout, Power, UnknownClasses};
+pub use import::{Axes, AzimuthBins, Format, Import, ImportSettings, Layout};
 pub use procedural::{Procedural, ProceduralSettings};
+pub use raw::Power;
 pub use render::{Rendered, Renderer, Scene, Vehicle};
 pub use writer::SceneWriter;

@@ -21,9 +21,10 @@ use anyhow::{Context as _, bail};
 use rlmflow_stages::npy::{Dtype, Npy};
 use serde::Deserialize;
 
+use super::UnknownClasses;
 use super::{Classes, FrameReader, Object, Opened, Recorded, Sequence, sequences};
 use crate::geometry::{Bins, RangeAzimuthMap};
-use crate::import::{Axes, Raw, UnknownClasses, normalise};
+use crate::raw::{Power, Raw, normalise};
 
 pub const SIZE: usize = 256;
 pub const RANGE_RES: f64 = 0.1953125;
@@ -64,9 +65,9 @@ struct View {
 }
 
 /// Opens the CARRADA copy at `root` (named `shown` in messages): the annotations are read and
-/// every sequence's maps listed now, each map when its frame is, its values read as `axes` says
-/// (`power`, `dynamic_range_db`).
-pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: UnknownClasses, axes: &Axes) -> anyhow::Result<Opened> {
+/// every sequence's maps listed now, each map when its frame is, its values read as `power` says
+/// (dB shown over `dynamic_range_db` below each map's peak).
+pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: UnknownClasses, power: Power, dynamic_range_db: f64) -> anyhow::Result<Opened> {
     let file = shown.join("annotations_frame_oriented.json");
     let bytes = std::fs::read(root.join("annotations_frame_oriented.json"))
         .with_context(|| format!("{}: missing; CARRADA's annotations are read from it", file.display()))?;
@@ -116,9 +117,14 @@ pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: UnknownClasse
                 let (length, width) = if class == "car" { (4.5, 1.8) } else { (0.6, 0.6) };
                 objects.push(Object { class, x: range * angle.cos(), y: -range * angle.sin(), heading: 0.0, length, width });
             }
-            let (Sequence { name, dir, shown }, axes) = (seq.clone(), axes.clone());
+            let Sequence { name, dir, shown } = seq.clone();
             frames.push(Box::new(move || {
-                Ok(Recorded { map: range_angle_map(&dir, &shown, &frame, &axes)?, objects, episode: name, scenario: "carrada".into() })
+                Ok(Recorded {
+                    map: range_angle_map(&dir, &shown, &frame, power, dynamic_range_db)?,
+                    objects,
+                    episode: name,
+                    scenario: "carrada".into(),
+                })
             }));
         }
     }
@@ -126,8 +132,8 @@ pub fn open(root: &Path, shown: &Path, wanted: &[String], unknown: UnknownClasse
 }
 
 /// Frame `frame`'s range-angle map in the sequence at `dir` (`shown` in messages), its values
-/// read as `axes` says.
-fn range_angle_map(dir: &Path, shown: &Path, frame: &str, axes: &Axes) -> anyhow::Result<RangeAzimuthMap> {
+/// read as `power` says (dB shown over `dynamic_range_db` below the peak).
+fn range_angle_map(dir: &Path, shown: &Path, frame: &str, power: Power, dynamic_range_db: f64) -> anyhow::Result<RangeAzimuthMap> {
     let name = format!("range_angle_numpy/{frame}.npy");
     let shown = shown.join(&name);
     let npy = Npy::open_as(&dir.join(&name), &shown)?;
@@ -141,7 +147,7 @@ fn range_angle_map(dir: &Path, shown: &Path, frame: &str, axes: &Axes) -> anyhow
     let raw = Raw { height: SIZE, width: SIZE, values, integer_max: None };
     let (range, azimuth) = bins();
     Ok(RangeAzimuthMap {
-        values: normalise(&raw, axes).with_context(|| format!("{}", shown.display()))?,
+        values: normalise(&raw, power, dynamic_range_db).with_context(|| format!("{}", shown.display()))?,
         rows: SIZE,
         cols: SIZE,
         range,

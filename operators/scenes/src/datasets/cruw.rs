@@ -19,9 +19,10 @@ use std::path::Path;
 use anyhow::{Context as _, bail};
 use rlmflow_stages::npy::{Dtype, Npy};
 
+use super::UnknownClasses;
 use super::{Classes, FrameReader, Object, Opened, Recorded, Sequence, sequences};
 use crate::geometry::{Bins, RangeAzimuthMap};
-use crate::import::{Axes, Power, Raw, UnknownClasses, normalise};
+use crate::raw::{Power, Raw, normalise};
 
 pub const SIZE: usize = 128;
 const SAMPLE_RATE: f64 = 4e6;
@@ -141,7 +142,6 @@ fn complex_map(dir: &Path, shown: &Path, number: u64, dynamic_range_db: f64) -> 
     }
     let power = complex.chunks_exact(2).map(|c| c[0] * c[0] + c[1] * c[1]).collect();
     let raw = Raw { height: SIZE, width: SIZE, values: power, integer_max: None };
-    let axes = Axes { power: Power::Linear, dynamic_range_db, ..Axes::default() };
     let (range, azimuth) = bins();
-    Ok(RangeAzimuthMap { values: normalise(&raw, &axes)?, rows: SIZE, cols: SIZE, range, azimuth, wraps: false })
+    Ok(RangeAzimuthMap { values: normalise(&raw, Power::Linear, dynamic_range_db)?, rows: SIZE, cols: SIZE, range, azimuth, wraps: false })
 }

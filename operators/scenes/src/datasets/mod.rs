@@ -20,7 +20,16 @@ use std::path::{Path, PathBuf};
 use anyhow::bail;
 
 use crate::geometry::RangeAzimuthMap;
-use crate::import::UnknownClasses;
+use serde::{Deserialize, Serialize};
+
+/// What an annotated object of a class the dataset's table does not map does: stop the import
+/// with an error naming it, or be counted and skipped.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum UnknownClasses {
+    Error,
+    Skip,
+}
 
 /// One frame of a dataset.
 pub struct Recorded {

@@ -26,9 +26,10 @@ use std::path::Path;
 use anyhow::{Context as _, bail};
 use serde::Deserialize;
 
+use super::UnknownClasses;
 use super::{Classes, FrameReader, Object, Opened, Recorded, Sequence, sequences};
 use crate::geometry::{Bins, RangeAzimuthMap};
-use crate::import::{UnknownClasses, read_image};
+use crate::raw::read_image;
 
 /// Metres per range bin and per Cartesian pixel (radiate_sdk's `radar_calib.range_res`).
 pub const RANGE_RES: f64 = 0.173611;

@@ -9,10 +9,11 @@
 use std::f64::consts::PI;
 use std::path::{Path, PathBuf};
 
+use super::UnknownClasses;
 use super::radiate::{self, CENTRE, RANGE_RES};
 use super::{Object, Recorded};
 use crate::geometry::{Bins, RangeAzimuthMap};
-use crate::import::{UnknownClasses, read_image};
+use crate::raw::read_image;
 
 /// The Cartesian images' side in pixels.
 const SIDE: usize = 1152;
