@@ -137,8 +137,9 @@ pub struct RunPlan {
     pub run: String,
     pub pipeline: String,
     pub started: String,
-    /// The command line's `--set STAGE.KEY=VALUE`s the run was started with, so it can be
-    /// repeated (absent when there were none).
+    /// The command line's overrides the run was started with, each as given (`--set
+    /// STAGE.KEY=VALUE`, `--set-new ...`; a run recorded before the flag was kept: the text
+    /// alone, a `--set`), so it can be repeated (absent when there were none).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub overrides: Vec<String>,
     /// Absent where the pipeline file is not in a git work tree (or git is not installed).

@@ -36,6 +36,10 @@ struct SetArg {
     /// pretrain.variants.alpha4.epochs=20); checked exactly as the file is.
     #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
     set: Vec<String>,
+    /// As --set, and may make a variant the file does not declare
+    /// (pretrain.variants.alpha8.alpha=8.0); --set refuses one, naming the nearest.
+    #[arg(long = "set-new", value_name = "STAGE.variants.NAME.KEY=VALUE")]
+    set_new: Vec<String>,
 }
 
 #[derive(clap::Args)]
@@ -450,7 +454,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
     }
     match command {
         Command::Run { pipeline, dry_run, only, jobs, executor, json, device, verify_inputs, check_determinism, set, store, remote } => {
-            let mut p = config::load_with(&pipeline, &set.set, registry)?;
+            let mut p = config::load_with(&pipeline, &set.set, &set.set_new, registry)?;
             if let Some(name) = executor {
                 p.executor = config::Executor::parse(&name)
                     .with_context(|| format!("unknown executor `{name}` for --executor; valid: {}", config::Executor::NAMES.join(", ")))?;
@@ -488,7 +492,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             Ok(if summary.failed > 0 { ExitCode::FAILURE } else { ExitCode::SUCCESS })
         }
         Command::Status { pipeline, json, set, store, remote } => {
-            let p = config::load_with(&pipeline, &set.set, registry)?;
+            let p = config::load_with(&pipeline, &set.set, &set.set_new, registry)?;
             let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &[])?;
             let remote = remote.settings(&p)?.map(|r| open_remote(&r)).transpose()?;
             print_status(&pre.plan, &pre.states, &pre.selected, &pre.fits, remote.as_ref(), json);
@@ -499,7 +503,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Dag { pipeline, format, set, store, remote } => {
-            let p = config::load_with(&pipeline, &set.set, registry)?;
+            let p = config::load_with(&pipeline, &set.set, &set.set_new, registry)?;
             let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &[])?;
             let remote = remote.settings(&p)?.map(|r| open_remote(&r)).transpose()?;
             print!("{}", crate::dag::draw(&pre.plan, &pre.states, remote.as_ref(), format));
@@ -551,7 +555,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             println!("pull: {pulled} results downloaded ({:.1} MB) from {}", bytes as f64 / 1e6, remote.url());
             Ok(ExitCode::SUCCESS)
         }
-        Command::Explain { pipeline, stage, set, store } => explain(registry, &pipeline, &set.set, &stage, &store),
+        Command::Explain { pipeline, stage, set, store } => explain(registry, &pipeline, &set, &stage, &store),
         Command::Show { pipeline, stage, store } => show(registry, &pipeline, &stage, &store),
         Command::Runs { pipeline, all, last, json, store } => {
             let p = config::load(&pipeline, registry)?;
@@ -629,7 +633,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Digests { pipeline, set, store } => {
-            let p = config::load_with(&pipeline, &set.set, registry)?;
+            let p = config::load_with(&pipeline, &set.set, &set.set_new, registry)?;
             let store = ran_store(&p, &store, "nothing to list")?;
             let plan = planned(&p, Some(&store), Device::Cpu)?;
             let states = assess(&plan, registry, Some(&store))?;
@@ -852,8 +856,8 @@ fn instances_of(plan: &crate::plan::Plan, stage: &str) -> anyhow::Result<Vec<usi
     Ok((0..plan.instances.len()).filter(|&i| plan.instances[i].stage == s).collect())
 }
 
-fn explain(registry: &Registry, file: &Path, overrides: &[String], stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
-    let p = config::load_with(file, overrides, registry)?;
+fn explain(registry: &Registry, file: &Path, set: &SetArg, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
+    let p = config::load_with(file, &set.set, &set.set_new, registry)?;
     let store = Store::open_existing(&store_root(&p, arg))?;
     let plan = planned(&p, store.as_ref(), Device::Cpu)?;
     let states = assess(&plan, registry, store.as_ref())?;

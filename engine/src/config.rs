@@ -155,7 +155,7 @@ impl Pipeline {
             _ => format!("stages.{stage}.{key}"),
         };
         match Override::setting(&self.overrides, &path) {
-            Some(o) => format!("{} with --set {}: {path}", self.file.display(), o.text),
+            Some(o) => format!("{} with {}: {path}", self.file.display(), o.shown()),
             None => format!("{}:{}: {path}", self.file.display(), self.lines.line(&path)),
         }
     }
@@ -175,12 +175,13 @@ pub const MAX_NAME: usize = 128;
 
 /// Reads and validates a pipeline file.
 pub fn load(file: &Path, registry: &Registry) -> anyhow::Result<Pipeline> {
-    load_with(file, &[], registry)
+    load_with(file, &[], &[], registry)
 }
 
-/// Reads a pipeline file, applies `overrides` (`STAGE.KEY=VALUE`, the value in TOML) over it and
-/// validates the result as if the file said so; an error in an overridden key names the override.
-pub fn load_with(file: &Path, overrides: &[String], registry: &Registry) -> anyhow::Result<Pipeline> {
+/// Reads a pipeline file, applies the overrides `set` and `set_new` (`STAGE.KEY=VALUE` or
+/// `pipeline.KEY=VALUE`, the value in TOML; `set_new` may make a variant) over it and validates
+/// the result as if the file said so; an error in an overridden key names the override.
+pub fn load_with(file: &Path, set: &[String], set_new: &[String], registry: &Registry) -> anyhow::Result<Pipeline> {
     let bytes = std::fs::read(file).map_err(|e| anyhow::anyhow!("cannot read pipeline {}: {e}", file.display()))?;
     let text = match String::from_utf8(bytes) {
         Ok(text) => text,
@@ -198,7 +199,7 @@ pub fn load_with(file: &Path, overrides: &[String], registry: &Registry) -> anyh
             .into());
         }
     };
-    parse_with(file, &text, overrides, registry).map_err(anyhow::Error::new)
+    parse_with(file, &text, set, set_new, registry).map_err(anyhow::Error::new)
 }
 
 /// Checks a pipeline, stage, variant or pin name; the error says what is wrong. Names become file
@@ -224,12 +225,13 @@ pub fn check_name(name: &str) -> Result<(), String> {
 
 /// Validates pipeline text; `file` is used for messages and to resolve the cache path.
 pub fn parse(file: &Path, text: &str, registry: &Registry) -> Result<Pipeline, ConfigError> {
-    parse_with(file, text, &[], registry)
+    parse_with(file, text, &[], &[], registry)
 }
 
 /// [`parse`] with `overrides` applied over the text (see [`load_with`]).
-fn parse_with(file: &Path, text: &str, overrides: &[String], registry: &Registry) -> Result<Pipeline, ConfigError> {
-    let applied = overrides.iter().map(|o| Override::parse(o)).collect::<Result<Vec<_>, _>>();
+fn parse_with(file: &Path, text: &str, set: &[String], set_new: &[String], registry: &Registry) -> Result<Pipeline, ConfigError> {
+    let given = set.iter().map(|o| (o, false)).chain(set_new.iter().map(|o| (o, true)));
+    let applied = given.map(|(o, creates)| Override::parse(o, creates)).collect::<Result<Vec<_>, _>>();
     let applied = match applied {
         Ok(applied) => applied,
         Err(diagnostic) => return Err(ConfigError { file: file.to_path_buf(), diagnostics: vec![diagnostic], overrides: Vec::new() }),
@@ -261,7 +263,7 @@ fn parse_overridden(file: &Path, text: &str, overrides: &[Override], registry: &
     for o in overrides {
         match o.apply(&root) {
             Ok(overridden) => root = overridden,
-            Err(message) => cx.error(0, &format!("--set {}", o.text), message, None),
+            Err(message) => cx.error(0, &o.shown(), message, None),
         }
     }
     if !cx.errors.is_empty() {

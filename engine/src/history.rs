@@ -144,7 +144,8 @@ pub fn listing(store: &Store, runs: &[PastRun], all: bool) -> anyhow::Result<Str
             Some(g) => format!("  git {}{}", &g.commit[..g.commit.len().min(12)], if g.dirty { " (dirty)" } else { "" }),
             None => String::new(),
         };
-        let set: String = run.plan.overrides.iter().map(|o| format!("  --set {o}")).collect();
+        // Each as the command line gave it (a run from before the flag was recorded: `--set`).
+        let set: String = run.plan.overrides.iter().map(|o| if o.starts_with("--set") { format!("  {o}") } else { format!("  --set {o}") }).collect();
         out += &format!("{}  {}{git}{set}\n", run.id(), run.plan.started);
         let c = run.counts();
         let end = if run.finished { "" } else { "; did not finish (killed, or still running)" };

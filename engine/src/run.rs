@@ -298,7 +298,7 @@ impl Executor<'_> {
         );
         if !p.overrides.is_empty() {
             // So the run can be repeated from this file alone.
-            let set: Vec<String> = p.overrides.iter().map(|o| format!("`--set {}`", o.text)).collect();
+            let set: Vec<String> = p.overrides.iter().map(|o| format!("`{}`", o.shown())).collect();
             md += &format!("Overrides over the file, in order: {}.\n\n", set.join(", "));
         }
         md += "| instance | status | seconds | key | output | platform |\n|---|---|---|---|---|---|\n";
@@ -592,7 +592,7 @@ impl Executor<'_> {
                 key: self.keys[i],
             })
             .collect();
-        let overrides = self.plan.pipeline.overrides.iter().map(|o| o.text.clone()).collect();
+        let overrides = self.plan.pipeline.overrides.iter().map(|o| o.shown()).collect();
         self.store.write_plan(&RunPlan {
             run: self.run.clone(),
             pipeline: self.plan.pipeline.name.clone(),

@@ -38,13 +38,47 @@ fn an_override_reruns_exactly_what_status_says_and_the_run_records_it() {
     assert_eq!(ran, expected);
     let run = events.of("run_started")[0]["run"].as_str().unwrap().to_owned();
     let plan: serde_json::Value = serde_json::from_slice(&fs::read(s.store().join("runs").join(&run).join("plan.json")).unwrap()).unwrap();
-    assert_eq!(plan["overrides"], serde_json::json!(["map.suffix=\"?!\"", "source.text = 'radar'"]));
+    assert_eq!(plan["overrides"], serde_json::json!(["--set map.suffix=\"?!\"", "--set source.text = 'radar'"]));
     let provenance = fs::read_to_string(s.store().join("runs").join(&run).join("provenance.md")).unwrap();
     assert!(provenance.contains("`--set map.suffix=\"?!\"`, `--set source.text = 'radar'`"), "{provenance}");
     // The file is untouched: without the override, the first results are current again.
     assert!(not_cached(&s, &[]).is_empty());
-    // A dotted key into a table the stage lacks makes it: a new variant.
-    assert_eq!(not_cached(&s, &["--set", "map.variants.loud.suffix=\"!!!\""]), ["collect", "map[loud]", "measure[loud]"]);
+    // A new variant only with --set-new: a variant's name mistyped under --set is an error naming
+    // the nearest, never a new variant.
+    assert_eq!(not_cached(&s, &["--set-new", "map.variants.loud.suffix=\"!!!\""]), ["collect", "map[loud]", "measure[loud]"]);
+    let with_variants =
+        CHAIN.replace("suffix = \"!\"", "suffix = \"!\"\n[stages.map.variants]\nloud = { suffix = \"!!!\" }\nquiet = { suffix = \".\" }");
+    s.pipeline(&with_variants);
+    let out = s.cli(&["status", "p.toml", "--set", "map.variants.lod.suffix=\"?\""]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        text(&out.stderr).contains("p.toml: --set map.variants.lod.suffix=\"?\": stage `map` has no variant `lod`; its variants are loud, quiet; did you mean `loud`? (--set-new makes a new one)"),
+        "{}",
+        text(&out.stderr)
+    );
+    assert_eq!(
+        not_cached(&s, &["--set", "map.variants.loud.suffix=\"?\""]).len(),
+        3 + 2,
+        "an existing variant is set: its chain and the other variant's"
+    );
+}
+
+/// The header's keys are overridable too: `--set pipeline.seeds=[1, 2]` fans the seeded stage out
+/// over two seeds; a mistyped header key is named.
+#[test]
+fn the_pipeline_header_is_overridable() {
+    let s = Scratch::new("override-header");
+    s.pipeline(CHAIN);
+    s.run();
+    let fanned = not_cached(&s, &["--set", "pipeline.seeds=[1, 2]"]);
+    assert_eq!(fanned, ["collect", "measure[seed=1]", "measure[seed=2]"]);
+    let out = s.cli(&["status", "p.toml", "--set", "pipeline.seedz=[1]"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(
+        text(&out.stderr).contains("with --set pipeline.seedz=[1]: ") && text(&out.stderr).contains("unknown key `seedz`"),
+        "{}",
+        text(&out.stderr)
+    );
 }
 
 #[test]

@@ -26,7 +26,7 @@ impl fmt::Display for ConfigError {
                 writeln!(f)?;
             }
             match super::overrides::Override::setting(&self.overrides, &d.key) {
-                Some(o) => write!(f, "{} with --set {}: ", self.file.display(), o.text)?,
+                Some(o) => write!(f, "{} with {}: ", self.file.display(), o.shown())?,
                 // Line 0: the command line's (a malformed override names itself in the key).
                 None if d.line == 0 => write!(f, "{}: ", self.file.display())?,
                 None => write!(f, "{}:{}: ", self.file.display(), d.line)?,
