@@ -19,6 +19,8 @@ pub enum RunReason {
     Interrupted { resumes_from: String },
     /// The last attempt at this key was stopped before keeping anything.
     Unfinished,
+    /// Another process is computing this key right now (it holds the action's lock).
+    Running,
     /// The key differs from the last run's, whose record and request were collected.
     RecordCollected,
     /// The key differs from the last run's with no field of the preimage to show (an encoding
@@ -63,8 +65,13 @@ pub fn why(store: Option<&Store>, last: Option<&Digest>, key: &Digest, now: &Pre
         if store.record(key)?.is_some() {
             return Ok(vec![RunReason::OutputGone]);
         }
+        if store.try_lock_action(key)?.is_none() {
+            return Ok(vec![RunReason::Running]);
+        }
         let failure = store.failure(key).map(|f| f.lines().next().unwrap_or_default().chars().take(200).collect::<String>());
-        let checkpoint = store.checkpoint_dir(key).is_dir().then(|| resumes.to_owned());
+        // A checkpoint folder an attempt made but wrote nothing into is nothing to resume from.
+        let kept = std::fs::read_dir(store.checkpoint_dir(key)).is_ok_and(|mut d| d.next().is_some());
+        let checkpoint = kept.then(|| resumes.to_owned());
         return Ok(vec![match (failure, checkpoint) {
             (Some(error), resumes_from) => RunReason::Failed { error, resumes_from },
             (None, Some(resumes_from)) => RunReason::Interrupted { resumes_from },
@@ -119,7 +126,14 @@ mod tests {
         let key = preimage.key();
         let reasons = |resumes: &str| why(Some(&store), Some(&key), &key, &preimage, "captions", resumes).unwrap();
         assert_eq!(reasons("its checkpoint"), [RunReason::Unfinished]);
+        // Being computed by another holder of its lock: running, not interrupted.
+        let held = store.lock_action(&key).unwrap();
+        assert_eq!(reasons("its checkpoint"), [RunReason::Running]);
+        drop(held);
+        // An empty checkpoint folder holds nothing to resume from.
         std::fs::create_dir_all(store.checkpoint_dir(&key)).unwrap();
+        assert_eq!(reasons("its checkpoint"), [RunReason::Unfinished]);
+        std::fs::write(store.checkpoint_dir(&key).join("epoch-3.safetensors"), b"weights").unwrap();
         let cache = "its response cache (the answers it already has)";
         assert_eq!(reasons(cache), [RunReason::Interrupted { resumes_from: cache.into() }]);
         store.write_failure(&key, "batch: larger than the training share\n(details)").unwrap();

@@ -87,10 +87,19 @@ struct Executor<'a> {
     links: Option<Links>,
     /// Instances whose link points at their work in progress.
     live_linked: std::collections::BTreeSet<usize>,
-    /// How many times each instance's action was started in this run.
-    attempts: Vec<u32>,
+    /// How many times each instance's action was started in this run, and the seconds its
+    /// earlier attempts took.
+    attempts: Vec<Attempts>,
     /// Which ready instance starts first ([`Plan::start_order`]).
     start_order: Vec<usize>,
+}
+
+/// An instance's attempts in this run.
+#[derive(Clone, Copy, Default)]
+struct Attempts {
+    started: u32,
+    /// The seconds the attempts before the current one took.
+    earlier_s: f64,
 }
 
 /// Runs the plan; returns its summary.
@@ -126,7 +135,7 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
         pulls: Pulls::new(opts.remote.as_ref(), n),
         links,
         live_linked: Default::default(),
-        attempts: vec![0; n],
+        attempts: vec![Attempts::default(); n],
         start_order: plan.start_order(),
     };
     ex.execute()?;
@@ -213,8 +222,8 @@ impl Executor<'_> {
                 started.insert(i, (Instant::now(), threads, wants.gpu));
                 self.states[i] = State::Running { key };
                 let label = self.plan.instances[i].label.clone();
-                self.attempts[i] += 1;
-                self.events.write("stage_started", json!({"stage": label, "key": key, "threads": threads, "attempt": self.attempts[i]}))?;
+                self.attempts[i].started += 1;
+                self.events.write("stage_started", json!({"stage": label, "key": key, "threads": threads, "attempt": self.attempts[i].started}))?;
                 bars.insert(i, self.ui.bar(&label));
                 self.start(i, exe, key, threads, wants.gpu, tx.clone())?;
             }
@@ -610,9 +619,19 @@ impl Executor<'_> {
     }
 
     /// `runs/<id>/logs/<label>.log`, and `<label>.attempt-N.log` for a retry's.
+    /// Appends the engine's word on instance `i`'s attempt to its log, so the log of an attempt
+    /// that failed or was stopped says how it ended even when its process wrote nothing.
+    fn note_in_log(&self, i: usize, line: &str) {
+        let log = self.log_path(i);
+        let appended = std::fs::OpenOptions::new().create(true).append(true).open(&log).and_then(|mut f| writeln!(f, "[rlmflow] {line}"));
+        if let Err(e) = appended {
+            self.ui.say(format!("  warning  could not write {}: {e}", log.display()));
+        }
+    }
+
     fn log_path(&self, i: usize) -> PathBuf {
         let label = file_safe(&self.plan.instances[i].label);
-        let name = match self.attempts[i] {
+        let name = match self.attempts[i].started {
             0 | 1 => format!("{label}.log"),
             n => format!("{label}.attempt-{n}.log"),
         };
@@ -653,10 +672,17 @@ impl Executor<'_> {
                 let reused = matches!(outcome, Some(Message::Reused));
                 self.done(i, record.output);
                 let status = if reused { "reused" } else { "ran" };
-                self.results[i] = Some(if reused { (Outcome::Reused, record.duration_s) } else { (Outcome::Ran, secs) });
-                self.events.write("stage_finished", json!({"stage": label, "status": status, "key": key, "output": record.output, "duration_s": secs, "summary": record.summary, "metrics": record.metrics}))?;
+                // Every attempt's time: a stage that ran on its third attempt took all three.
+                let Attempts { started, earlier_s } = self.attempts[i];
+                let total = earlier_s + secs;
+                self.results[i] = Some(if reused { (Outcome::Reused, record.duration_s) } else { (Outcome::Ran, total) });
+                self.events.write(
+                    "stage_finished",
+                    json!({"stage": label, "status": status, "key": key, "output": record.output, "duration_s": secs, "attempts": started, "total_s": total, "summary": record.summary, "metrics": record.metrics}),
+                )?;
                 let note = if reused { "computed by another run".to_owned() } else { record.summary.clone() };
-                self.ui.say(format!("  {status:<8} {label}  {secs:.1}s  {note}"));
+                let time = if started > 1 { format!("{total:.1}s in {started} attempts, {secs:.1}s the last") } else { format!("{secs:.1}s") };
+                self.ui.say(format!("  {status:<8} {label}  {time}  {note}"));
                 self.push(&label, &record)?;
             }
             Some(Message::CorruptInput { digest, files }) if code == Some(EXIT_CORRUPT_INPUT) && self.recoveries[i] < 2 => {
@@ -691,8 +717,10 @@ impl Executor<'_> {
                     _ => exit.describe(),
                 };
                 let bounds = self.bounds(i);
-                if retryable && self.attempts[i] <= bounds.retries {
-                    let attempt = self.attempts[i];
+                self.note_in_log(i, &format!("attempt {} ended after {secs:.1} s: {message}", self.attempts[i].started));
+                if retryable && self.attempts[i].started <= bounds.retries {
+                    let attempt = self.attempts[i].started;
+                    self.attempts[i].earlier_s += secs;
                     self.events.write(
                         "stage_retry",
                         json!({"stage": label, "key": key, "attempt": attempt, "error": message, "log": self.log_path(i), "duration_s": secs}),
@@ -701,7 +729,7 @@ impl Executor<'_> {
                     self.states[i] = State::Ready { key };
                     return Ok(());
                 }
-                let message = match self.attempts[i] {
+                let message = match self.attempts[i].started {
                     n if n > 1 => format!("{message}, on attempt {n} of {n} (`retries = {}`)", bounds.retries),
                     _ => message,
                 };

@@ -150,6 +150,7 @@ impl fmt::Display for RunReason {
             RunReason::Failed { error, resumes_from: None } => write!(f, "failed: {error}"),
             RunReason::Interrupted { resumes_from } => write!(f, "interrupted; resumes from {resumes_from}"),
             RunReason::Unfinished => write!(f, "its last attempt did not finish"),
+            RunReason::Running => write!(f, "being computed now by another run"),
             RunReason::RecordCollected => write!(f, "changed since its last run (whose record was collected)"),
             RunReason::KeyChanged => write!(f, "changed since its last run"),
             RunReason::Changed { stage, change, files, more_files } => {

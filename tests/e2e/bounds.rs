@@ -33,6 +33,12 @@ fn a_stage_past_its_timeout_is_stopped_and_retried_from_its_checkpoint() {
     assert_eq!(from.len(), retries.len() + 1);
     assert!(from[0] == 0 && from.windows(2).all(|w| w[1] > w[0]), "{from:?}");
     assert_eq!(std::fs::read_to_string(crate::harness::output_dir(&s.store(), "chain", "source").join("text.txt")).unwrap(), "radar");
+    // Its time is every attempt's, not the last one's alone.
+    let finished = events.of("stage_finished").into_iter().find(|e| e["stage"] == "source").unwrap();
+    assert_eq!(finished["attempts"].as_u64(), Some(retries.len() as u64 + 1));
+    let earlier: f64 = retries.iter().map(|r| r["duration_s"].as_f64().unwrap()).sum();
+    let (total, last) = (finished["total_s"].as_f64().unwrap(), finished["duration_s"].as_f64().unwrap());
+    assert!((total - earlier - last).abs() < 1e-9 && total > last && total >= 2.0, "total {total} s, last {last} s, earlier {earlier} s");
 
     // Out of retries: the error names the stage, the limit and the attempts; downstream is
     // skipped, the checkpoint kept for the next run.
@@ -49,6 +55,14 @@ fn a_stage_past_its_timeout_is_stopped_and_retried_from_its_checkpoint() {
     // Each attempt kept its own log.
     let run = std::fs::read_dir(s.store().join("runs")).unwrap().next().unwrap().unwrap().path();
     assert!(run.join("logs/source.log").is_file() && run.join("logs/source.attempt-2.log").is_file());
+    // And says how it ended, though the process was killed mid-step.
+    for (log, attempt) in [("source.log", 1), ("source.attempt-2.log", 2)] {
+        let text = std::fs::read_to_string(run.join("logs").join(log)).unwrap();
+        assert!(
+            text.contains(&format!("[rlmflow] attempt {attempt} ended after ")) && text.contains("stopped at its timeout of 0.5 s"),
+            "{log}: {text}"
+        );
+    }
 
     // The settings are checked as any other, and stay out of the key.
     s.pipeline(&slow("timeout = -1"));

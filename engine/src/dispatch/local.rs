@@ -27,7 +27,10 @@ impl Local {
 
 impl Dispatch for Local {
     fn start(&mut self, id: usize, launch: Launch, tx: Sender<(usize, Report)>) -> anyhow::Result<()> {
-        let log = Arc::new(Mutex::new(File::create(&launch.log).with_context(|| format!("creating {}", launch.log.display()))?));
+        // Appending, so the engine's note of how the attempt ended lands after the last line.
+        File::create(&launch.log).with_context(|| format!("creating {}", launch.log.display()))?;
+        let log = std::fs::OpenOptions::new().append(true).open(&launch.log).with_context(|| format!("opening {}", launch.log.display()))?;
+        let log = Arc::new(Mutex::new(log));
         let mut cmd = Command::new(&launch.exe);
         cmd.args(&launch.args).stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::piped());
         die_with_parent(&mut cmd);
