@@ -580,11 +580,20 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             let p = config::load(&pipeline, registry)?;
             let store = ran_store(&p, &store, "nothing to compare")?;
             let runs = crate::history::runs_of(&store, &p.name)?;
+            // Unnamed runs are the newest that are not plain reruns, in which nothing differs.
+            let computing: Vec<&crate::history::PastRun> = runs.iter().filter(|r| !r.repeats).collect();
             let pick = |id: Option<&String>, newest: usize| -> anyhow::Result<&crate::history::PastRun> {
                 match id {
                     Some(id) => crate::history::find(&runs, id, &p.name),
-                    None => runs.get(newest).with_context(|| {
-                        format!("pipeline `{}` has {} run(s) in {}; compare needs {}", p.name, runs.len(), store.root().display(), newest + 1)
+                    None => computing.get(newest).copied().with_context(|| {
+                        format!(
+                            "pipeline `{}` has {} run(s) in {} besides plain reruns ({} in all); compare needs {} (name runs to compare others)",
+                            p.name,
+                            computing.len(),
+                            store.root().display(),
+                            runs.len(),
+                            newest + 1
+                        )
                     }),
                 }
             };

@@ -200,6 +200,11 @@ pub fn variants(store: &Store, run: &PastRun, all: bool) -> anyhow::Result<Vec<T
             rows.extend(input_rows(stage, &sides, all));
         }
         rows.extend(metric_rows(stage, &sides, all, false));
+        // Instances that differ only by their inputs (a stage fanned out by another's variants)
+        // and moved no metric: nothing to show.
+        if rows.is_empty() && !all {
+            continue;
+        }
         let title = format!("{stage} in run {}", run.id());
         let unverified = columns.iter().filter_map(|g| g.unverified(run.id())).collect();
         tables.push(Table { title, columns: columns.iter().map(|g| g.label.clone()).collect(), rows, identical: Vec::new(), unverified });

@@ -1,6 +1,7 @@
 //! `rlmflow dag`: the plan drawn as Mermaid (which GitHub renders) or Graphviz DOT. Each stage
 //! instance is a node coloured by its state (cached, will run, will be pulled from the remote
-//! cache, pending) with the reason in its tooltip; each instance's output artifact is a node of its own, with an edge to every
+//! cache, pending) with the reason under its label (Mermaid; GitHub shows no tooltips) or in its
+//! tooltip (DOT); each instance's output artifact is a node of its own, with an edge to every
 //! instance that reads it, labelled with the input slot.
 
 use std::fmt::Write as _;
@@ -54,8 +55,9 @@ pub fn draw(plan: &Plan, states: &[Freshness], remote: Option<&Remote>, format: 
 }
 
 fn mermaid(plan: &Plan, states: &[Freshness], remote: Option<&Remote>) -> String {
-    // Mermaid has no escape for `"` inside a quoted label but its `#quot;` entity.
-    let text = |s: &str| s.replace('"', "#quot;");
+    // Mermaid has no escape for `"` inside a quoted label but its `#quot;` entity; `<` and `>`
+    // become entities too, so a reason's `->` is not read as markup.
+    let text = |s: &str| s.replace('"', "#quot;").replace('<', "#lt;").replace('>', "#gt;");
     let mut out = String::from("flowchart LR\n");
     for (name, fill, stroke) in STATES {
         let _ = writeln!(out, "  classDef {name} fill:{fill},stroke:{stroke}");
@@ -63,10 +65,10 @@ fn mermaid(plan: &Plan, states: &[Freshness], remote: Option<&Remote>) -> String
     for (i, inst) in plan.instances.iter().enumerate() {
         let (class, tooltip) = state(&states[i], remote);
         let produces = plan.pipeline.stages[inst.stage].kind.produces;
-        let _ = writeln!(out, "  s{i}[\"{}\"]:::{class}", text(&inst.label));
+        // The state's words under the label: GitHub renders no tooltip (`click` is disabled there).
+        let _ = writeln!(out, "  s{i}[\"{}<br>{}\"]:::{class}", text(&inst.label), text(&tooltip));
         let _ = writeln!(out, "  a{i}[/\"{produces}\"/]");
         let _ = writeln!(out, "  s{i} --> a{i}");
-        let _ = writeln!(out, "  click s{i} callback \"{}\"", text(&tooltip));
     }
     for (provider, slot, consumer) in edges(plan) {
         let _ = writeln!(out, "  a{provider} -->|{slot}| s{consumer}");

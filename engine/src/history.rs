@@ -23,6 +23,9 @@ pub struct PastRun {
     pub outcomes: BTreeMap<String, String>,
     /// Whether the run reached its end (a killed run, or one still going, did not).
     pub finished: bool,
+    /// Whether it finished with the keys of the run before it and nothing failed: a plain
+    /// rerun, in which nothing differs (`runs` folds it, `compare` passes over it unless named).
+    pub repeats: bool,
 }
 
 /// How many instances of a run ended each way: what `run` returns (for the exit status and
@@ -76,7 +79,12 @@ pub fn runs_of(store: &Store, name: &str) -> anyhow::Result<Vec<PastRun>> {
             continue;
         }
         let (outcomes, finished) = outcomes(&store.run_dir(&id).join("events.jsonl"));
-        runs.push(PastRun { plan, outcomes, finished });
+        runs.push(PastRun { plan, outcomes, finished, repeats: false });
+    }
+    // Newest first: each run against the one before it in time.
+    let keys = |run: &PastRun| run.plan.instances.iter().map(|e| (e.label.clone(), e.key)).collect::<Vec<_>>();
+    for i in 0..runs.len().saturating_sub(1) {
+        runs[i].repeats = runs[i].finished && runs[i].counts().failed == 0 && keys(&runs[i]) == keys(&runs[i + 1]);
     }
     Ok(runs)
 }
@@ -135,11 +143,25 @@ pub fn git_state(file: &Path) -> Option<GitState> {
 }
 
 /// `rlmflow runs`: each run, newest first, with its git state, overrides and counts, then the
-/// headline (the record's summary) of each instance it computed or pulled (`all`: of every
-/// instance).
+/// headline (the record's summary) of each instance it computed or pulled; consecutive plain
+/// reruns ([`PastRun::repeats`]) folded into one line (`all`: every run, every instance).
 pub fn listing(store: &Store, runs: &[PastRun], all: bool) -> anyhow::Result<String> {
     let mut out = String::new();
+    let mut folded: Vec<&PastRun> = Vec::new();
+    let fold = |folded: &mut Vec<&PastRun>, out: &mut String| {
+        if let (Some(newest), Some(oldest)) = (folded.first(), folded.last()) {
+            let span = if folded.len() == 1 { newest.id().to_owned() } else { format!("{} back to {}", newest.id(), oldest.id()) };
+            *out += &format!("{} rerun{} with the keys of the run before: {span}\n", folded.len(), if folded.len() == 1 { "" } else { "s" });
+        }
+        folded.clear();
+    };
     for run in runs {
+        // Plain reruns fold into one line (each shown with --all).
+        if !all && run.repeats {
+            folded.push(run);
+            continue;
+        }
+        fold(&mut folded, &mut out);
         let git = match &run.plan.git {
             Some(g) => format!("  git {}{}", &g.commit[..g.commit.len().min(12)], if g.dirty { " (dirty)" } else { "" }),
             None => String::new(),
@@ -163,5 +185,6 @@ pub fn listing(store: &Store, runs: &[PastRun], all: bool) -> anyhow::Result<Str
             out += &format!("{}\n", format!("    {outcome:<7} {}  {headline}", entry.label).trim_end());
         }
     }
+    fold(&mut folded, &mut out);
     Ok(out)
 }

@@ -65,7 +65,18 @@ fn runs_lists_each_run_and_compare_shows_the_setting_that_changed_and_the_metric
     assert_eq!(runs[0]["counts"], serde_json::json!({"ran": 3, "reused": 2, "pulled": 0, "failed": 0, "skipped": 0}));
     assert_eq!(runs[0]["finished"], true);
 
-    // The last two by default: the setting, the inputs it changed, the metric it moved (with its
+    // Plain reruns (the keys of the run before): folded in the listing, passed over by compare.
+    let reruns: Vec<String> =
+        (0..2).map(|_| s.run_expecting(0, &["--set", "map.suffix=\"?!\""]).of("run_started")[0]["run"].as_str().unwrap().to_owned()).collect();
+    let listing = stdout_of(&s, &["runs", "p.toml"]);
+    assert!(listing.contains(&format!("2 reruns with the keys of the run before: {} back to {}", reruns[1], reruns[0])), "{listing}");
+    assert!(!listing.contains(&format!("{}  ", reruns[0])) && listing.contains(&format!("{second}  ")), "{listing}");
+    let every = stdout_of(&s, &["runs", "p.toml", "--all"]);
+    assert!(reruns.iter().all(|r| every.contains(&format!("{r}  "))), "{every}");
+    let runs: Vec<Value> = stdout_of(&s, &["runs", "p.toml", "--json"]).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(runs.iter().map(|r| r["repeats"].as_bool().unwrap()).collect::<Vec<_>>(), [true, true, false, false]);
+
+    // The last two by default (plain reruns passed over): the setting, the inputs it changed, the metric it moved (with its
     // sign); what kept its key is named, not shown.
     let (rows, table) = compared(&s, &[]);
     assert_eq!(table["columns"], serde_json::json!([first, second]));
@@ -129,6 +140,8 @@ fn compare_pools_seeds_into_mean_and_sd_and_sets_variants_side_by_side() {
     let chars = row(table("measure")["rows"].as_array().unwrap(), "measure", "chars");
     assert_eq!((chars["values"][0]["mean"].as_f64(), chars["values"][1]["mean"].as_f64()), (Some(8.0), Some(6.0)));
     assert!(tables.iter().all(|t| !t["title"].as_str().unwrap().starts_with("source ")), "a stage without variants shows only with --all");
+    let terminal = stdout_of(&s, &["compare", "p.toml", "--variants"]);
+    assert!(!terminal.contains("nothing differs"), "a table with nothing to show is left out: {terminal}");
     let out = s.cli(&["compare", "p.toml", "--variants", "a", "b"]);
     assert_eq!(out.status.code(), Some(2), "{}", text(&out.stderr));
 }

@@ -34,6 +34,7 @@ fn dag_draws_every_instance_in_its_state_and_every_input_as_an_edge() {
     for line in mermaid.lines().map(str::trim) {
         if let Some((id, rest)) = line.split_once("[\"").filter(|(id, _)| id.starts_with('s')) {
             let (label, class) = rest.split_once("\"]:::").unwrap();
+            let (label, _state) = label.split_once("<br>").unwrap();
             labels.insert(id.to_owned(), label.to_owned());
             nodes.insert(label.to_owned(), class.to_owned());
         } else if let Some((from, rest)) = line.split_once(" -->|") {
@@ -44,7 +45,9 @@ fn dag_draws_every_instance_in_its_state_and_every_input_as_an_edge() {
     assert_eq!(nodes, expected, "{mermaid}");
     let edges: Vec<(String, String, String)> = edges.into_iter().map(|(from, slot, to)| (labels[&from].clone(), slot, labels[&to].clone())).collect();
     assert_eq!(edges, inputs.map(|(a, s, b)| (a.to_owned(), s.to_owned(), b.to_owned())), "{mermaid}");
-    assert!(mermaid.contains("callback \"pending: input labels (labels) will be recomputed first\""), "{mermaid}");
+    // The state in words under each label (GitHub renders no tooltip).
+    assert!(mermaid.contains("[\"captions<br>pending: input labels (labels) will be recomputed first\"]:::pending"), "{mermaid}");
+    assert!(!mermaid.contains("click "), "{mermaid}");
 
     let (ok, dot) = rlmflow(&dir, &["dag", "p.toml", "--format", "dot"]);
     assert!(ok && dot.starts_with("digraph \"dag\" {") && dot.ends_with("}\n"), "{dot}");
@@ -77,8 +80,8 @@ fn dag_draws_every_instance_in_its_state_and_every_input_as_an_edge() {
     let (ok, mermaid) = rlmflow(&fresh, &["dag", "p.toml", "--remote", &remote]);
     assert!(ok, "{mermaid}");
     for shard in ["scenes#0", "scenes#1"] {
-        assert!(mermaid.contains(&format!("[\"{shard}\"]:::pulled")), "{shard}: {mermaid}");
+        assert!(mermaid.contains(&format!("[\"{shard}<br>will be pulled from the remote cache: never run\"]:::pulled")), "{shard}: {mermaid}");
     }
     // The merge's key waits for the shards' outputs.
-    assert!(mermaid.contains("[\"scenes\"]:::pending") && mermaid.contains("classDef pulled"), "{mermaid}");
+    assert!(mermaid.contains("[\"scenes<br>pending: ") && mermaid.contains("\"]:::pending") && mermaid.contains("classDef pulled"), "{mermaid}");
 }
