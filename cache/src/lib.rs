@@ -60,6 +60,7 @@ pub use lock::Lock;
 pub use preimage::{Change, InputDigest, Preimage, canonical_json};
 pub use store::{
     ActionRecord, ActionRequest, GitState, PlanEntry, PulledFrom, RecordSignature, RunPlan, SIGNED_FORMAT, Store, file_safe, now_rfc3339, run_id,
+    take_all_warnings,
 };
 pub use tree::{TreeInfo, differing_files, hash_file, hash_tree};
 pub use verify::{Corruption, DamagedFile, VerifyReport};

@@ -45,8 +45,9 @@ pub struct ActionRecord {
     pub pulled: Option<PulledFrom>,
 }
 
-/// The remote cache a record was pulled from, and the trusted key that vouched for it (`None`:
-/// used unverified, the remote having no trusted keys set, so its numbers are the remote's word).
+/// The remote cache a record was pulled from, and the trusted key that vouched for it, by name
+/// and fingerprint (`None`: used unverified, the remote having no trusted keys set, so its
+/// numbers are the remote's word).
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct PulledFrom {
     pub remote: String,
@@ -156,8 +157,28 @@ pub(crate) const RESPONSES: &str = "responses";
 pub struct Store {
     root: PathBuf,
     /// Damage met while reading (a record, request, plan or ref treated as absent), kept for the
-    /// caller to show: the store itself never prints.
+    /// caller to show: the store itself never prints. Shared by every `Store` of this root in the
+    /// process ([`take_all_warnings`]).
     warnings: Arc<Mutex<Vec<String>>>,
+}
+
+/// The warnings of each store root this process opened: every `Store` of one root adds to one
+/// list, so a command line can print them once, after whatever command met them.
+static WARNINGS: Mutex<BTreeMap<PathBuf, Arc<Mutex<Vec<String>>>>> = Mutex::new(BTreeMap::new());
+
+/// The warnings every store of this process met since the last call, each once, by store then
+/// oldest first.
+pub fn take_all_warnings() -> Vec<String> {
+    let stores = WARNINGS.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    let mut all = Vec::new();
+    for list in stores.values() {
+        for warning in std::mem::take(&mut *list.lock().unwrap_or_else(|poisoned| poisoned.into_inner())) {
+            if !all.contains(&warning) {
+                all.push(warning);
+            }
+        }
+    }
+    all
 }
 
 /// A new run id: UTC time to the millisecond and the process id, so ids sort by start time.
@@ -174,7 +195,8 @@ pub fn now_rfc3339() -> String {
 impl Store {
     /// Opens the store at `root`, creating it if needed.
     pub fn open(root: &Path) -> anyhow::Result<Store> {
-        let store = Store { root: root.to_path_buf(), warnings: Arc::default() };
+        let warnings = WARNINGS.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).entry(root.to_path_buf()).or_default().clone();
+        let store = Store { root: root.to_path_buf(), warnings };
         let version = root.join("VERSION");
         match fs::read_to_string(&version) {
             Ok(v) if v == STORE_FORMAT => {}
@@ -198,11 +220,6 @@ impl Store {
 
     pub fn root(&self) -> &Path {
         &self.root
-    }
-
-    /// The warnings met since the last call, oldest first (each once, however often it recurred).
-    pub fn take_warnings(&self) -> Vec<String> {
-        std::mem::take(&mut *self.warnings.lock().unwrap_or_else(|poisoned| poisoned.into_inner()))
     }
 
     fn warn(&self, warning: String) {

@@ -18,7 +18,6 @@ use serde_json::Value;
 
 use crate::platform::cuda_present;
 use crate::protocol::{EXIT_CORRUPT_INPUT, Message, send};
-use crate::ui::print_store_warnings;
 
 /// Why an operator failed: its message, and the setting it is about, if any.
 #[derive(Debug)]
@@ -82,7 +81,6 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
     };
     let fresh = store.fresh(&key)?.is_some();
     // Into the stage's log: a damaged record read here is a miss, and the action runs again.
-    print_store_warnings(Some(&store));
     if fresh {
         send(&Message::Reused);
         return Ok(0);

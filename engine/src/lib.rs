@@ -13,6 +13,7 @@
 //! libtorch ones, the end-to-end tests their own).
 
 pub mod cli;
+mod commands;
 pub mod compare;
 pub mod config;
 pub mod dag;

@@ -5,7 +5,7 @@
 use std::fmt;
 
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
-use rlmflow_cache::{Change, Store};
+use rlmflow_cache::Change;
 use rlmflow_remote::Remote;
 use serde_json::json;
 
@@ -90,9 +90,10 @@ impl Drop for TransferBar {
     }
 }
 
-/// What the store met and treated as absent (damaged records, refs, plans), on stderr.
-pub(crate) fn print_store_warnings(store: Option<&Store>) {
-    for warning in store.map(Store::take_warnings).unwrap_or_default() {
+/// Prints the warnings every store met during the command (damage read as absent), each once:
+/// what every command ends with.
+pub(crate) fn print_store_warnings() {
+    for warning in rlmflow_cache::take_all_warnings() {
         eprintln!("warning: {warning}");
     }
 }

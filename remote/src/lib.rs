@@ -260,7 +260,7 @@ impl Remote {
             return Ok(None);
         }
         match self.trusted.check(record) {
-            Trust::Signed(name) => Ok(Some(name)),
+            Trust::Signed { name, fingerprint } => Ok(Some(format!("`{name}` (key {fingerprint})"))),
             other => Err(format!("its record is {other}")),
         }
     }

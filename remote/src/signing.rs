@@ -67,17 +67,20 @@ impl SigningKey {
 #[derive(Clone, Debug, Default)]
 pub struct TrustedKeys(Vec<(String, Vec<u8>)>);
 
-/// Whether a record may be used, by the trusted keys.
+/// Whether a record may be used, by the trusted keys. A key is named by its name and its
+/// fingerprint (the first characters of its public key's base64): several keys may share a name
+/// while one is rotated.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Trust {
-    /// A trusted key signed it (its name).
-    Signed(String),
+    /// A trusted key signed it.
+    Signed { name: String, fingerprint: String },
     /// No signature at all.
     Unsigned,
     /// Signed only by keys not trusted here (their names).
     Untrusted(Vec<String>),
-    /// A trusted key's name with a signature that does not match the record: forged or altered.
-    Forged(String),
+    /// A signature under a trusted key's name that none of the trusted keys of that name (their
+    /// fingerprints) made of this record: forged or altered.
+    Forged { name: String, fingerprints: Vec<String> },
     /// A trusted key's name with a signature in an earlier format, which left fields of the
     /// record unsigned: not used, whether genuine or not.
     Outdated(String),
@@ -121,18 +124,24 @@ impl TrustedKeys {
             }
             let signature = BASE64.decode(&s.signature).ok();
             if let Some(sig) = signature
-                && keys.any(|key| UnparsedPublicKey::new(&ED25519, key).verify(&message, &sig).is_ok())
+                && let Some(key) = keys.find(|key| UnparsedPublicKey::new(&ED25519, key).verify(&message, &sig).is_ok())
             {
-                return Trust::Signed(s.key.clone());
+                return Trust::Signed { name: s.key.clone(), fingerprint: fingerprint(key) };
             }
-            forged = Some(s.key.clone());
+            let fingerprints = self.0.iter().filter(|(name, _)| *name == s.key).map(|(_, key)| fingerprint(key)).collect();
+            forged = Some(Trust::Forged { name: s.key.clone(), fingerprints });
         }
         match (forged, outdated) {
-            (Some(name), _) => Trust::Forged(name),
+            (Some(forged), _) => forged,
             (None, Some(name)) => Trust::Outdated(name),
             (None, None) => Trust::Untrusted(record.signatures.iter().map(|s| s.key.clone()).collect()),
         }
     }
+}
+
+/// A public key's fingerprint: the first 12 characters of its base64.
+pub fn fingerprint(key: &[u8]) -> String {
+    BASE64.encode(key).chars().take(12).collect()
 }
 
 /// Who vouched for `record`, for a person reading a warning: `unsigned` or `signed by ci, laptop`.
@@ -146,10 +155,12 @@ pub fn signers(record: &ActionRecord) -> String {
 impl std::fmt::Display for Trust {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            Trust::Signed(name) => write!(f, "signed by `{name}`"),
+            Trust::Signed { name, fingerprint } => write!(f, "signed by `{name}` (key {fingerprint})"),
             Trust::Unsigned => f.write_str("unsigned"),
             Trust::Untrusted(names) => write!(f, "signed only by keys not trusted here ({})", names.join(", ")),
-            Trust::Forged(name) => write!(f, "its signature by `{name}` does not match it (forged or altered)"),
+            Trust::Forged { name, fingerprints } => {
+                write!(f, "its signature by `{name}` does not match it (forged or altered); trusted keys named `{name}`: {}", fingerprints.join(", "))
+            }
             Trust::Outdated(name) => write!(
                 f,
                 "signed by `{name}` in record format 1, which leaves its metrics, summary, times and platform unsigned (push it again to sign it whole)"
@@ -188,14 +199,17 @@ mod tests {
         let (other_secret, _) = generate("laptop").unwrap();
         let ci = SigningKey::parse(&ci_secret).unwrap();
         let trusted = TrustedKeys::parse(std::slice::from_ref(&ci_public)).unwrap();
+        let ci_key = fingerprint(&BASE64.decode(ci_public.split_once(':').unwrap().1).unwrap());
+        let signed = |key: &str| Trust::Signed { name: "ci".into(), fingerprint: key.to_owned() };
+        let forged = |keys: &[&str]| Trust::Forged { name: "ci".into(), fingerprints: keys.iter().map(|k| k.to_string()).collect() };
         let good = ci.sign(&record(b"trained"));
-        assert_eq!(trusted.check(&good), Trust::Signed("ci".into()));
+        assert_eq!(trusted.check(&good), signed(&ci_key));
         assert_eq!(trusted.check(&record(b"trained")), Trust::Unsigned);
         assert_eq!(trusted.check(&SigningKey::parse(&other_secret).unwrap().sign(&record(b"trained"))), Trust::Untrusted(vec!["laptop".into()]));
         // The same signature on a record naming another output: forged.
-        let mut forged = record(b"random init");
-        forged.signatures = good.signatures.clone();
-        assert_eq!(trusted.check(&forged), Trust::Forged("ci".into()));
+        let mut forged_record = record(b"random init");
+        forged_record.signatures = good.signatures.clone();
+        assert_eq!(trusted.check(&forged_record), forged(&[&ci_key]));
         // Every field a reader is shown is signed: metrics, summary, times, platform.
         let alterations: [fn(&mut ActionRecord); 5] = [
             |r| r.metrics = serde_json::json!({"top1": 0.99}),
@@ -207,7 +221,7 @@ mod tests {
         for alter in alterations {
             let mut altered = good.clone();
             alter(&mut altered);
-            assert_eq!(trusted.check(&altered), Trust::Forged("ci".into()), "{altered:?}");
+            assert_eq!(trusted.check(&altered), forged(&[&ci_key]), "{altered:?}");
         }
         // A signature of the first format, which covered the output only: named as old, not used.
         let mut old = good.clone();
@@ -221,11 +235,14 @@ mod tests {
         // Rotation: the old and the new key trusted under one name, each one's records trusted; a
         // third key of that name, not trusted, is still a forgery.
         let (new_secret, new_public) = generate("ci").unwrap();
+        let new_key = fingerprint(&BASE64.decode(new_public.split_once(':').unwrap().1).unwrap());
         let both = TrustedKeys::parse(&[ci_public, new_public]).unwrap();
-        assert_eq!(both.check(&good), Trust::Signed("ci".into()));
-        assert_eq!(both.check(&SigningKey::parse(&new_secret).unwrap().sign(&record(b"trained"))), Trust::Signed("ci".into()));
+        assert_eq!(both.check(&good), signed(&ci_key));
+        assert_eq!(both.check(&SigningKey::parse(&new_secret).unwrap().sign(&record(b"trained"))), signed(&new_key));
         let (impostor, _) = generate("ci").unwrap();
-        assert_eq!(both.check(&SigningKey::parse(&impostor).unwrap().sign(&record(b"trained"))), Trust::Forged("ci".into()));
+        let impostor_signed = both.check(&SigningKey::parse(&impostor).unwrap().sign(&record(b"trained")));
+        assert_eq!(impostor_signed, forged(&[&ci_key, &new_key]));
+        assert!(impostor_signed.to_string().ends_with(&format!("trusted keys named `ci`: {ci_key}, {new_key}")), "{impostor_signed}");
         assert!(SigningKey::parse("no colon").is_err());
     }
 }

@@ -405,7 +405,7 @@ fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
     let verify = reader.cli(&["verify", "p.toml"]);
     assert!(verify.status.success(), "{}", text(&verify.stdout));
     let show = text(&reader.cli(&["show", "p.toml", "source"]).stdout);
-    assert!(show.contains(&format!("origin:  pulled from {url}, signed by `ci`")) && show.contains("  metrics: "), "{show}");
+    assert!(show.contains(&format!("origin:  pulled from {url}, signed by `ci` (key ")) && show.contains("  metrics: "), "{show}");
 
     // A forged record: another valid object under a key, the signature kept. Not used, named;
     // the run computes it, and its outputs are a local run's.
@@ -457,7 +457,8 @@ fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
     repoint(&files[0], &files[1]);
     let verify = reader.cli(&["verify", "p.toml"]);
     assert_eq!(verify.status.code(), Some(1));
-    assert!(text(&verify.stdout).contains("does not match it (forged or altered): quarantined"), "{}", text(&verify.stdout));
+    let said = text(&verify.stdout);
+    assert!(said.contains("does not match it (forged or altered); trusted keys named `ci`: ") && said.contains(": quarantined to "), "{said}");
 
     // A pushing run whose signing key is unreadable or no key stops before anything runs, as
     // `push` does: exit 2 naming the variable, nothing computed or pushed.
@@ -490,7 +491,12 @@ fn only_records_a_trusted_key_signed_are_used_and_verify_finds_a_forged_one() {
     let show = text(&plain.cli(&["show", "p.toml", "source"]).stdout);
     assert!(show.contains(&format!("origin:  pulled from {url} UNVERIFIED")) && show.contains("  metrics (unverified): "), "{show}");
     plain.cli(&["run", "p.toml", "--remote", &url]);
-    let compare = text(&plain.cli(&["compare", "p.toml"]).stdout);
+    // The rerun has the first run's keys, so the two are named to be compared.
+    let ids: Vec<String> = text(&plain.cli(&["runs", "p.toml", "--json"]).stdout)
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["run"].as_str().unwrap().to_owned())
+        .collect();
+    let compare = text(&plain.cli(&["compare", "p.toml", &ids[1], &ids[0]]).stdout);
     assert!(
         compare.contains("UNVERIFIED: the numbers of") && compare.contains("source in run ") && compare.contains(&format!("(from {url})")),
         "{compare}"

@@ -57,6 +57,12 @@ const LINES: &[&str] = &[
     "init = \"/dev/zero\"",
     "\"\"\"",
     "[[stages]]",
+    // Names that would forge a row, a label or a path, and the instance bound at its largest.
+    "[stages.\"s\\n| forged | ran |\"]\nkind = \"labels\"\noperator = \"ego-grid\"",
+    "[stages.\"nul\\u0000\"]\nkind = \"labels\"\noperator = \"ego-grid\"",
+    "variants = { \".\" = {}, \"..\" = {} }",
+    "variants = { \"a[b=c]\" = {} }",
+    "[pipeline]\nmax_instances = 9223372036854775807",
 ];
 
 /// JSON values a manifest field is set to.

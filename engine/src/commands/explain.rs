@@ -1,0 +1,80 @@
+//! `rlmflow explain`: a stage's preimage, and what changed since its last run.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use rlmflow_cache::{Digest, Store};
+use rlmflow_stages::{Device, Registry};
+
+use super::{SetArg, StoreArg, instances_of, store_root};
+use crate::config;
+use crate::plan::{Freshness, assess};
+use crate::preflight::planned;
+
+#[derive(clap::Args)]
+pub(crate) struct Args {
+    pipeline: PathBuf,
+    stage: String,
+    #[command(flatten)]
+    set: SetArg,
+    #[command(flatten)]
+    store: StoreArg,
+}
+
+pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
+    let Args { pipeline, stage, set, store } = args;
+    explain(registry, &pipeline, &set, &stage, &store)
+}
+
+fn explain(registry: &Registry, file: &Path, set: &SetArg, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
+    let p = config::load_with(file, &set.set, &set.set_new, registry)?;
+    let store = Store::open_existing(&store_root(&p, arg))?;
+    let plan = planned(&p, store.as_ref(), Device::Cpu)?;
+    let states = assess(&plan, registry, store.as_ref())?;
+    let last = match &store {
+        Some(s) => s.last_keys(&p.name)?,
+        None => Default::default(),
+    };
+    for i in instances_of(&plan, stage)? {
+        let label = &plan.instances[i].label;
+        println!("{label}");
+        match &states[i] {
+            Freshness::Cached(r) => {
+                println!("  cached: key {} (ran {:.1}s, {})", r.key, r.duration_s, r.started);
+                if last.get(label) != Some(&r.key) {
+                    println!("  (the last run used another key: {})", last.get(label).map_or("none".into(), |k| k.to_string()));
+                }
+                println!("  preimage:\n{}", indent(&serde_json::to_string_pretty(&r.preimage)?));
+            }
+            Freshness::Stale { key, reasons, preimage } => {
+                println!("  will run: key {key}");
+                println!("  last run: {}", last.get(label).map_or("none".into(), |k| k.to_string()));
+                for r in reasons {
+                    println!("    {r}");
+                }
+                println!("  preimage:\n{}", indent(&serde_json::to_string_pretty(preimage)?));
+            }
+            Freshness::Pending(waiting) => {
+                println!("  pending: {waiting}; its key is known once that input is");
+                if let (Some(s), Some(old)) = (&store, last.get(label))
+                    && let Some(before) = crate::reason::previous_preimage(s, old)?
+                {
+                    let unknown = rlmflow_cache::Digest([0; 32]);
+                    let outputs: Vec<Option<Digest>> =
+                        states.iter().map(|st| Some(if let Freshness::Cached(r) = st { r.output } else { unknown })).collect();
+                    let now = plan.preimage(i, registry, &outputs).unwrap();
+                    for change in now.diff(&before) {
+                        if !matches!(&change, rlmflow_cache::Change::InputChanged { .. }) {
+                            println!("    {}", crate::ui::describe(&p.stages[plan.instances[i].stage].name, &change));
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn indent(text: &str) -> String {
+    text.lines().map(|l| format!("    {l}")).collect::<Vec<_>>().join("\n")
+}

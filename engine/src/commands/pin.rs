@@ -1,0 +1,40 @@
+//! `rlmflow pin`: keep a pipeline's current results under a name, so gc keeps them.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use rlmflow_cache::Digest;
+use rlmflow_stages::{Device, Registry};
+
+use super::{StoreArg, ran_store};
+use crate::config;
+use crate::plan::{Freshness, assess};
+use crate::preflight::planned;
+
+#[derive(clap::Args)]
+pub(crate) struct Args {
+    pipeline: PathBuf,
+    name: String,
+    #[command(flatten)]
+    store: StoreArg,
+}
+
+pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
+    let Args { pipeline, name, store } = args;
+    config::check_name(&name).map_err(|problem| anyhow::anyhow!("the pin name {problem}"))?;
+    let p = config::load(&pipeline, registry)?;
+    let store = ran_store(&p, &store, "nothing to pin")?;
+    let plan = planned(&p, Some(&store), Device::Cpu)?;
+    let states = assess(&plan, registry, Some(&store))?;
+    let keys: std::collections::BTreeMap<String, Digest> = states
+        .iter()
+        .enumerate()
+        .filter_map(|(i, s)| match s {
+            Freshness::Cached(r) => Some((plan.instances[i].label.clone(), r.key)),
+            _ => None,
+        })
+        .collect();
+    let path = store.pin(&name, &keys)?;
+    println!("pinned {} cached stage instances in {}", keys.len(), path.display());
+    Ok(ExitCode::SUCCESS)
+}
