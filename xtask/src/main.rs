@@ -45,6 +45,16 @@ fn main() -> ExitCode {
     }
 }
 
+/// The targets `cargo xtask test` runs when `args` name none: every library, binary and test
+/// target, but not rustdoc's doc tests: the project writes none (its examples are in `docs/` and
+/// `tests/`), and collecting nothing from 22 crates costs CI about 50 s. `--doc` runs them.
+fn test_targets(args: &[String]) -> &'static [&'static str] {
+    const SELECTORS: &[&str] =
+        &["--doc", "--lib", "--bins", "--bin", "--tests", "--test", "--benches", "--bench", "--examples", "--example", "--all-targets"];
+    let named = args.iter().take_while(|a| *a != "--").any(|a| SELECTORS.iter().any(|s| a == s || a.starts_with(&format!("{s}="))));
+    if named { &[] } else { &["--lib", "--bins", "--tests"] }
+}
+
 fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
     let Some((command, rest)) = args.split_first() else {
         bail!("usage: cargo xtask <test|run|build|bench|rlmflow|libtorch|device-check|digests|llm-check> [ARGS]");
@@ -70,7 +80,8 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
             println!("{}", libtorch.display());
             Ok(ExitCode::SUCCESS)
         }
-        "test" | "build" | "bench" => status(cargo().arg(command).args(rest)),
+        "test" => status(cargo().arg("test").args(test_targets(rest)).args(rest)),
+        "build" | "bench" => status(cargo().arg(command).args(rest)),
         "run" | "rlmflow" => {
             if !build_release()? {
                 return Ok(ExitCode::FAILURE);
