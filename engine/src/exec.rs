@@ -200,7 +200,7 @@ fn pin_platform(
     request: &ActionRequest,
     device: Device,
 ) -> Result<(Device, Option<PlatformRecord>), String> {
-    let resources = op.resources(&request.settings);
+    let resources = op.resources(&request.settings).map_err(|e| format!("{}: {e}", request.stage))?;
     let Some(kernels) = resources.kernels else { return Ok((device, None)) };
     let target = Target::of(kernels.device, device, cuda_present());
     // A model operator computes with its own `threads` setting (part of its key).

@@ -46,7 +46,7 @@ fn gib(bytes: u64) -> String {
 
 /// The fit of each instance that will run (`runs[i]`), for the operators that estimate one;
 /// `device` is the run's `--device`. A device's memory is read only when an estimate needs it.
-pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> Vec<Option<Fit>> {
+pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> anyhow::Result<Vec<Option<Fit>>> {
     let mut outlines: Vec<Outline> = Vec::with_capacity(plan.instances.len());
     let mut capacity = Capacities::default();
     let mut fits = Vec::with_capacity(plan.instances.len());
@@ -58,7 +58,7 @@ pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> 
             fits.push(None);
             continue;
         }
-        let resources = op.resources(&inst.settings);
+        let resources = op.resources(&inst.settings).map_err(|e| anyhow::anyhow!("{}: {e}", inst.label))?;
         let cuda = resources.needs_cuda || (resources.gpu && (matches!(device, Device::Cuda(_)) || crate::platform::cuda_present()));
         // The device the stage names, else the run's, else the first.
         let index = match (resources.kernels.map(|k| k.device), device) {
@@ -68,7 +68,7 @@ pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> 
         let target = if cuda { Target::Cuda(index) } else { Target::Cpu };
         fits.push(op.footprint(&inst.settings, &inputs, target).map(|footprint| Fit { footprint, target, capacity: capacity.of(target) }));
     }
-    fits
+    Ok(fits)
 }
 
 /// Device memories, read once each.

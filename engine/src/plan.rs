@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context as _, bail};
 use rlmflow_cache::{ActionRecord, ActionRequest, Digest, InputDigest, Preimage, Store};
-use rlmflow_stages::{Arity, InstanceId, Part, Registry};
+use rlmflow_stages::{Arity, InstanceId, Part, Registry, SettingError};
 use serde_json::Value;
 
 use crate::config::{Pipeline, SEED_DIMENSION, suggest};
@@ -283,9 +283,21 @@ impl Plan<'_> {
         self.instances[i].tracked.iter().try_for_each(|(_, source)| rlmflow_cache::external::snapshot(store, source, &self.tracked[source]))
     }
 
-    pub fn preimage(&self, i: usize, registry: &Registry, outputs: &[Option<Digest>]) -> Option<Preimage> {
+    /// Instance `i`'s preimage once its inputs' outputs are known (`None` before); an error for
+    /// settings its operator cannot read (a broken invariant: validation normalised them).
+    pub fn preimage(&self, i: usize, registry: &Registry, outputs: &[Option<Digest>]) -> Result<Option<Preimage>, SettingError> {
         let inst = &self.instances[i];
         let op = registry.get(&inst.operator).expect("validated operator");
+        let Some(inputs) = self.input_digests(i, outputs) else { return Ok(None) };
+        let config = rlmflow_stages::operator::result_settings(&inst.settings, op.non_result_keys(), op.tracked_keys());
+        let seed = inst.assignment.get(SEED_DIMENSION).map_or(self.pipeline.seed, |s| s.parse().expect("seeds are integers"));
+        let platform = op.resources(&inst.settings)?.kernels.map(|k| self.platform.class(k));
+        Ok(Some(Preimage { operator: inst.operator.clone(), operator_version: op.spec().version, config, seed, inputs, platform }))
+    }
+
+    /// Instance `i`'s inputs by digest, sorted; `None` while one's output is unknown.
+    fn input_digests(&self, i: usize, outputs: &[Option<Digest>]) -> Option<Vec<InputDigest>> {
+        let inst = &self.instances[i];
         let mut inputs = Vec::new();
         for input in &inst.inputs {
             for &p in &input.providers {
@@ -304,10 +316,7 @@ impl Plan<'_> {
             inputs.push(InputDigest { slot: slot.clone(), label: String::new(), digest: *self.tracked.get(source)? });
         }
         inputs.sort();
-        let config = rlmflow_stages::operator::result_settings(&inst.settings, op.non_result_keys(), op.tracked_keys());
-        let seed = inst.assignment.get(SEED_DIMENSION).map_or(self.pipeline.seed, |s| s.parse().expect("seeds are integers"));
-        let platform = op.resources(&inst.settings).kernels.map(|k| self.platform.class(k));
-        Some(Preimage { operator: inst.operator.clone(), operator_version: op.spec().version, config, seed, inputs, platform })
+        Some(inputs)
     }
 }
 
@@ -334,7 +343,7 @@ pub fn assess(plan: &Plan, registry: &Registry, store: Option<&Store>) -> anyhow
     let mut outputs: Vec<Option<Digest>> = vec![None; plan.instances.len()];
     let mut states = Vec::with_capacity(plan.instances.len());
     for (i, inst) in plan.instances.iter().enumerate() {
-        let state = match plan.preimage(i, registry, &outputs) {
+        let state = match plan.preimage(i, registry, &outputs)? {
             Some(preimage) => {
                 let key = preimage.key();
                 match store.map(|s| s.fresh(&key)).transpose()?.flatten() {
@@ -525,9 +534,9 @@ operator = "od"
         // Both seeds of c[a=y] read the one a[y].
         assert_eq!(plan.instances[5].inputs[0].providers, plan.instances[6].inputs[0].providers);
         let outputs: Vec<Option<Digest>> = (0..plan.instances.len()).map(|i| Some(Digest::of(&[i as u8]))).collect();
-        let seed = |i: usize| plan.preimage(i, &r, &outputs).unwrap().seed;
+        let seed = |i: usize| plan.preimage(i, &r, &outputs).unwrap().unwrap().seed;
         assert_eq!((seed(0), seed(2), seed(3), seed(4), seed(7)), (7, 7, 1, 2, 7));
-        assert_ne!(plan.preimage(3, &r, &outputs).unwrap().key(), plan.preimage(4, &r, &outputs).unwrap().key());
+        assert_ne!(plan.preimage(3, &r, &outputs).unwrap().unwrap().key(), plan.preimage(4, &r, &outputs).unwrap().unwrap().key());
         assert_eq!(plan.instances[7].inputs[0].providers, [3, 4, 5, 6], "the gathering stage reads every seed");
     }
 
@@ -551,9 +560,9 @@ operator = "od"
         let p = parse(Path::new("t.toml"), TWO_DIMS, &r).unwrap();
         let plan = plan(&p);
         let outputs: Vec<Option<Digest>> = (0..plan.instances.len()).map(|i| Some(Digest::of(&[i as u8]))).collect();
-        let c = plan.preimage(7, &r, &outputs).unwrap();
+        let c = plan.preimage(7, &r, &outputs).unwrap().unwrap();
         assert!(c.inputs.iter().all(|i| i.label.is_empty()));
-        let d = plan.preimage(8, &r, &outputs).unwrap();
+        let d = plan.preimage(8, &r, &outputs).unwrap().unwrap();
         let labels: Vec<&str> = d.inputs.iter().map(|i| i.label.as_str()).collect();
         assert_eq!(labels, ["c[a=x,b=p]", "c[a=x,b=q]", "c[a=y,b=p]", "c[a=y,b=q]"]);
     }
@@ -593,7 +602,7 @@ operator = "od"
         assert_eq!((merge.operator.as_str(), merge.inputs[0].slot, &merge.inputs[0].providers[..]), ("oj", "parts", &[0, 1, 2][..]));
         assert_eq!(plan.instances[9].inputs[0].providers, [3], "c[x] reads the merged a[x]");
         assert_eq!(plan.instances[11].inputs[0].providers, [9, 10], "a gathering stage reads no part");
-        let preimage = plan.preimage(3, &r, &outputs_by_settings(&plan)).unwrap();
+        let preimage = plan.preimage(3, &r, &outputs_by_settings(&plan)).unwrap().unwrap();
         let order: Vec<&str> = preimage.inputs.iter().map(|i| i.label.as_str()).collect();
         assert_eq!(
             order,
@@ -623,7 +632,10 @@ operator = "od"
         let q = parse(Path::new("t.toml"), &renamed, &r).unwrap();
         let (a, z) = (plan(&p), plan(&q));
         let z_merge = z.instances.iter().position(|i| i.label == "z[x]").unwrap();
-        assert_eq!(a.preimage(3, &r, &outputs_by_settings(&a)).unwrap().key(), z.preimage(z_merge, &r, &outputs_by_settings(&z)).unwrap().key());
+        assert_eq!(
+            a.preimage(3, &r, &outputs_by_settings(&a)).unwrap().unwrap().key(),
+            z.preimage(z_merge, &r, &outputs_by_settings(&z)).unwrap().unwrap().key()
+        );
     }
 
     #[test]
@@ -667,7 +679,7 @@ operator = "od"
         let read: Vec<&[usize]> = plan.instances[2].inputs.iter().map(|i| &i.providers[..]).collect();
         assert_eq!(read, [&[0][..], &[1][..]], "each share reads the whole input");
         assert_eq!(plan.instances[5].inputs[0].providers, [4], "d reads the merge only");
-        let preimage = plan.preimage(4, &r, &outputs_by_settings(&plan)).unwrap();
+        let preimage = plan.preimage(4, &r, &outputs_by_settings(&plan)).unwrap().unwrap();
         let order: Vec<&str> = preimage.inputs.iter().map(|i| i.label.as_str()).collect();
         assert_eq!(order, ["00000000000000000000/00000000000000000002", "00000000000000000001/00000000000000000002"]);
 

@@ -4,6 +4,7 @@
 
 use std::path::Path;
 
+use anyhow::Context as _;
 use rlmflow_cache::Store;
 use rlmflow_stages::{Device, Registry};
 
@@ -35,7 +36,7 @@ impl<'p> Preflight<'p> {
         let selected = plan.select(only)?;
         let states = assess(&plan, registry, store.as_ref())?;
         let runs = will_run(&states, &selected);
-        let fits = fits(&plan, registry, device, &runs);
+        let fits = fits(&plan, registry, device, &runs)?;
         Ok(Preflight { plan, store, states, selected, runs, fits })
     }
 
@@ -77,7 +78,7 @@ fn refuse_cuda_stages(plan: &Plan, registry: &Registry, runs: &[bool]) -> anyhow
     let mut stages = std::collections::BTreeSet::new();
     for (i, inst) in plan.instances.iter().enumerate() {
         let op = registry.get(&inst.operator).expect("validated operator");
-        if runs[i] && op.resources(&inst.settings).needs_cuda {
+        if runs[i] && op.resources(&inst.settings).with_context(|| inst.label.clone())?.needs_cuda {
             stages.insert(inst.stage);
         }
     }

@@ -204,7 +204,7 @@ impl Executor<'_> {
                 let i = self.start_order[k];
                 let State::Ready { key } = self.states[i] else { continue };
                 let op = self.registry.get(&self.plan.instances[i].operator).unwrap();
-                let wants = op.resources(&self.plan.instances[i].settings);
+                let wants = op.resources(&self.plan.instances[i].settings)?;
                 let threads = wants.threads.clamp(1, self.opts.jobs).min(self.dispatch.max_threads().unwrap_or(usize::MAX));
                 let fits = threads_in_use + threads <= self.opts.jobs && !(wants.gpu && gpu_in_use && self.dispatch.serialises_gpu());
                 if !fits && !started.is_empty() {
@@ -433,7 +433,7 @@ impl Executor<'_> {
             }
             let outputs: Vec<Option<Digest>> =
                 self.states.iter().map(|s| if let State::Done { output } = s { Some(*output) } else { None }).collect();
-            let Some(preimage) = self.plan.preimage(i, self.registry, &outputs) else { continue };
+            let Some(preimage) = self.plan.preimage(i, self.registry, &outputs)? else { continue };
             let key = preimage.key();
             if self.keys[i] != Some(key) {
                 self.keys[i] = Some(key);

@@ -384,7 +384,11 @@ pub trait DynOperator: Send + Sync {
     fn tracked_keys(&self) -> &'static [&'static str];
     /// [`Settings::check_tracked`] of these settings.
     fn check_tracked(&self, settings: &Value, key: &str, path: &std::path::Path) -> Result<(), SettingError>;
-    fn resources(&self, settings: &Value) -> Resources;
+    /// What an action of these settings needs (threads, a GPU, its kernels); an error names the
+    /// setting that does not parse (every planned instance's settings were normalised through
+    /// [`DynOperator::settings`] first, so that would be a broken invariant, never hidden behind
+    /// defaults).
+    fn resources(&self, settings: &Value) -> Result<Resources, SettingError>;
     fn worker(&self) -> Option<&'static str>;
     /// The operator that merges this one's shards, when it can be sharded.
     fn merge(&self) -> Option<&'static str>;
@@ -426,11 +430,8 @@ impl<O: Operator> DynOperator for O {
         parse_settings::<O::Settings>(settings.clone())?.check_tracked(key, path)
     }
 
-    fn resources(&self, settings: &Value) -> Resources {
-        match parse_settings::<O::Settings>(settings.clone()) {
-            Ok(typed) => Operator::resources(self, &typed),
-            Err(_) => Resources::default(),
-        }
+    fn resources(&self, settings: &Value) -> Result<Resources, SettingError> {
+        Ok(Operator::resources(self, &parse_settings::<O::Settings>(settings.clone())?))
     }
 
     fn worker(&self) -> Option<&'static str> {
@@ -658,6 +659,16 @@ mod tests {
         let e = DemoOp.settings(serde_json::json!({"nested": {"imag": 3}})).unwrap_err();
         assert_eq!(e.key, "nested.imag");
         assert_eq!(e.valid, vec!["image"]);
+    }
+
+    /// What an action needs comes from settings that parse; others are an error naming the key,
+    /// never the defaults' resources in silence.
+    #[test]
+    fn resources_of_settings_that_do_not_parse_name_the_key() {
+        let valid = DemoOp.settings(serde_json::json!({"alpha": 1.0})).unwrap();
+        assert_eq!(DynOperator::resources(&DemoOp, &valid).unwrap(), Resources::default());
+        let e = DynOperator::resources(&DemoOp, &serde_json::json!({"alpha": "fast"})).unwrap_err();
+        assert_eq!(e.key, "alpha");
     }
 
     #[test]

@@ -71,7 +71,7 @@ fn planning() {
             let plan = rlmflow_engine::plan::plan(&pipeline);
             // Every instance's key, with every upstream output known.
             let outputs: Vec<Option<Digest>> = (0..plan.instances.len()).map(|i| Some(Digest::of(&i.to_le_bytes()))).collect();
-            let keys: Vec<Digest> = (0..plan.instances.len()).map(|i| plan.preimage(i, &registry, &outputs).unwrap().key()).collect();
+            let keys: Vec<Digest> = (0..plan.instances.len()).map(|i| plan.preimage(i, &registry, &outputs).unwrap().unwrap().key()).collect();
             assert_eq!(keys.len(), 10_100);
             t0.elapsed().as_secs_f64()
         })

@@ -3,6 +3,7 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+use anyhow::Context as _;
 use rlmflow_cache::{Digest, Store};
 use rlmflow_stages::{Device, Registry};
 
@@ -62,7 +63,7 @@ fn explain(registry: &Registry, file: &Path, set: &SetArg, stage: &str, arg: &St
                     let unknown = rlmflow_cache::Digest([0; 32]);
                     let outputs: Vec<Option<Digest>> =
                         states.iter().map(|st| Some(if let Freshness::Cached(r) = st { r.output } else { unknown })).collect();
-                    let now = plan.preimage(i, registry, &outputs).unwrap();
+                    let now = plan.preimage(i, registry, &outputs)?.context("a cached instance's inputs are known")?;
                     for change in now.diff(&before) {
                         if !matches!(&change, rlmflow_cache::Change::InputChanged { .. }) {
                             println!("    {}", crate::ui::describe(&p.stages[plan.instances[i].stage].name, &change));

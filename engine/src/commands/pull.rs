@@ -37,7 +37,7 @@ fn pull(
     let (mut pulled, mut bytes) = (0, 0);
     let ui = Ui::new(false);
     for (i, inst) in plan.instances.iter().enumerate() {
-        let Some(key) = plan.preimage(i, registry, &outputs).map(|p| p.key()) else { continue };
+        let Some(key) = plan.preimage(i, registry, &outputs)?.map(|p| p.key()) else { continue };
         if let Some(record) = store.fresh(&key)? {
             outputs[i] = Some(record.output);
             continue;
