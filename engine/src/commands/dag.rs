@@ -5,8 +5,7 @@ use std::process::ExitCode;
 
 use rlmflow_stages::{Device, Registry};
 
-use super::{RemoteArg, SetArg, StoreArg, open_remote, store_root};
-use crate::config;
+use super::{RemoteArg, SetArg, StoreArg, store_root, warn_unasked};
 use crate::preflight::Preflight;
 
 #[derive(clap::Args)]
@@ -24,12 +23,10 @@ pub(crate) struct Args {
 
 pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
     let Args { pipeline, format, set, store, remote } = args;
-    let p = config::load_with(&pipeline, &set.set, &set.set_new, registry)?;
+    let p = set.load(&pipeline, registry)?;
     let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &[])?;
-    let remote = remote.settings(&p)?.map(|r| open_remote(&r)).transpose()?;
+    let remote = remote.open(&p)?;
     print!("{}", crate::dag::draw(&pre.plan, &pre.states, remote.as_ref(), format));
-    if let Some(why) = remote.as_ref().and_then(|r| r.down()) {
-        eprintln!("warning: remote cache {} not asked: {why}", remote.as_ref().map_or("", |r| r.url()));
-    }
+    warn_unasked(remote.as_ref());
     Ok(ExitCode::SUCCESS)
 }

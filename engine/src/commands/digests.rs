@@ -6,7 +6,6 @@ use std::process::ExitCode;
 use rlmflow_stages::{Device, Registry};
 
 use super::{SetArg, StoreArg, ran_store};
-use crate::config;
 use crate::plan::assess;
 use crate::preflight::planned;
 
@@ -21,7 +20,7 @@ pub(crate) struct Args {
 
 pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
     let Args { pipeline, set, store } = args;
-    let p = config::load_with(&pipeline, &set.set, &set.set_new, registry)?;
+    let p = set.load(&pipeline, registry)?;
     let store = ran_store(&p, &store, "nothing to list")?;
     let plan = planned(&p, Some(&store), Device::Cpu)?;
     let states = assess(&plan, registry, Some(&store))?;

@@ -8,7 +8,6 @@ use rlmflow_cache::{Digest, Store};
 use rlmflow_stages::{Device, Registry};
 
 use super::{SetArg, StoreArg, instances_of, store_root};
-use crate::config;
 use crate::plan::{Freshness, assess};
 use crate::preflight::planned;
 
@@ -28,7 +27,7 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
 }
 
 fn explain(registry: &Registry, file: &Path, set: &SetArg, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
-    let p = config::load_with(file, &set.set, &set.set_new, registry)?;
+    let p = set.load(file, registry)?;
     let store = Store::open_existing(&store_root(&p, arg))?;
     let plan = planned(&p, store.as_ref(), Device::Cpu)?;
     let states = assess(&plan, registry, store.as_ref())?;

@@ -41,11 +41,18 @@ pub(crate) struct SetArg {
     /// dotted keys into tables and variants (pretrain.alpha=2,
     /// pretrain.variants.alpha4.epochs=20); checked exactly as the file is.
     #[arg(long = "set", value_name = "STAGE.KEY=VALUE")]
-    pub(crate) set: Vec<String>,
+    set: Vec<String>,
     /// As --set, and may make a variant the file does not declare
     /// (pretrain.variants.alpha8.alpha=8.0); --set refuses one, naming the nearest.
     #[arg(long = "set-new", value_name = "STAGE.variants.NAME.KEY=VALUE")]
-    pub(crate) set_new: Vec<String>,
+    set_new: Vec<String>,
+}
+
+impl SetArg {
+    /// The pipeline file with these overrides over it, validated.
+    pub(crate) fn load(&self, pipeline: &Path, registry: &Registry) -> anyhow::Result<Pipeline> {
+        config::load_with(pipeline, &self.set, &self.set_new, registry)
+    }
 }
 
 #[derive(clap::Args)]
@@ -62,6 +69,11 @@ pub(crate) struct RemoteArg {
 }
 
 impl RemoteArg {
+    /// The remote these flags and the pipeline name, opened; `None` without one.
+    pub(crate) fn open(&self, p: &Pipeline) -> anyhow::Result<Option<rlmflow_remote::Remote>> {
+        self.settings(p)?.map(|r| open_remote(&r)).transpose()
+    }
+
     /// The pipeline's remote settings with the flags over them; `None` without a URL. A bad
     /// `--remote` is a usage error (exit 2), before anything runs.
     pub(crate) fn settings(&self, p: &Pipeline) -> anyhow::Result<Option<config::RemoteSettings>> {
@@ -131,4 +143,12 @@ pub(crate) fn instances_of(plan: &crate::plan::Plan, stage: &str) -> anyhow::Res
         bail!("no stage named `{stage}`; stages: {}{}", names.join(", "), config::suggest(stage, &names));
     };
     Ok((0..plan.instances.len()).filter(|&i| plan.instances[i].stage == s).collect())
+}
+
+/// Says, for a command that only asks the remote (`status`, `dag`), that it went down meanwhile
+/// and what it holds was not asked.
+pub(crate) fn warn_unasked(remote: Option<&rlmflow_remote::Remote>) {
+    if let Some((remote, why)) = remote.and_then(|r| Some((r, r.down()?))) {
+        eprintln!("warning: remote cache {} not asked: {why}", remote.url());
+    }
 }

@@ -54,7 +54,7 @@ pub(crate) struct Args {
 
 pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
     let Args { pipeline, dry_run, only, jobs, executor, json, device, verify_inputs, check_determinism, set, store, remote } = args;
-    let mut p = config::load_with(&pipeline, &set.set, &set.set_new, registry)?;
+    let mut p = set.load(&pipeline, registry)?;
     if let Some(name) = executor {
         p.executor = config::Executor::parse(&name)
             .with_context(|| format!("unknown executor `{name}` for --executor; valid: {}", config::Executor::NAMES.join(", ")))?;
