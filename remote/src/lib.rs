@@ -302,11 +302,13 @@ impl Remote {
         if self.down().is_some() {
             return Err(());
         }
+        let stalled = || format!("{what}: nothing arrived or left for {:.0} s", self.timeout.as_secs_f64());
         let why = match self.runtime.block_on(link::bounded(watch, self.timeout, request, tick)) {
             Some(Ok(value)) => return Ok(Some(value)),
             Some(Err(object_store::Error::NotFound { .. })) => return Ok(None),
+            Some(Err(e)) if link::cut_by_the_kernel(&e) => format!("{} (the connection was cut)", stalled()),
             Some(Err(e)) => format!("{what}: {e}"),
-            None => format!("{what}: nothing arrived or left for {:.0} s", self.timeout.as_secs_f64()),
+            None => stalled(),
         };
         self.down.lock().unwrap().get_or_insert(why);
         Err(())
