@@ -471,7 +471,7 @@ impl Remote {
         let (files, bytes) = expected.unwrap_or((u64::MAX, tar_bytes));
         let unpacked = unpack_bounded(&tar_path, &dir, files, bytes);
         remove_dir(&scratch);
-        match unpacked.map_err(anyhow::Error::from).and_then(|()| Ok(hash_tree(&dir)?.digest)) {
+        match unpacked.and_then(|()| Ok(hash_tree(&dir)?.digest)) {
             Ok(found)
                 if found == *digest
                     && let Err(why) = accept(&dir) =>
