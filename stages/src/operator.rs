@@ -485,6 +485,9 @@ impl<O: Operator> DynOperator for O {
 /// bad value inside the group: both are recovered here, so every struct reports alike.
 fn parse_settings<S: Settings>(raw: Value) -> Result<S, SettingError> {
     let defaults = serde_json::to_value(S::default()).expect("settings serialise to JSON");
+    if let Some(e) = not_finite(&defaults, &raw, "") {
+        return Err(e);
+    }
     let Value::Object(given) = &raw else { return deserialize::<S>(raw).and_then(|t| t.check().map(|()| t)) };
     let typed: S = deserialize(over_defaults(&defaults, given)).map_err(|e| match e.key.is_empty() {
         true => locate::<S>(&defaults, given).unwrap_or(e),
@@ -518,36 +521,51 @@ fn locate<S: Settings>(defaults: &Value, given: &serde_json::Map<String, Value>)
 fn deserialize<S: Settings>(value: Value) -> Result<S, SettingError> {
     serde_path_to_error::deserialize(value).map_err(|e| {
         let key = e.path().to_string();
-        let message = e.inner().to_string();
-        match unknown_field(&message) {
-            Some((field, valid)) => {
-                // Only what a user may set: fields the defaults show (an internal one such as a
-                // shard's share is skipped while unset).
-                let defaults = serde_json::to_value(S::default()).expect("settings serialise to JSON");
-                let parent = key.rsplit_once('.').map_or("", |(parent, _)| parent);
-                let shown = parent.split('.').filter(|p| !p.is_empty()).try_fold(&defaults, |v, p| v.get(p));
-                let valid = valid.into_iter().filter(|k| shown.is_none_or(|shown| shown.get(k).is_some())).collect();
-                SettingError { key, message: format!("unknown setting `{field}`"), valid }
-            }
-            None => SettingError::new(if key == "." { String::new() } else { key }, not_finite(&message).unwrap_or(message)),
+        // Read from where the error is, never from serde's wording: a key the defaults' table
+        // there lacks is unknown (and the valid keys are what a user may set: those the defaults
+        // show, so an internal one such as a shard's share, skipped while unset, is not offered).
+        let defaults = serde_json::to_value(S::default()).expect("settings serialise to JSON");
+        if let Some((field, valid)) = unknown_key(&defaults, &key) {
+            return SettingError { message: format!("unknown setting `{field}`"), key, valid };
         }
+        SettingError::new(if key == "." { String::new() } else { key }, e.inner().to_string())
     })
 }
 
-/// "not a finite number" for a `nan` or `inf` where a number belongs: JSON has no such numbers,
-/// so the config reader hands them over as their text, which serde would call a type error.
-fn not_finite(message: &str) -> Option<String> {
-    let text = message.strip_prefix("invalid type: string \"")?.split('"').next()?;
-    let bare = text.trim_start_matches(['+', '-']);
-    (bare == "nan" || bare == "inf").then(|| format!("`{text}` is not a finite number"))
+/// The first `nan` or `inf` given where the defaults hold a number: the config reader hands
+/// them over as their text (JSON has no such numbers), which serde would call a type error.
+fn not_finite(defaults: &Value, given: &Value, path: &str) -> Option<SettingError> {
+    let inside = |key: String, value: &Value| not_finite(defaults, value, &if path.is_empty() { key.clone() } else { format!("{path}.{key}") });
+    match given {
+        Value::Object(table) => table.iter().find_map(|(key, value)| inside(key.clone(), value)),
+        Value::Array(items) => items.iter().enumerate().find_map(|(i, value)| inside(i.to_string(), value)),
+        Value::String(text) if matches!(text.trim_start_matches(['+', '-']), "nan" | "inf") && number_expected(defaults, path) => {
+            Some(SettingError::new(path, format!("`{text}` is not a finite number")))
+        }
+        _ => None,
+    }
 }
 
-/// Picks apart serde's "unknown field `x`, expected one of `a`, `b`" (its stable wording).
-fn unknown_field(message: &str) -> Option<(String, Vec<String>)> {
-    let rest = message.strip_prefix("unknown field `")?;
-    let (field, expected) = rest.split_once('`')?;
-    let valid = expected.split('`').skip(1).step_by(2).map(str::to_owned).collect();
-    Some((field.to_owned(), valid))
+/// The value at dotted `path` (`.`: the whole) inside `value`.
+fn at<'v>(value: &'v Value, path: &str) -> Option<&'v Value> {
+    path.split('.').filter(|p| !p.is_empty()).try_fold(value, |v, p| v.get(p))
+}
+
+/// `path`'s last key and the keys beside it, when the defaults hold a table at its parent that
+/// lacks that key.
+fn unknown_key(defaults: &Value, path: &str) -> Option<(String, Vec<String>)> {
+    let (parent, field) = path.rsplit_once('.').unwrap_or(("", path));
+    let table = at(defaults, parent)?.as_object()?;
+    (!field.is_empty() && field != "." && !table.contains_key(field)).then(|| (field.to_owned(), table.keys().cloned().collect()))
+}
+
+/// Whether the defaults hold a number at `path` (or a list of numbers: `path` then names an item).
+fn number_expected(defaults: &Value, path: &str) -> bool {
+    let (parent, last) = path.rsplit_once('.').unwrap_or(("", path));
+    match at(defaults, path) {
+        Some(v) => v.is_number(),
+        None => last.parse::<usize>().is_ok() && at(defaults, parent).and_then(Value::as_array).is_some_and(|items| items.iter().all(Value::is_number)),
+    }
 }
 
 /// The stage kinds and operators an rlmflow binary knows.
@@ -655,7 +673,7 @@ mod tests {
     fn unknown_keys_name_the_key_and_list_valid_ones() {
         let e = DemoOp.settings(serde_json::json!({"alpah": 1.0})).unwrap_err();
         assert_eq!(e.key, "alpah");
-        assert_eq!(e.valid, vec!["alpha", "threads", "nested"]);
+        assert_eq!(e.valid, vec!["alpha", "nested", "threads"]);
         let e = DemoOp.settings(serde_json::json!({"nested": {"imag": 3}})).unwrap_err();
         assert_eq!(e.key, "nested.imag");
         assert_eq!(e.valid, vec!["image"]);

@@ -186,6 +186,11 @@ fn the_report_holds_every_probe_and_rerun_reads_its_recording() {
         assert!(html.contains(row) && markdown.contains(row), "{row} not in the report");
     }
     assert_eq!(captioning["clipcap · random"]["row"], "random init (sanity)");
+    // The CI-size decoders emit bytes no caption holds: shown as `\xNN`, never as U+FFFD; the
+    // settings wrap (at most 100 columns in the configuration block).
+    assert!(!markdown.contains('\u{fffd}') && !html.contains('\u{fffd}'), "a generated caption lost its bytes");
+    let configuration = markdown.split("## Configuration").nth(1).unwrap().split("```").nth(1).unwrap();
+    assert!(configuration.lines().all(|l| l.len() <= 100), "{configuration}");
     assert_eq!(captioning["pixels (pixels)"]["row"], "pixels (baseline)");
     // Every probe and segmenter on an encoder counted its test frames among the encoder's
     // training frames and each tokenizer's: all zero, shown in the hygiene table.

@@ -89,12 +89,8 @@ impl Checker {
             Err(e) => {
                 let inner = e.path().to_string();
                 let key = if inner == "." { "pipeline.hyperqueue".to_owned() } else { format!("pipeline.hyperqueue.{inner}") };
-                let message = e.into_inner().to_string();
-                let key = match message.strip_prefix("unknown field `").and_then(|m| m.split('`').next()) {
-                    Some(field) => format!("pipeline.hyperqueue.{field}"),
-                    None => key,
-                };
-                self.error(self.line(&key), &key, message, None);
+                // The path names the failing key itself, an unknown one included.
+                self.error(self.line(&key), &key, e.into_inner().to_string(), None);
                 return HyperQueueSettings::default();
             }
         };

@@ -13,7 +13,8 @@
 //!
 //! Each step's loss, rate and figures and each epoch's log line also go to a TensorBoard event
 //! file as they happen (`tensorboard.rs`), in the checkpoint directory, so a resumed run keeps
-//! its curves; the finished file is copied into the artifact's `tensorboard/`.
+//! its curves; the finished file is copied into the artifact. Both hold it at their top, so
+//! TensorBoard names a run by the folder a results link gives it (`pretrain/alpha4`).
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -35,8 +36,6 @@ use crate::tensorboard::{self, EventWriter};
 
 const STATE: &str = "state.safetensors";
 const LOG: &str = "state.json";
-/// The TensorBoard curves' directory, in the checkpoint while training and in the artifact.
-pub const CURVES: &str = "tensorboard";
 
 /// The device a `device` setting computes on, given the engine's choice for the action
 /// (`rlmflow_stages::numerics::Target::of`, the rule the action's key was planned by). On CUDA,
@@ -201,15 +200,15 @@ pub fn fit(
     let lr = |step: u64| warmup_cosine(step, total, warmup, t.warmup_lr, t.lr, t.min_lr);
     let mut opt = AdamW::new(vs, (t.betas[0], t.betas[1]), t.eps, t.weight_decay);
     let mut log = checkpoint_log(&ctx.checkpoint_dir)?;
-    let curves = ctx.checkpoint_dir.join(CURVES);
+    let curves = &ctx.checkpoint_dir;
     let checkpointed = log.last().and_then(|line| line["step"].as_u64()).unwrap_or(0);
-    let mut tensorboard = match EventWriter::resume(&curves, checkpointed)? {
+    let mut tensorboard = match EventWriter::resume(curves, checkpointed)? {
         Some(writer) => writer,
         None => {
             // A checkpoint whose curves were not kept with it: start over, so the artifact's
             // curves are whole.
             log.clear();
-            EventWriter::resume(&curves, 0)?.expect("a new event file")
+            EventWriter::resume(curves, 0)?.expect("a new event file")
         }
     };
     if !log.is_empty() {
@@ -288,9 +287,8 @@ pub fn fit(
         tensorboard.scalars(0, &epoch_scalars(&line))?;
         log.push(line);
     }
-    let into = ctx.output_dir.join(CURVES);
-    std::fs::create_dir_all(&into)?;
-    std::fs::copy(tensorboard.path(), into.join(tensorboard::FILE)).with_context(|| format!("copying the curves into {}", into.display()))?;
+    let into = ctx.output_dir.join(tensorboard::FILE);
+    std::fs::copy(tensorboard.path(), &into).with_context(|| format!("copying the curves to {}", into.display()))?;
     Ok(Fitted { log, steps: total })
 }
 

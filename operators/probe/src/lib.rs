@@ -217,7 +217,7 @@ fn clipcap_spec() -> OperatorSpec {
     OperatorSpec {
         name: "clipcap",
         kind: "probe",
-        version: 5,
+        version: 6,
         inputs: None,
         summary: "ClipCap caption probe: mapper and GPT decoder on the frozen CLS embedding, captions parsed and scored per cell",
     }

@@ -83,7 +83,7 @@ table{border-collapse:collapse;margin:1em 0;font-size:13px}td,th{border:1px soli
 td:first-child,th:first-child{text-align:left}th{background:#f2f2f2}\
 figure{display:inline-block;margin:4px;text-align:center;font-size:12px}\
 figure img{width:160px;height:160px;image-rendering:pixelated;border:1px solid #ccc}\
-pre{background:#f6f6f6;padding:8px;overflow-x:auto;font-size:12px;white-space:pre-wrap}svg{max-width:100%;height:auto}";
+pre{background:#f6f6f6;padding:8px;overflow-x:auto;font-size:12px;white-space:pre-wrap;overflow-wrap:anywhere}svg{max-width:100%;height:auto}";
 
 pub fn html(title: &str, blocks: &[Block]) -> String {
     let mut out = format!(

@@ -73,7 +73,7 @@ impl Operator for Paper {
         OperatorSpec {
             name: "paper",
             kind: "report",
-            version: 5,
+            version: 6,
             inputs: None,
             summary: "the paper's tables and figures for this run: Markdown, self-contained HTML, metrics.json and a Rerun recording",
         }

@@ -35,6 +35,30 @@ pub fn grid_text(grid: &Grid) -> String {
     if cells.is_empty() { "no vehicles within 40 m".into() } else { cells.join(", ") }
 }
 
+/// Where the settings' lines wrap: the report's code blocks stay readable without a scroll.
+const SETTINGS_WIDTH: usize = 100;
+
+/// A stage instance's settings as its label, then `key = value` pairs (values as JSON writes
+/// them) wrapped at [`SETTINGS_WIDTH`] columns between pairs, indented.
+fn settings_text(label: &str, settings: &serde_json::Value) -> String {
+    let Some(fields) = settings.as_object() else { return format!("{label}: {settings}") };
+    let mut text = label.to_owned();
+    let mut line = String::new();
+    for (key, value) in fields {
+        let pair = format!("{key} = {value}");
+        // The indent, the line, ", ", the pair and the comma that may follow it.
+        if !line.is_empty() && 2 + line.len() + 2 + pair.len() + 1 > SETTINGS_WIDTH {
+            text.push_str(&format!("\n  {line},"));
+            line.clear();
+        }
+        line = if line.is_empty() { pair } else { format!("{line}, {pair}") };
+    }
+    if !line.is_empty() {
+        text.push_str(&format!("\n  {line}"));
+    }
+    text
+}
+
 impl Report {
     pub fn inputs(&mut self, study: &Study) {
         self.blocks.push(Block::Heading(1, "Configuration".into()));
@@ -43,17 +67,11 @@ impl Report {
              outputs and times, is in that run's record: `runs/<id>/provenance.md` in the store (also `rlmflow status`)."
                 .into(),
         ));
-        let mut lines = Vec::new();
-        for e in &study.encoders {
-            lines.push(format!("{}: {}", e.label.clone(), e.encoder.summary.generator));
-        }
-        for p in &study.probes {
-            lines.push(format!("{}: {}", p.label.clone(), p.summary.generator));
-        }
-        for s in &study.segments {
-            lines.push(format!("{}: {}", s.label.clone(), s.summary.generator));
-        }
-        self.blocks.push(Block::Code(lines.join("\n")));
+        let encoders = study.encoders.iter().map(|e| (&e.label, &e.encoder.summary.generator));
+        let probes = study.probes.iter().map(|p| (&p.label, &p.summary.generator));
+        let segments = study.segments.iter().map(|s| (&s.label, &s.summary.generator));
+        let instances: Vec<String> = encoders.chain(probes).chain(segments).map(|(label, settings)| settings_text(label, settings)).collect();
+        self.blocks.push(Block::Code(instances.join("\n")));
     }
 
     pub fn dataset(&mut self, study: &Study) -> anyhow::Result<()> {
@@ -403,4 +421,31 @@ fn mean_curve(group: &[&EncoderRun], key: &str) -> Vec<(f64, f64)> {
             (values.len() == group.len()).then(|| (epoch, Stat(values).mean()))
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Each setting is shown once, as `key = value`, on lines of at most 100 columns (a value
+    /// longer than a line has one of its own).
+    #[test]
+    fn settings_wrap_between_pairs() {
+        let long = "x".repeat(120);
+        let settings = serde_json::json!({"accumulate": 1, "betas": [0.9, 0.98], "device": "cpu", "encoder": "conv-tiny",
+            "epochs": 10, "lr": 0.001, "numerics": "portable", "objective": "sg-clip", "alpha": 4.0, "init": long, "warmup_epochs": 1.0});
+        let text = settings_text("pretrain[alpha4]", &settings);
+        for width in 1..60 {
+            let one = serde_json::json!({"a": "y".repeat(width), "b": "z".repeat(90 - width), "c": 1, "d": "w".repeat(width)});
+            assert!(settings_text("s", &one).lines().all(|l| l.len() <= SETTINGS_WIDTH), "{}", settings_text("s", &one));
+        }
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], "pretrain[alpha4]");
+        assert!(lines[1..].iter().all(|l| l.starts_with("  ")), "{text}");
+        assert!(lines.iter().all(|l| l.len() <= SETTINGS_WIDTH || l.contains(&long)), "{text}");
+        let pairs: Vec<&str> = lines[1..].iter().flat_map(|l| l.trim().trim_end_matches(',').split(", ")).collect();
+        let expected: Vec<String> = settings.as_object().unwrap().iter().map(|(k, v)| format!("{k} = {v}")).collect();
+        assert_eq!(pairs.len(), expected.len(), "{text}");
+        assert!(text.contains("betas = [0.9,0.98]") && text.contains("device = \"cpu\""), "{text}");
+    }
 }

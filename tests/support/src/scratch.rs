@@ -1,5 +1,6 @@
-//! A scratch directory per test: removed when the test passes, kept (and named on stderr) when
-//! it fails, for a look at what it left.
+//! A scratch directory per test, in the build's target directory: removed when the test passes,
+//! kept (and named on stderr) when it fails, for a look at what it left; `cargo clean` removes
+//! what failed tests kept, and the system's temporary directory never sees them.
 
 use std::path::{Path, PathBuf};
 
@@ -8,10 +9,9 @@ pub struct Scratch {
 }
 
 impl Scratch {
-    /// A fresh, empty `rlmflow-NAME-PID` in the system's temporary directory (a leftover of the
-    /// same name is removed first).
+    /// A fresh, empty `NAME-PID` under [`root`] (a leftover of the same name is removed first).
     pub fn new(name: &str) -> Scratch {
-        let dir = std::env::temp_dir().join(format!("rlmflow-{name}-{}", std::process::id()));
+        let dir = root().join(format!("{name}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("creating {}: {e}", dir.display()));
         Scratch { dir }
@@ -35,6 +35,15 @@ impl Scratch {
         std::fs::write(&path, text).unwrap_or_else(|e| panic!("writing {}: {e}", path.display()));
         path
     }
+}
+
+/// Where scratch directories go: `tmp/scratch` in the target directory of the running test
+/// binary (`<target>/<profile>/deps/<binary>`; `tmp` is cargo's `CARGO_TARGET_TMPDIR`), or the
+/// system's temporary directory for a binary run from elsewhere.
+pub fn root() -> PathBuf {
+    let exe = std::env::current_exe().expect("the test binary's path");
+    let target = exe.ancestors().find(|dir| dir.file_name() == Some("deps".as_ref())).and_then(|deps| deps.parent()?.parent());
+    target.map_or_else(|| std::env::temp_dir().join("rlmflow-scratch"), |target| target.join("tmp/scratch"))
 }
 
 /// A directory the tests of one process share (a run several of them read): `name` under `root`,
@@ -81,6 +90,7 @@ mod tests {
         let passed = Scratch::new("scratch-passes");
         passed.write("a/b.txt", "x");
         let path = passed.to_path_buf();
+        assert!(path.starts_with(super::root()) && super::root().ends_with("tmp/scratch"), "in the target directory: {}", path.display());
         drop(passed);
         assert!(!path.exists());
 

@@ -34,3 +34,19 @@ pub fn scalars(file: &Path) -> Vec<(u64, String, f64)> {
     assert_eq!(events.first().and_then(|e| e["file_version"].as_str()), Some("brain.Event:2"), "{}", file.display());
     events[1..].iter().map(|e| (e["step"].as_u64().unwrap(), e["tag"].as_str().unwrap().to_owned(), e["value"].as_f64().unwrap())).collect()
 }
+
+const RUNS: &str = r#"
+import json, sys
+from tensorboard.backend.event_processing.plugin_event_multiplexer import EventMultiplexer
+# How `tensorboard --logdir` finds and names runs: each folder holding an event file.
+runs = EventMultiplexer()
+runs.AddRunsFromDirectory(sys.argv[1])
+print(json.dumps(sorted(runs.Runs())))
+"#;
+
+/// The runs `tensorboard --logdir LOGDIR` shows, by name, sorted.
+pub fn runs(logdir: &Path) -> Vec<String> {
+    let out = Command::new(install().join("bin/python")).args(["-c", RUNS]).arg(logdir).output().unwrap();
+    assert!(out.status.success(), "listing the runs under {}: {}", logdir.display(), String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).unwrap()
+}

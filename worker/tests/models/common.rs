@@ -100,7 +100,7 @@ pub fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
 /// reads them, hold each number of each epoch's `log` line at the epoch's last step, and a loss
 /// and a learning rate for every step.
 pub fn assert_curves_hold(object: &Path, log: &[serde_json::Value]) {
-    let scalars = rlmflow_test_support::tensorboard::scalars(&object.join("tensorboard/events.out.tfevents.rlmflow"));
+    let scalars = rlmflow_test_support::tensorboard::scalars(&object.join("events.out.tfevents.rlmflow"));
     for line in log {
         let step = line["step"].as_u64().unwrap();
         for (name, value) in line.as_object().unwrap() {

@@ -1,7 +1,7 @@
 //! Pretraining end to end through the real binaries: `rlmflow` plans and the `rlmflow-torch`
 //! worker beside it trains. On small data the test makes through the pipeline, the CI-size model
 //! learns (retrieval well above chance and above the same model untrained), its TensorBoard
-//! curves read back as its `train.jsonl`, and a run killed between epochs resumes to the same
+//! curves read back as its `train.jsonl` under run names TensorBoard takes from `results/`, and a run killed between epochs resumes to the same
 //! weights and curves. (Fresh processes give the stored bytes:
 //! `numerics.rs`.)
 
@@ -43,6 +43,8 @@ fn the_ci_size_model_learns_retrieval_above_chance_and_above_random_init() {
     let (ok, out) = rlmflow(&dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
     reader.join().unwrap();
+    // `tensorboard --logdir results/` names each run by its stage and variant.
+    assert_eq!(rlmflow_test_support::tensorboard::runs(&dir.join("results")), ["pretrain/clip", "pretrain/random", "pretrain/sgclip"]);
     let random = summary(&dir, "learns", "pretrain[random]");
     for label in ["pretrain[clip]", "pretrain[sgclip]"] {
         let s = summary(&dir, "learns", label);
@@ -71,7 +73,7 @@ fn the_ci_size_model_learns_retrieval_above_chance_and_above_random_init() {
     // The curves, as TensorBoard's own reader reads them, are train.jsonl's numbers: each step's
     // loss and off-diagonal mass, each epoch's figures at its last step.
     for label in ["pretrain[clip]", "pretrain[sgclip]", "pretrain[random]"] {
-        let scalars = rlmflow_test_support::tensorboard::scalars(&encoder(&dir, "learns", label).join("tensorboard/events.out.tfevents.rlmflow"));
+        let scalars = rlmflow_test_support::tensorboard::scalars(&encoder(&dir, "learns", label).join("events.out.tfevents.rlmflow"));
         let at = |step: u64, tag: &str| -> f64 {
             let found: Vec<f64> = scalars.iter().filter(|(s, t, _)| *s == step && t == tag).map(|(_, _, v)| *v).collect();
             assert_eq!(found.len(), 1, "{label}: {tag} at step {step}: {found:?}");
@@ -133,7 +135,7 @@ fn a_run_killed_between_epochs_resumes_to_the_weights_of_an_uninterrupted_one() 
     unsafe { libc::kill(-(run.id() as i32), libc::SIGKILL) };
     run.wait().unwrap();
     // While it trained, its results link was its checkpoint, where its curves grow.
-    let live = dir.join("results/pretrain/tensorboard/events.out.tfevents.rlmflow");
+    let live = dir.join("results/pretrain/events.out.tfevents.rlmflow");
     assert!(
         live.is_file()
             && std::fs::canonicalize(dir.join("results/pretrain")).unwrap().starts_with(dir.join(".rlmflow/checkpoints").canonicalize().unwrap())
@@ -145,6 +147,6 @@ fn a_run_killed_between_epochs_resumes_to_the_weights_of_an_uninterrupted_one() 
     assert!(out.contains("\"name\":\"resumed\""), "the rerun resumed from the checkpoint: {out}");
     let resumed = std::fs::read(encoder(&dir, "resumes", "pretrain").join("model.safetensors")).unwrap();
     assert!(resumed == expected, "resumed after {done} epochs, the weights differ");
-    let curves = |dir: &Path| std::fs::read(dir.join("results/pretrain/tensorboard/events.out.tfevents.rlmflow")).unwrap();
+    let curves = |dir: &Path| std::fs::read(dir.join("results/pretrain/events.out.tfevents.rlmflow")).unwrap();
     assert!(curves(&dir) == curves(&reference), "resumed after {done} epochs, the TensorBoard curves differ");
 }

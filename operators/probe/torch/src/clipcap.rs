@@ -22,6 +22,8 @@ use rlmflow_stages::{Context, Outcome, Settings};
 use serde_json::{Value, json};
 use tokenizers::Tokenizer;
 
+use crate::caption_text::caption_text;
+
 /// Frames per forward pass when embedding, scoring or generating.
 const CHUNK: usize = 64;
 /// Groups of similar caption length a batch's loss is computed in (see `caption_loss`).
@@ -152,7 +154,7 @@ fn clipcap_on(s: &ClipcapSettings, ctx: &mut Context) -> anyhow::Result<Outcome>
                 })?;
                 for ids in sequences {
                     let ids: Vec<u32> = ids.into_iter().take_while(|&t| t != end).map(|t| t as u32).collect();
-                    captions.push(tokenizer.decode(&ids, true).map_err(|e| anyhow::anyhow!("decoding a generated caption: {e}"))?.trim().to_owned());
+                    captions.push(caption_text(&tokenizer, &ids)?.trim().to_owned());
                 }
                 progress.inc(frames.len() as u64);
             }

@@ -1,6 +1,7 @@
 //! The probes on a frozen encoder, on libtorch (they run in the `rlmflow-torch` worker). See
 //! `rlmflow_probe` for what each does; the scoring rule is `rlmflow_stages::probe::score`.
 
+mod caption_text;
 mod clipcap;
 mod ridge;
 
