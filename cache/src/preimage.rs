@@ -36,7 +36,7 @@ pub struct Preimage {
 }
 
 /// One field-level difference between two preimages: why an action is not fresh.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "change", rename_all = "snake_case")]
 pub enum Change {
     Operator { old: String, new: String },

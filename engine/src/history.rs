@@ -13,14 +13,15 @@ use anyhow::bail;
 use rlmflow_cache::{ActionRecord, GitState, RunPlan, Store};
 use serde::Serialize;
 
+use crate::event::{Event, Logged, Status};
+
 /// One run of a pipeline.
 #[derive(Debug, Serialize)]
 pub struct PastRun {
     #[serde(flatten)]
     pub plan: RunPlan,
-    /// How each instance ended, by label (`ran`, `reused`, `pulled`, `failed`, `skipped`); an
-    /// instance the run did not reach has none.
-    pub outcomes: BTreeMap<String, String>,
+    /// How each instance ended, by label; an instance the run did not reach has none.
+    pub outcomes: BTreeMap<String, Status>,
     /// Whether the run reached its end (a killed run, or one still going, did not).
     pub finished: bool,
     /// Whether it finished with the keys of the run before it and nothing failed: a plain
@@ -47,12 +48,12 @@ impl PastRun {
     pub fn counts(&self) -> Counts {
         let mut counts = Counts::default();
         for outcome in self.outcomes.values() {
-            match outcome.as_str() {
-                "ran" => counts.ran += 1,
-                "reused" => counts.reused += 1,
-                "pulled" => counts.pulled += 1,
-                "failed" => counts.failed += 1,
-                _ => counts.skipped += 1,
+            match outcome {
+                Status::Ran => counts.ran += 1,
+                Status::Reused => counts.reused += 1,
+                Status::Pulled => counts.pulled += 1,
+                Status::Failed => counts.failed += 1,
+                Status::Skipped => counts.skipped += 1,
             }
         }
         counts
@@ -108,20 +109,18 @@ pub fn find<'r>(runs: &'r [PastRun], id: &str, pipeline: &str) -> anyhow::Result
 /// Each instance's last `stage_finished` status, and whether the log ends with `run_finished`.
 /// A line a killed run cut short is skipped: the log is flushed line by line, so only the last
 /// can be.
-fn outcomes(events: &Path) -> (BTreeMap<String, String>, bool) {
+fn outcomes(events: &Path) -> (BTreeMap<String, Status>, bool) {
     let mut outcomes = BTreeMap::new();
     let mut finished = false;
     let Ok(file) = std::fs::File::open(events) else { return (outcomes, finished) };
     for line in std::io::BufReader::new(file).lines() {
         let Ok(line) = line else { break };
-        let Ok(event) = serde_json::from_str::<serde_json::Value>(&line) else { continue };
-        match event["event"].as_str() {
-            Some("stage_finished") => {
-                if let (Some(stage), Some(status)) = (event["stage"].as_str(), event["status"].as_str()) {
-                    outcomes.insert(stage.to_owned(), status.to_owned());
-                }
+        let Ok(logged) = serde_json::from_str::<Logged>(&line) else { continue };
+        match logged.event {
+            Event::StageFinished(f) => {
+                outcomes.insert(f.stage, f.status);
             }
-            Some("run_finished") => finished = true,
+            Event::RunFinished { .. } => finished = true,
             _ => {}
         }
     }
@@ -173,15 +172,16 @@ pub fn listing(store: &Store, runs: &[PastRun], all: bool) -> anyhow::Result<Str
         let end = if run.finished { "" } else { "; did not finish (killed, or still running)" };
         out += &format!("  {} ran, {} reused, {} pulled, {} failed, {} skipped{end}\n", c.ran, c.reused, c.pulled, c.failed, c.skipped);
         for (entry, record) in run.records(store)? {
-            let outcome = run.outcomes.get(&entry.label).map_or("-", String::as_str);
-            if !all && !matches!(outcome, "ran" | "pulled" | "failed") {
+            let outcome = run.outcomes.get(&entry.label).copied();
+            if !all && !matches!(outcome, Some(Status::Ran | Status::Pulled | Status::Failed)) {
                 continue;
             }
             let headline = match &record {
                 Some(r) => r.summary.clone(),
-                None if outcome == "failed" => "(see the run's log)".to_owned(),
+                None if outcome == Some(Status::Failed) => "(see the run's log)".to_owned(),
                 None => "(record collected by gc)".to_owned(),
             };
+            let outcome = outcome.map_or("-", Status::as_str);
             out += &format!("{}\n", format!("    {outcome:<7} {}  {headline}", entry.label).trim_end());
         }
     }

@@ -20,6 +20,7 @@ pub mod dag;
 pub mod determinism;
 pub mod digests;
 pub mod dispatch;
+pub mod event;
 pub mod exec;
 pub mod footprint;
 pub mod history;

@@ -2,10 +2,10 @@
 //! `status --json` and `run --json` carry it as it is; the `ui` module alone puts it into words.
 
 use rlmflow_cache::{Change, Digest, Preimage, Store};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// Why an instance whose key is known will run rather than be reused.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "reason", rename_all = "snake_case")]
 pub enum RunReason {
     /// No earlier run of this instance is known.
@@ -33,9 +33,9 @@ pub enum RunReason {
         stage: String,
         #[serde(flatten)]
         change: Change,
-        #[serde(skip_serializing_if = "Vec::is_empty")]
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
         files: Vec<String>,
-        #[serde(skip_serializing_if = "is_zero")]
+        #[serde(default, skip_serializing_if = "is_zero")]
         more_files: usize,
     },
 }

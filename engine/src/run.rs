@@ -14,10 +14,11 @@ use indicatif::ProgressBar;
 use rlmflow_cache::{ActionRecord, Digest, GitState, Links, PlanEntry, Preimage, RunPlan, Store, file_safe, now_rfc3339, run_id};
 use rlmflow_remote::{Pulled, Remote};
 use rlmflow_stages::{Device, LIVE_EVENT, Registry};
-use serde_json::{Value, json};
+use serde_json::Value;
 
 use crate::config::{Executor as ExecutorKind, RemoteSettings};
 use crate::dispatch::{Dispatch, Exit, Launch, Local, Report};
+use crate::event::{Event, Finished, Logged, Status};
 use crate::history::Counts;
 use crate::plan::Plan;
 use crate::protocol::{EXIT_CORRUPT_INPUT, Message};
@@ -65,9 +66,10 @@ struct Executor<'a> {
     store: &'a Store,
     opts: &'a RunOptions,
     run: String,
-    /// When it started (RFC 3339) and the git state of the pipeline's work tree then.
+    /// When it started (RFC 3339), and the git state of the pipeline's work tree once it computed
+    /// something (`None` inside: not a git work tree).
     started: String,
-    git: Option<GitState>,
+    git: Option<Option<GitState>>,
     states: Vec<State>,
     keys: Vec<Option<Digest>>,
     plan_dirty: bool,
@@ -121,7 +123,7 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
         opts,
         run,
         started: now_rfc3339(),
-        git: crate::history::git_state(&plan.pipeline.file),
+        git: None,
         states,
         keys: vec![None; n],
         plan_dirty: true,
@@ -178,10 +180,14 @@ impl Executor<'_> {
         let p = self.plan.pipeline;
         let selected = self.states.iter().filter(|s| !matches!(s, State::Excluded)).count();
         let executor = self.dispatch.describe();
-        self.events.write(
-            "run_started",
-            json!({"run": self.run, "pipeline": p.name, "file": p.file, "instances": selected, "jobs": self.opts.jobs, "executor": executor}),
-        )?;
+        self.events.write(Event::RunStarted {
+            run: self.run.clone(),
+            pipeline: p.name.clone(),
+            file: p.file.clone(),
+            instances: selected,
+            jobs: self.opts.jobs,
+            executor: executor.clone(),
+        })?;
         self.ui.say(format!(
             "rlmflow run {} ({} stage instances, {} threads, {executor}, run {})",
             p.file.display(),
@@ -223,7 +229,8 @@ impl Executor<'_> {
                 self.states[i] = State::Running { key };
                 let label = self.plan.instances[i].label.clone();
                 self.attempts[i].started += 1;
-                self.events.write("stage_started", json!({"stage": label, "key": key, "threads": threads, "attempt": self.attempts[i].started}))?;
+                self.note_git_state();
+                self.events.write(Event::StageStarted { stage: label.clone(), key, threads, attempt: self.attempts[i].started })?;
                 bars.insert(i, self.ui.bar(&label));
                 self.start(i, exe, key, threads, wants.gpu, tx.clone())?;
             }
@@ -249,7 +256,7 @@ impl Executor<'_> {
                     if name == LIVE_EVENT {
                         self.link_live(i, &data);
                     }
-                    self.events.write("operator_event", json!({"stage": self.plan.instances[i].label, "name": name, "data": data}))?;
+                    self.events.write(Event::OperatorEvent { stage: self.plan.instances[i].label.clone(), name, data })?;
                 }
                 Report::Message(Message::Waiting) => bars[&i].set_message("waiting for another run computing it"),
                 Report::Message(message) => {
@@ -270,10 +277,15 @@ impl Executor<'_> {
         // A fold from +0.0: an empty f64 `sum()` is -0.0, printed as "-0.0s".
         let saved = self.results.iter().flatten().filter(|r| matches!(r.0, Outcome::Reused | Outcome::Pulled)).fold(0.0, |total, r| total + r.1);
         let wall = clock.elapsed().as_secs_f64();
-        self.events.write(
-            "run_finished",
-            json!({"ran": s.ran, "reused": s.reused, "pulled": s.pulled, "failed": s.failed, "skipped": s.skipped, "wall_s": wall, "saved_s": saved}),
-        )?;
+        self.events.write(Event::RunFinished {
+            ran: s.ran,
+            reused: s.reused,
+            pulled: s.pulled,
+            failed: s.failed,
+            skipped: s.skipped,
+            wall_s: wall,
+            saved_s: saved,
+        })?;
         let pulled = if s.pulled > 0 { format!(", {} pulled", s.pulled) } else { String::new() };
         self.ui.say(format!(
             "done: {} ran, {} reused{pulled}, {} failed, {} skipped in {:.1}s; reuse saved {:.1}s",
@@ -426,8 +438,8 @@ impl Executor<'_> {
                 self.states[i] = State::Skipped;
                 self.results[i] = Some((Outcome::Skipped, 0.0));
                 let label = inst.label.clone();
-                self.events
-                    .write("stage_finished", json!({"stage": label, "status": "skipped", "reason": format!("upstream {upstream} did not finish")}))?;
+                let reason = Some(format!("upstream {upstream} did not finish"));
+                self.events.write(Event::StageFinished(Finished { reason, ..Finished::new(&label, Status::Skipped) }))?;
                 self.ui.say(format!("  skipped  {label}  (upstream {upstream} did not finish)"));
                 continue;
             }
@@ -444,10 +456,13 @@ impl Executor<'_> {
             {
                 self.done(i, record.output);
                 self.results[i] = Some((Outcome::Reused, record.duration_s));
-                self.events.write(
-                    "stage_finished",
-                    json!({"stage": inst.label, "status": "reused", "key": key, "output": record.output, "saved_s": record.duration_s}),
-                )?;
+                let (output, saved_s) = (Some(record.output), Some(record.duration_s));
+                self.events.write(Event::StageFinished(Finished {
+                    key: Some(key),
+                    output,
+                    saved_s,
+                    ..Finished::new(&inst.label, Status::Reused)
+                }))?;
                 self.ui.say(format!("  reused   {}  ({:.1}s saved)", inst.label, record.duration_s));
                 continue;
             }
@@ -465,7 +480,7 @@ impl Executor<'_> {
             let resumes = self.registry.get(&inst.operator).expect("validated operator").resumes_from();
             let reasons = why(Some(self.store), self.last.get(&inst.label), &key, &preimage, &stage.name, resumes)?;
             self.ui.say(format!("  run      {}  ({})", inst.label, crate::ui::words(&reasons)));
-            self.events.write("stage_planned", json!({"stage": inst.label, "key": key, "reasons": reasons}))?;
+            self.events.write(Event::StagePlanned { stage: inst.label.clone(), key, reasons })?;
             // The operator reads a snapshot of each tracked path, by the digest in its key.
             if let Err(e) = self.plan.snapshot_tracked(i, self.store) {
                 self.fail_unstarted(i, key, format!("{e:#}"))?;
@@ -502,23 +517,27 @@ impl Executor<'_> {
         self.states[i] = State::Waiting;
         match pulled {
             Pulled::Hit { record, bytes, seconds } => {
-                self.events.write(
-                    "stage_finished",
-                    json!({"stage": label, "status": "pulled", "key": key, "output": record.output, "bytes": bytes, "seconds": seconds, "saved_s": record.duration_s}),
-                )?;
+                self.events.write(Event::StageFinished(Finished {
+                    key: Some(key),
+                    output: Some(record.output),
+                    bytes: Some(bytes),
+                    seconds: Some(seconds),
+                    saved_s: Some(record.duration_s),
+                    ..Finished::new(&label, Status::Pulled)
+                }))?;
                 self.ui.say(format!("  pulled   {label}  {:.1} MB in {seconds:.1}s ({:.1}s saved)", bytes as f64 / 1e6, record.duration_s));
                 self.done(i, record.output);
                 self.results[i] = Some((Outcome::Pulled, record.duration_s));
             }
             Pulled::Miss => {}
             Pulled::Corrupt { why } => {
-                self.events.write("remote_corrupt", json!({"stage": label, "key": key, "why": why}))?;
+                self.events.write(Event::RemoteCorrupt { stage: label.clone(), key, why: why.clone() })?;
                 self.ui.say(format!("  warning  {label}: the remote cache's copy is corrupt ({why}); not used, recomputing"));
                 self.pulls.replace(key);
             }
             // Replaced by this run's own signed record when it pushes, like a corrupt copy.
             Pulled::Untrusted { why } => {
-                self.events.write("remote_untrusted", json!({"stage": label, "key": key, "why": why}))?;
+                self.events.write(Event::RemoteUntrusted { stage: label.clone(), key, why: why.clone() })?;
                 self.ui.say(format!("  warning  {label}: the remote cache's record is not trusted ({why}); not used, recomputing"));
                 self.pulls.replace(key);
             }
@@ -528,7 +547,7 @@ impl Executor<'_> {
 
     fn warn_remote_down(&mut self, why: &str) -> anyhow::Result<()> {
         let url = self.pulls.remote(&self.ui).map(|r| r.url().to_owned()).unwrap_or_default();
-        self.events.write("remote_down", json!({"remote": url, "why": why}))?;
+        self.events.write(Event::RemoteDown { remote: url.clone(), why: why.to_owned() })?;
         self.ui.say(format!("  warning  remote cache {url} not used for the rest of the run: {why}"));
         Ok(())
     }
@@ -546,16 +565,16 @@ impl Executor<'_> {
         }
         if let Some(pushed) = pushed {
             if let Some(why) = &pushed.refused {
-                self.events.write("push_refused", json!({"stage": label, "key": record.key, "why": why}))?;
+                self.events.write(Event::PushRefused { stage: label.to_owned(), key: record.key, why: why.clone() })?;
                 self.ui.say(format!("  warning  {label}: {why}"));
                 return Ok(());
             }
             if let Some(why) = &pushed.disagrees {
-                self.events.write("remote_disagrees", json!({"stage": label, "key": record.key, "output": record.output, "why": why}))?;
+                self.events.write(Event::RemoteDisagrees { stage: label.to_owned(), key: record.key, output: record.output, why: why.clone() })?;
                 self.ui.say(format!("  WARNING  {label}: {why}"));
             }
-            self.events
-                .write("pushed", json!({"stage": label, "key": record.key, "bytes": pushed.bytes, "seconds": clock.elapsed().as_secs_f64()}))?;
+            let seconds = clock.elapsed().as_secs_f64();
+            self.events.write(Event::Pushed { stage: label.to_owned(), key: record.key, bytes: pushed.bytes, seconds })?;
         }
         Ok(())
     }
@@ -573,7 +592,7 @@ impl Executor<'_> {
                 output.short(),
                 corruption.files.join(", ")
             ));
-            self.events.write("output_corrupt", json!({"stage": label, "digest": output, "files": corruption.files}))?;
+            self.events.write(Event::OutputCorrupt { stage: label.to_owned(), digest: *output, files: corruption.files })?;
             return Ok(false);
         }
         self.verified.insert(*output);
@@ -582,6 +601,16 @@ impl Executor<'_> {
 
     fn write_request(&self, i: usize, key: Digest, preimage: Preimage) -> anyhow::Result<()> {
         self.store.write_request(&self.plan.request(i, key, preimage))
+    }
+
+    /// Asks git for the work tree's state the first time the run computes something: a run that
+    /// only reuses has nothing a commit could explain, and the two `git` processes were most of
+    /// a no-op run's time (`cargo xtask bench -p rlmflow-e2e --bench engine`).
+    fn note_git_state(&mut self) {
+        if self.git.is_none() {
+            self.git = Some(crate::history::git_state(&self.plan.pipeline.file));
+            self.plan_dirty = true;
+        }
     }
 
     fn write_plan_if_dirty(&mut self) -> anyhow::Result<()> {
@@ -607,7 +636,7 @@ impl Executor<'_> {
             pipeline: self.plan.pipeline.name.clone(),
             started: self.started.clone(),
             overrides,
-            git: self.git.clone(),
+            git: self.git.clone().flatten(),
             instances,
         })?;
         // Recorded as soon as known, so a killed run still tells `status` what it was doing.
@@ -657,7 +686,8 @@ impl Executor<'_> {
         let label = self.plan.instances[i].label.clone();
         self.states[i] = State::Failed;
         self.results[i] = Some((Outcome::Failed, 0.0));
-        self.events.write("stage_finished", json!({"stage": label, "status": "failed", "key": key, "error": message, "duration_s": 0.0}))?;
+        let (error, duration_s) = (Some(message.clone()), Some(0.0));
+        self.events.write(Event::StageFinished(Finished { key: Some(key), error, duration_s, ..Finished::new(&label, Status::Failed) }))?;
         self.ui.say(format!("  FAILED   {label}  {message}"));
         Ok(())
     }
@@ -671,18 +701,24 @@ impl Executor<'_> {
                 let record = self.store.fresh(&key)?.context("a finished action has no record")?;
                 let reused = matches!(outcome, Some(Message::Reused));
                 self.done(i, record.output);
-                let status = if reused { "reused" } else { "ran" };
+                let status = if reused { Status::Reused } else { Status::Ran };
                 // Every attempt's time: a stage that ran on its third attempt took all three.
                 let Attempts { started, earlier_s } = self.attempts[i];
                 let total = earlier_s + secs;
                 self.results[i] = Some(if reused { (Outcome::Reused, record.duration_s) } else { (Outcome::Ran, total) });
-                self.events.write(
-                    "stage_finished",
-                    json!({"stage": label, "status": status, "key": key, "output": record.output, "duration_s": secs, "attempts": started, "total_s": total, "summary": record.summary, "metrics": record.metrics}),
-                )?;
+                self.events.write(Event::StageFinished(Finished {
+                    key: Some(key),
+                    output: Some(record.output),
+                    duration_s: Some(secs),
+                    attempts: Some(started),
+                    total_s: Some(total),
+                    summary: Some(record.summary.clone()),
+                    metrics: Some(record.metrics.clone()),
+                    ..Finished::new(&label, status)
+                }))?;
                 let note = if reused { "computed by another run".to_owned() } else { record.summary.clone() };
                 let time = if started > 1 { format!("{total:.1}s in {started} attempts, {secs:.1}s the last") } else { format!("{secs:.1}s") };
-                self.ui.say(format!("  {status:<8} {label}  {time}  {note}"));
+                self.ui.say(format!("  {:<8} {label}  {time}  {note}", status.as_str()));
                 self.push(&label, &record)?;
             }
             Some(Message::CorruptInput { digest, files }) if code == Some(EXIT_CORRUPT_INPUT) && self.recoveries[i] < 2 => {
@@ -696,7 +732,12 @@ impl Executor<'_> {
                     if files.is_empty() { "missing".to_owned() } else { files.join(", ") },
                     names.join(", ")
                 ));
-                self.events.write("input_corrupt", json!({"stage": label, "digest": digest, "files": files, "recompute": names}))?;
+                self.events.write(Event::InputCorrupt {
+                    stage: label.clone(),
+                    digest,
+                    files: files.clone(),
+                    recompute: names.iter().map(|n| n.to_string()).collect(),
+                })?;
                 for j in producers {
                     self.states[j] = State::Waiting;
                     self.results[j] = None;
@@ -721,10 +762,8 @@ impl Executor<'_> {
                 if retryable && self.attempts[i].started <= bounds.retries {
                     let attempt = self.attempts[i].started;
                     self.attempts[i].earlier_s += secs;
-                    self.events.write(
-                        "stage_retry",
-                        json!({"stage": label, "key": key, "attempt": attempt, "error": message, "log": self.log_path(i), "duration_s": secs}),
-                    )?;
+                    let (error, log) = (message.clone(), self.log_path(i));
+                    self.events.write(Event::StageRetry { stage: label.clone(), key, attempt, error, log, duration_s: secs })?;
                     self.ui.say(format!("  retry    {label}  attempt {attempt} of {} ended after {secs:.1}s: {message}", bounds.retries + 1));
                     self.states[i] = State::Ready { key };
                     return Ok(());
@@ -737,10 +776,13 @@ impl Executor<'_> {
                 self.results[i] = Some((Outcome::Failed, secs));
                 self.relink_previous(i)?;
                 let log = self.log_path(i);
-                self.events.write(
-                    "stage_finished",
-                    json!({"stage": label, "status": "failed", "key": key, "error": message, "log": log, "duration_s": secs}),
-                )?;
+                self.events.write(Event::StageFinished(Finished {
+                    key: Some(key),
+                    error: Some(message.clone()),
+                    log: Some(log.clone()),
+                    duration_s: Some(secs),
+                    ..Finished::new(&label, Status::Failed)
+                }))?;
                 self.ui.say(format!("  FAILED   {label}  {secs:.1}s  {message}\n           log: {}", log.display()));
             }
         }
@@ -764,12 +806,9 @@ impl EventLog {
         Ok(EventLog { file, echo, clock: Instant::now() })
     }
 
-    fn write(&mut self, event: &str, mut data: Value) -> anyhow::Result<()> {
-        if let Value::Object(map) = &mut data {
-            map.insert("event".into(), event.into());
-            map.insert("t".into(), json!((self.clock.elapsed().as_secs_f64() * 1000.0).round() / 1000.0));
-        }
-        let line = serde_json::to_string(&data)?;
+    fn write(&mut self, event: Event) -> anyhow::Result<()> {
+        let t = (self.clock.elapsed().as_secs_f64() * 1000.0).round() / 1000.0;
+        let line = serde_json::to_string(&Logged { event, t })?;
         writeln!(self.file, "{line}")?;
         if self.echo {
             println!("{line}");

@@ -564,7 +564,9 @@ fn number_expected(defaults: &Value, path: &str) -> bool {
     let (parent, last) = path.rsplit_once('.').unwrap_or(("", path));
     match at(defaults, path) {
         Some(v) => v.is_number(),
-        None => last.parse::<usize>().is_ok() && at(defaults, parent).and_then(Value::as_array).is_some_and(|items| items.iter().all(Value::is_number)),
+        None => {
+            last.parse::<usize>().is_ok() && at(defaults, parent).and_then(Value::as_array).is_some_and(|items| items.iter().all(Value::is_number))
+        }
     }
 }
 

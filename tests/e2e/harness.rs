@@ -2,6 +2,7 @@ use std::fs;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use rlmflow_engine::event::{Event, Logged};
 use serde_json::Value;
 
 pub use rlmflow_test_support::cli::output_dir;
@@ -64,21 +65,24 @@ pub fn text(bytes: &[u8]) -> String {
     String::from_utf8_lossy(bytes).into_owned()
 }
 
-pub struct Events(pub Vec<Value>);
+/// What a `--json` run printed: each line as JSON (for the tests' own questions) and as the
+/// engine's typed event.
+pub struct Events(pub Vec<Value>, pub Vec<Event>);
 
 impl Events {
-    /// The events a `--json` run printed on `stdout`, one JSON object a line.
+    /// The events a `--json` run printed on `stdout`, one JSON object a line, each one of the
+    /// engine's [`Event`]s (what `runs` and `compare` read back).
     pub fn parse(stdout: &[u8]) -> Events {
-        Events(text(stdout).lines().map(|l| serde_json::from_str(l).expect(l)).collect())
+        let text = text(stdout);
+        let lines: Vec<&str> = text.lines().collect();
+        let typed = lines.iter().map(|l| serde_json::from_str::<Logged>(l).unwrap_or_else(|e| panic!("not an event ({e}): {l}")).event).collect();
+        Events(lines.iter().map(|l| serde_json::from_str(l).expect(l)).collect(), typed)
     }
 
     /// `stage -> status` of every `stage_finished` event, in order.
     pub fn finished(&self) -> Vec<(String, String)> {
-        self.0
-            .iter()
-            .filter(|e| e["event"] == "stage_finished")
-            .map(|e| (e["stage"].as_str().unwrap().to_owned(), e["status"].as_str().unwrap().to_owned()))
-            .collect()
+        let finished = self.1.iter().filter_map(|e| if let Event::StageFinished(f) = e { Some(f) } else { None });
+        finished.map(|f| (f.stage.clone(), f.status.as_str().to_owned())).collect()
     }
 
     pub fn status_of(&self, stage: &str) -> String {
