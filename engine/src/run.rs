@@ -70,15 +70,11 @@ struct Executor<'a> {
     /// something (`None` inside: not a git work tree).
     started: String,
     git: Option<Option<GitState>>,
-    states: Vec<State>,
-    keys: Vec<Option<Digest>>,
+    /// What the run knows of each of the plan's instances, by index.
+    instances: Vec<InstanceRun>,
     plan_dirty: bool,
     events: EventLog,
     ui: Ui,
-    /// How each finished instance ended, and its compute time: this run's when it ran, the
-    /// original computation's (which reuse saved) when reused.
-    results: Vec<Option<(Outcome, f64)>>,
-    recoveries: Vec<u32>,
     last: BTreeMap<String, Digest>,
     /// Outputs re-hashed this run (`verify_inputs`).
     verified: std::collections::BTreeSet<Digest>,
@@ -87,13 +83,23 @@ struct Executor<'a> {
     pulls: Pulls<'a>,
     /// `[pipeline] results`: a link per instance to its current output.
     links: Option<Links>,
-    /// Instances whose link points at their work in progress.
-    live_linked: std::collections::BTreeSet<usize>,
-    /// How many times each instance's action was started in this run, and the seconds its
-    /// earlier attempts took.
-    attempts: Vec<Attempts>,
     /// Which ready instance starts first ([`Plan::start_order`]).
     start_order: Vec<usize>,
+}
+
+/// What the run knows of one stage instance.
+struct InstanceRun {
+    state: State,
+    /// Its key, once its inputs are known.
+    key: Option<Digest>,
+    /// How it ended, and its compute time: this run's when it ran, the original computation's
+    /// (which reuse saved) when reused.
+    result: Option<(Outcome, f64)>,
+    /// How many times an input it found damaged was recomputed for it.
+    recoveries: u32,
+    attempts: Attempts,
+    /// Whether its results link points at its work in progress.
+    live_linked: bool,
 }
 
 /// An instance's attempts in this run.
@@ -112,8 +118,17 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
     let links = plan.pipeline.results.as_deref().map(|dir| store.links(dir)).transpose()?;
     let run = run_id();
     let events = EventLog::create(&store.run_dir(&run), opts.json)?;
-    let states = selected.iter().map(|&s| if s { State::Waiting } else { State::Excluded }).collect();
-    let n = plan.instances.len();
+    let instances = selected
+        .iter()
+        .map(|&s| InstanceRun {
+            state: if s { State::Waiting } else { State::Excluded },
+            key: None,
+            result: None,
+            recoveries: 0,
+            attempts: Attempts::default(),
+            live_linked: false,
+        })
+        .collect();
     let ui = Ui::new(opts.json);
     let dispatch = dispatcher(plan, store, &run, opts.device, opts.remote.as_ref(), &ui)?;
     let mut ex = Executor {
@@ -124,20 +139,15 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], o
         run,
         started: now_rfc3339(),
         git: None,
-        states,
-        keys: vec![None; n],
+        instances,
         plan_dirty: true,
         events,
         ui,
-        results: vec![None; n],
-        recoveries: vec![0; n],
         last: store.last_keys(&plan.pipeline.name)?,
         verified: Default::default(),
         dispatch,
-        pulls: Pulls::new(opts.remote.as_ref(), n),
+        pulls: Pulls::new(opts.remote.as_ref(), plan.instances.len()),
         links,
-        live_linked: Default::default(),
-        attempts: vec![Attempts::default(); n],
         start_order: plan.start_order(),
     };
     ex.execute()?;
@@ -178,7 +188,7 @@ impl Executor<'_> {
     fn execute(&mut self) -> anyhow::Result<()> {
         let clock = Instant::now();
         let p = self.plan.pipeline;
-        let selected = self.states.iter().filter(|s| !matches!(s, State::Excluded)).count();
+        let selected = self.instances.iter().filter(|x| !matches!(x.state, State::Excluded)).count();
         let executor = self.dispatch.describe();
         self.events.write(Event::RunStarted {
             run: self.run.clone(),
@@ -208,7 +218,7 @@ impl Executor<'_> {
             // Start what fits in the budget, the longest chains first.
             for k in 0..self.start_order.len() {
                 let i = self.start_order[k];
-                let State::Ready { key } = self.states[i] else { continue };
+                let State::Ready { key } = self.instances[i].state else { continue };
                 let op = self.registry.get(&self.plan.instances[i].operator).unwrap();
                 let wants = op.resources(&self.plan.instances[i].settings)?;
                 let threads = wants.threads.clamp(1, self.opts.jobs).min(self.dispatch.max_threads().unwrap_or(usize::MAX));
@@ -226,11 +236,11 @@ impl Executor<'_> {
                 threads_in_use += threads;
                 gpu_in_use |= wants.gpu;
                 started.insert(i, (Instant::now(), threads, wants.gpu));
-                self.states[i] = State::Running { key };
+                self.instances[i].state = State::Running { key };
                 let label = self.plan.instances[i].label.clone();
-                self.attempts[i].started += 1;
+                self.instances[i].attempts.started += 1;
                 self.note_git_state();
-                self.events.write(Event::StageStarted { stage: label.clone(), key, threads, attempt: self.attempts[i].started })?;
+                self.events.write(Event::StageStarted { stage: label.clone(), key, threads, attempt: self.instances[i].attempts.started })?;
                 bars.insert(i, self.ui.bar(&label));
                 self.start(i, exe, key, threads, wants.gpu, tx.clone())?;
             }
@@ -275,7 +285,12 @@ impl Executor<'_> {
         self.write_plan_if_dirty()?;
         let s = self.summary();
         // A fold from +0.0: an empty f64 `sum()` is -0.0, printed as "-0.0s".
-        let saved = self.results.iter().flatten().filter(|r| matches!(r.0, Outcome::Reused | Outcome::Pulled)).fold(0.0, |total, r| total + r.1);
+        let saved = self
+            .instances
+            .iter()
+            .filter_map(|x| x.result)
+            .filter(|r| matches!(r.0, Outcome::Reused | Outcome::Pulled))
+            .fold(0.0, |total, r| total + r.1);
         let wall = clock.elapsed().as_secs_f64();
         self.events.write(Event::RunFinished {
             ran: s.ran,
@@ -324,7 +339,7 @@ impl Executor<'_> {
         }
         md += "| instance | status | seconds | key | output | platform |\n|---|---|---|---|---|---|\n";
         for (i, inst) in self.plan.instances.iter().enumerate() {
-            let Some((outcome, secs)) = self.results[i] else { continue };
+            let Some((outcome, secs)) = self.instances[i].result else { continue };
             let status = match outcome {
                 Outcome::Ran => "ran",
                 Outcome::Reused => "reused",
@@ -332,9 +347,9 @@ impl Executor<'_> {
                 Outcome::Failed => "failed",
                 Outcome::Skipped => "skipped",
             };
-            let key = self.keys[i].map_or("-".to_owned(), |k| k.to_string());
-            let output = if let State::Done { output } = &self.states[i] { output.to_string() } else { "-".to_owned() };
-            let record = self.keys[i].and_then(|k| self.store.record(&k).ok().flatten());
+            let key = self.instances[i].key.map_or("-".to_owned(), |k| k.to_string());
+            let output = if let State::Done { output } = &self.instances[i].state { output.to_string() } else { "-".to_owned() };
+            let record = self.instances[i].key.and_then(|k| self.store.record(&k).ok().flatten());
             let platform = record.and_then(|r| r.preimage.platform).unwrap_or_else(|| "-".to_owned());
             md += &format!("| {} | {status} | {secs:.1} | {key} | {output} | {platform} |\n", inst.label);
         }
@@ -354,7 +369,7 @@ impl Executor<'_> {
             .iter()
             .enumerate()
             .filter(|&(i, _)| !consumed[i])
-            .filter_map(|(i, inst)| match &self.states[i] {
+            .filter_map(|(i, inst)| match &self.instances[i].state {
                 State::Done { output } => Some((inst.label.clone(), self.store.object_dir(output))),
                 _ => None,
             })
@@ -381,8 +396,8 @@ impl Executor<'_> {
 
     /// Instance `i` has its output: consumers may start, and its results link points at it.
     fn done(&mut self, i: usize, output: Digest) {
-        self.states[i] = State::Done { output };
-        self.live_linked.remove(&i);
+        self.instances[i].state = State::Done { output };
+        self.instances[i].live_linked = false;
         self.link(i, |links, entry| links.point(entry, &output));
     }
 
@@ -392,14 +407,14 @@ impl Executor<'_> {
     fn link_live(&mut self, i: usize, data: &Value) {
         let Some(dir) = data["dir"].as_str().map(Path::new).filter(|d| d.is_dir()) else { return };
         if self.link(i, |links, entry| links.point_at(entry, dir)) {
-            self.live_linked.insert(i);
+            self.instances[i].live_linked = true;
         }
     }
 
     /// A failed instance whose results entry was pointed at its work in progress points at its
     /// previous output again, where the store has one (its work directory may be gone).
     fn relink_previous(&mut self, i: usize) -> anyhow::Result<()> {
-        if !self.live_linked.remove(&i) {
+        if !std::mem::take(&mut self.instances[i].live_linked) {
             return Ok(());
         }
         let previous = self.last.get(&self.plan.instances[i].label).map(|key| self.store.fresh(key)).transpose()?.flatten();
@@ -415,7 +430,7 @@ impl Executor<'_> {
     }
 
     fn summary(&self) -> Counts {
-        let count = |o: Outcome| self.results.iter().flatten().filter(|r| r.0 == o).count();
+        let count = |o: Outcome| self.instances.iter().filter(|x| x.result.is_some_and(|r| r.0 == o)).count();
         Counts {
             ran: count(Outcome::Ran),
             reused: count(Outcome::Reused),
@@ -427,16 +442,16 @@ impl Executor<'_> {
 
     /// Moves waiting instances whose inputs are settled to ready, reused, pulling or skipped.
     fn resolve(&mut self, tx: &mpsc::Sender<(usize, Report)>) -> anyhow::Result<()> {
-        for i in 0..self.states.len() {
-            if !matches!(self.states[i], State::Waiting) {
+        for i in 0..self.instances.len() {
+            if !matches!(self.instances[i].state, State::Waiting) {
                 continue;
             }
             let inst = &self.plan.instances[i];
             let providers = inst.inputs.iter().flat_map(|input| input.providers.iter().copied());
-            if let Some(bad) = providers.clone().find(|&p| matches!(self.states[p], State::Failed | State::Skipped)) {
+            if let Some(bad) = providers.clone().find(|&p| matches!(self.instances[p].state, State::Failed | State::Skipped)) {
                 let upstream = self.plan.instances[bad].label.clone();
-                self.states[i] = State::Skipped;
-                self.results[i] = Some((Outcome::Skipped, 0.0));
+                self.instances[i].state = State::Skipped;
+                self.instances[i].result = Some((Outcome::Skipped, 0.0));
                 let label = inst.label.clone();
                 let reason = Some(format!("upstream {upstream} did not finish"));
                 self.events.write(Event::StageFinished(Finished { reason, ..Finished::new(&label, Status::Skipped) }))?;
@@ -444,18 +459,18 @@ impl Executor<'_> {
                 continue;
             }
             let outputs: Vec<Option<Digest>> =
-                self.states.iter().map(|s| if let State::Done { output } = s { Some(*output) } else { None }).collect();
+                self.instances.iter().map(|x| if let State::Done { output } = x.state { Some(output) } else { None }).collect();
             let Some(preimage) = self.plan.preimage(i, self.registry, &outputs)? else { continue };
             let key = preimage.key();
-            if self.keys[i] != Some(key) {
-                self.keys[i] = Some(key);
+            if self.instances[i].key != Some(key) {
+                self.instances[i].key = Some(key);
                 self.plan_dirty = true;
             }
             if let Some(record) = self.store.fresh(&key)?
                 && self.intact(&inst.label, &record.output)?
             {
                 self.done(i, record.output);
-                self.results[i] = Some((Outcome::Reused, record.duration_s));
+                self.instances[i].result = Some((Outcome::Reused, record.duration_s));
                 let (output, saved_s) = (Some(record.output), Some(record.duration_s));
                 self.events.write(Event::StageFinished(Finished {
                     key: Some(key),
@@ -468,7 +483,7 @@ impl Executor<'_> {
             }
             match self.pulls.ask(i, &self.ui) {
                 Ask::Now(remote) => {
-                    self.states[i] = State::Pulling { key };
+                    self.instances[i].state = State::Pulling { key };
                     self.start_pull(i, key, remote, tx.clone());
                     continue;
                 }
@@ -487,7 +502,7 @@ impl Executor<'_> {
                 continue;
             }
             self.write_request(i, key, preimage)?;
-            self.states[i] = State::Ready { key };
+            self.instances[i].state = State::Ready { key };
         }
         Ok(())
     }
@@ -509,12 +524,12 @@ impl Executor<'_> {
     /// A pull has ended: a hit finishes the instance as `pulled` (verified, in the local store);
     /// anything else sends it back to be computed here.
     fn pulled(&mut self, i: usize, pulled: Pulled) -> anyhow::Result<()> {
-        let State::Pulling { key } = self.states[i] else { unreachable!("a pull ended for an instance not pulling") };
+        let State::Pulling { key } = self.instances[i].state else { unreachable!("a pull ended for an instance not pulling") };
         let label = self.plan.instances[i].label.clone();
         if let Some(why) = self.pulls.remote(&self.ui).and_then(|r| r.newly_down()) {
             self.warn_remote_down(&why)?;
         }
-        self.states[i] = State::Waiting;
+        self.instances[i].state = State::Waiting;
         match pulled {
             Pulled::Hit { record, bytes, seconds } => {
                 self.events.write(Event::StageFinished(Finished {
@@ -527,7 +542,7 @@ impl Executor<'_> {
                 }))?;
                 self.ui.say(format!("  pulled   {label}  {:.1} MB in {seconds:.1}s ({:.1}s saved)", bytes as f64 / 1e6, record.duration_s));
                 self.done(i, record.output);
-                self.results[i] = Some((Outcome::Pulled, record.duration_s));
+                self.instances[i].result = Some((Outcome::Pulled, record.duration_s));
             }
             Pulled::Miss => {}
             Pulled::Corrupt { why } => {
@@ -622,12 +637,12 @@ impl Executor<'_> {
             .instances
             .iter()
             .enumerate()
-            .filter(|(i, _)| !matches!(self.states[*i], State::Excluded))
+            .filter(|(i, _)| !matches!(self.instances[*i].state, State::Excluded))
             .map(|(i, inst)| PlanEntry {
                 label: inst.label.clone(),
                 stage: self.plan.pipeline.stages[inst.stage].name.clone(),
                 assignment: inst.assignment.clone(),
-                key: self.keys[i],
+                key: self.instances[i].key,
             })
             .collect();
         let overrides = self.plan.pipeline.overrides.iter().map(|o| o.shown()).collect();
@@ -641,7 +656,7 @@ impl Executor<'_> {
         })?;
         // Recorded as soon as known, so a killed run still tells `status` what it was doing.
         let resolved: BTreeMap<String, Digest> =
-            self.keys.iter().enumerate().filter_map(|(i, k)| k.map(|k| (self.plan.instances[i].label.clone(), k))).collect();
+            self.instances.iter().enumerate().filter_map(|(i, x)| x.key.map(|k| (self.plan.instances[i].label.clone(), k))).collect();
         self.store.update_last_keys(&self.plan.pipeline.name, &resolved)?;
         self.plan_dirty = false;
         Ok(())
@@ -660,7 +675,7 @@ impl Executor<'_> {
 
     fn log_path(&self, i: usize) -> PathBuf {
         let label = file_safe(&self.plan.instances[i].label);
-        let name = match self.attempts[i].started {
+        let name = match self.instances[i].attempts.started {
             0 | 1 => format!("{label}.log"),
             n => format!("{label}.attempt-{n}.log"),
         };
@@ -684,8 +699,8 @@ impl Executor<'_> {
     /// whose process failed: its dependants are skipped, independent branches go on.
     fn fail_unstarted(&mut self, i: usize, key: Digest, message: String) -> anyhow::Result<()> {
         let label = self.plan.instances[i].label.clone();
-        self.states[i] = State::Failed;
-        self.results[i] = Some((Outcome::Failed, 0.0));
+        self.instances[i].state = State::Failed;
+        self.instances[i].result = Some((Outcome::Failed, 0.0));
         let (error, duration_s) = (Some(message.clone()), Some(0.0));
         self.events.write(Event::StageFinished(Finished { key: Some(key), error, duration_s, ..Finished::new(&label, Status::Failed) }))?;
         self.ui.say(format!("  FAILED   {label}  {message}"));
@@ -694,7 +709,7 @@ impl Executor<'_> {
 
     fn finish(&mut self, i: usize, exit: Exit, outcome: Option<Message>, secs: f64) -> anyhow::Result<()> {
         let label = self.plan.instances[i].label.clone();
-        let State::Running { key } = self.states[i] else { unreachable!("finished a stage that was not running") };
+        let State::Running { key } = self.instances[i].state else { unreachable!("finished a stage that was not running") };
         let code = exit.code();
         match outcome {
             Some(Message::Done { .. } | Message::Reused) if code == Some(0) => {
@@ -703,9 +718,9 @@ impl Executor<'_> {
                 self.done(i, record.output);
                 let status = if reused { Status::Reused } else { Status::Ran };
                 // Every attempt's time: a stage that ran on its third attempt took all three.
-                let Attempts { started, earlier_s } = self.attempts[i];
+                let Attempts { started, earlier_s } = self.instances[i].attempts;
                 let total = earlier_s + secs;
-                self.results[i] = Some(if reused { (Outcome::Reused, record.duration_s) } else { (Outcome::Ran, total) });
+                self.instances[i].result = Some(if reused { (Outcome::Reused, record.duration_s) } else { (Outcome::Ran, total) });
                 self.events.write(Event::StageFinished(Finished {
                     key: Some(key),
                     output: Some(record.output),
@@ -721,10 +736,10 @@ impl Executor<'_> {
                 self.ui.say(format!("  {:<8} {label}  {time}  {note}", status.as_str()));
                 self.push(&label, &record)?;
             }
-            Some(Message::CorruptInput { digest, files }) if code == Some(EXIT_CORRUPT_INPUT) && self.recoveries[i] < 2 => {
-                self.recoveries[i] += 1;
+            Some(Message::CorruptInput { digest, files }) if code == Some(EXIT_CORRUPT_INPUT) && self.instances[i].recoveries < 2 => {
+                self.instances[i].recoveries += 1;
                 let producers: Vec<usize> =
-                    (0..self.states.len()).filter(|&j| matches!(self.states[j], State::Done { output } if output == digest)).collect();
+                    (0..self.instances.len()).filter(|&j| matches!(self.instances[j].state, State::Done { output } if output == digest)).collect();
                 let names: Vec<&str> = producers.iter().map(|&j| self.plan.instances[j].label.as_str()).collect();
                 self.ui.say(format!(
                     "  corrupt  {label}: input {} failed verification ({}); quarantined, recomputing {}",
@@ -739,10 +754,10 @@ impl Executor<'_> {
                     recompute: names.iter().map(|n| n.to_string()).collect(),
                 })?;
                 for j in producers {
-                    self.states[j] = State::Waiting;
-                    self.results[j] = None;
+                    self.instances[j].state = State::Waiting;
+                    self.instances[j].result = None;
                 }
-                self.states[i] = State::Waiting;
+                self.instances[i].state = State::Waiting;
             }
             other => {
                 // A setting's error or a corrupt input would fail the same way again.
@@ -758,22 +773,22 @@ impl Executor<'_> {
                     _ => exit.describe(),
                 };
                 let bounds = self.bounds(i);
-                self.note_in_log(i, &format!("attempt {} ended after {secs:.1} s: {message}", self.attempts[i].started));
-                if retryable && self.attempts[i].started <= bounds.retries {
-                    let attempt = self.attempts[i].started;
-                    self.attempts[i].earlier_s += secs;
+                self.note_in_log(i, &format!("attempt {} ended after {secs:.1} s: {message}", self.instances[i].attempts.started));
+                if retryable && self.instances[i].attempts.started <= bounds.retries {
+                    let attempt = self.instances[i].attempts.started;
+                    self.instances[i].attempts.earlier_s += secs;
                     let (error, log) = (message.clone(), self.log_path(i));
                     self.events.write(Event::StageRetry { stage: label.clone(), key, attempt, error, log, duration_s: secs })?;
                     self.ui.say(format!("  retry    {label}  attempt {attempt} of {} ended after {secs:.1}s: {message}", bounds.retries + 1));
-                    self.states[i] = State::Ready { key };
+                    self.instances[i].state = State::Ready { key };
                     return Ok(());
                 }
-                let message = match self.attempts[i].started {
+                let message = match self.instances[i].attempts.started {
                     n if n > 1 => format!("{message}, on attempt {n} of {n} (`retries = {}`)", bounds.retries),
                     _ => message,
                 };
-                self.states[i] = State::Failed;
-                self.results[i] = Some((Outcome::Failed, secs));
+                self.instances[i].state = State::Failed;
+                self.instances[i].result = Some((Outcome::Failed, secs));
                 self.relink_previous(i)?;
                 let log = self.log_path(i);
                 self.events.write(Event::StageFinished(Finished {
