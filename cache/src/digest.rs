@@ -48,10 +48,22 @@ impl fmt::Debug for Digest {
     }
 }
 
+/// Text that is not a digest: what [`Digest::from_str`] was given.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NotADigest(pub String);
+
+impl fmt::Display for NotADigest {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "`{}` is not a digest (64 hex digits)", self.0)
+    }
+}
+
+impl std::error::Error for NotADigest {}
+
 impl FromStr for Digest {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Digest, String> {
-        let bad = || format!("`{s}` is not a digest (64 hex digits)");
+    type Err = NotADigest;
+    fn from_str(s: &str) -> Result<Digest, NotADigest> {
+        let bad = || NotADigest(s.to_owned());
         if s.len() != 64 {
             return Err(bad());
         }

@@ -53,7 +53,7 @@ mod store;
 mod tree;
 mod verify;
 
-pub use digest::Digest;
+pub use digest::{Digest, NotADigest};
 pub use gc::GcReport;
 pub use links::Links;
 pub use lock::Lock;

@@ -12,7 +12,7 @@ use std::time::Instant;
 use anyhow::Context as _;
 use indicatif::ProgressBar;
 use rlmflow_cache::{ActionRecord, Digest, GitState, Links, PlanEntry, Preimage, RunPlan, Store, file_safe, now_rfc3339, run_id};
-use rlmflow_remote::{Pulled, Remote};
+use rlmflow_remote::{Pulled, Remote, RemoteError};
 use rlmflow_stages::{Device, LIVE_EVENT, Registry};
 use serde_json::Value;
 
@@ -526,9 +526,6 @@ impl Executor<'_> {
     fn pulled(&mut self, i: usize, pulled: Pulled) -> anyhow::Result<()> {
         let State::Pulling { key } = self.instances[i].state else { unreachable!("a pull ended for an instance not pulling") };
         let label = self.plan.instances[i].label.clone();
-        if let Some(why) = self.pulls.remote(&self.ui).and_then(|r| r.newly_down()) {
-            self.warn_remote_down(&why)?;
-        }
         self.instances[i].state = State::Waiting;
         match pulled {
             Pulled::Hit { record, bytes, seconds } => {
@@ -545,6 +542,12 @@ impl Executor<'_> {
                 self.instances[i].result = Some((Outcome::Pulled, record.duration_s));
             }
             Pulled::Miss => {}
+            // Told once: every pull after the first failure answers with it at once.
+            Pulled::Unreachable(why) => {
+                if self.pulls.remote(&self.ui).is_some_and(|r| r.newly_down().is_some()) {
+                    self.warn_remote_down(&why)?;
+                }
+            }
             Pulled::Corrupt { why } => {
                 self.events.write(Event::RemoteCorrupt { stage: label.clone(), key, why: why.clone() })?;
                 self.ui.say(format!("  warning  {label}: the remote cache's copy is corrupt ({why}); not used, recomputing"));
@@ -560,9 +563,9 @@ impl Executor<'_> {
         Ok(())
     }
 
-    fn warn_remote_down(&mut self, why: &str) -> anyhow::Result<()> {
+    fn warn_remote_down(&mut self, why: &RemoteError) -> anyhow::Result<()> {
         let url = self.pulls.remote(&self.ui).map(|r| r.url().to_owned()).unwrap_or_default();
-        self.events.write(Event::RemoteDown { remote: url.clone(), why: why.to_owned() })?;
+        self.events.write(Event::RemoteDown { remote: url.clone(), why: why.to_string() })?;
         self.ui.say(format!("  warning  remote cache {url} not used for the rest of the run: {why}"));
         Ok(())
     }

@@ -46,7 +46,7 @@ pub fn exec_task(store: Option<&Path>, key: Digest, threads: usize, device: Devi
     let mut transcript = Transcript::default();
     let code = run_task(&store, &cache, &request, threads, device, remote.replace, &mut transcript)?;
     if !cache.put_transcript(&remote.transcript, transcript.text()) {
-        eprintln!("warning: could not write the transcript to {}: {}", remote.url, cache.down().unwrap_or_default());
+        eprintln!("warning: could not write the transcript to {}: {}", remote.url, cache.down().map(|e| e.to_string()).unwrap_or_default());
     }
     drop(temporary);
     Ok(code)
@@ -66,7 +66,8 @@ fn run_task(
         use rlmflow_remote::Fetched;
         let why = match cache.fetch_object(store, &input.digest, &mut |_, _| {})? {
             Fetched::Present | Fetched::Downloaded(_) => continue,
-            Fetched::Missing => cache.down().unwrap_or_else(|| "the remote cache does not have it".into()),
+            Fetched::Missing => "the remote cache does not have it".into(),
+            Fetched::Unreachable(e) => e.to_string(),
             Fetched::Corrupt(why) => why,
         };
         transcript.line(format!("rlmflow task: input {} could not be fetched: {why}", input.digest.short()));
@@ -105,7 +106,7 @@ fn run_task(
     }
     let record = store.fresh(&key)?.context("the action finished without a record")?;
     if cache.push(store, &record, replace, &mut |_, _| {})?.is_none() {
-        let why = cache.down().unwrap_or_default();
+        let why = cache.down().map(|e| e.to_string()).unwrap_or_default();
         transcript
             .send(&Message::Failed { message: format!("computed, but the result could not be pushed to the remote cache ({why})"), setting: None });
         return Ok(1);

@@ -53,7 +53,7 @@ pub struct Remote {
     /// Whether this client uploads.
     pub push: bool,
     /// Why the remote stopped being used, once a request failed.
-    down: Mutex<Option<String>>,
+    down: Mutex<Option<RemoteError>>,
     /// Whether [`Remote::newly_down`] has told it.
     told: AtomicBool,
     /// The keys whose signatures make a record usable (none: every record is, unverified).
@@ -64,6 +64,35 @@ pub struct Remote {
     parts: bool,
 }
 
+/// Why a request to the remote failed: the first one marks the remote down for the process
+/// ([`Remote::down`]), and every later request answers with it at once.
+#[derive(Clone, Debug, PartialEq)]
+pub enum RemoteError {
+    /// Nothing crossed the link for `timeout` while `doing` it; `cut`: the kernel closed the
+    /// connection (its unacknowledged bytes waited that long), else the wait ran out.
+    Stalled { doing: String, timeout: Duration, cut: bool },
+    /// The request failed while `doing` it; `message` is the client's or the server's.
+    Failed { doing: String, message: String },
+}
+
+impl std::fmt::Display for RemoteError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RemoteError::Stalled { doing, timeout, cut } => {
+                write!(
+                    f,
+                    "{doing}: nothing arrived or left for {:.0} s{}",
+                    timeout.as_secs_f64(),
+                    if *cut { " (the connection was cut)" } else { "" }
+                )
+            }
+            RemoteError::Failed { doing, message } => write!(f, "{doing}: {message}"),
+        }
+    }
+}
+
+impl std::error::Error for RemoteError {}
+
 /// Whether [`Remote::fetch_object`] found an artifact.
 pub enum Fetched {
     /// The local store had it already.
@@ -71,6 +100,8 @@ pub enum Fetched {
     /// Downloaded (this many bytes), verified and committed.
     Downloaded(u64),
     Missing,
+    /// The remote is down (this request failed, or an earlier one did).
+    Unreachable(RemoteError),
     /// The remote's copy is not that digest's (`why`); nothing entered the store.
     Corrupt(String),
 }
@@ -96,6 +127,8 @@ pub enum Pulled {
         seconds: f64,
     },
     Miss,
+    /// The remote is down (this request failed, or an earlier one did).
+    Unreachable(RemoteError),
     /// The remote's artifact is not the one its record names (`why`); nothing entered the store.
     Corrupt {
         why: String,
@@ -275,18 +308,18 @@ impl Remote {
     }
 
     /// Why the remote is no longer asked, if a request failed.
-    pub fn down(&self) -> Option<String> {
+    pub fn down(&self) -> Option<RemoteError> {
         self.down.lock().unwrap().clone()
     }
 
     /// Why the remote went down, the first time it is asked after it did: a caller warns once.
-    pub fn newly_down(&self) -> Option<String> {
+    pub fn newly_down(&self) -> Option<RemoteError> {
         self.down().filter(|_| !self.told.swap(true, Ordering::Relaxed))
     }
 
     /// Runs one request until it ends or waits for its next bytes longer than the timeout; the
     /// first failure marks the remote down.
-    fn call<T>(&self, what: &str, request: impl Future<Output = object_store::Result<T>>) -> Result<Option<T>, ()> {
+    fn call<T>(&self, what: &str, request: impl Future<Output = object_store::Result<T>>) -> Result<Option<T>, RemoteError> {
         self.watched(what, &Watch::new(), request, &mut |_| {})
     }
 
@@ -298,20 +331,19 @@ impl Remote {
         watch: &Arc<Watch>,
         request: impl Future<Output = object_store::Result<T>>,
         tick: &mut dyn FnMut(&Watch),
-    ) -> Result<Option<T>, ()> {
-        if self.down().is_some() {
-            return Err(());
+    ) -> Result<Option<T>, RemoteError> {
+        if let Some(down) = self.down() {
+            return Err(down);
         }
-        let stalled = || format!("{what}: nothing arrived or left for {:.0} s", self.timeout.as_secs_f64());
+        let (doing, timeout) = (what.to_owned(), self.timeout);
         let why = match self.runtime.block_on(link::bounded(watch, self.timeout, request, tick)) {
             Some(Ok(value)) => return Ok(Some(value)),
             Some(Err(object_store::Error::NotFound { .. })) => return Ok(None),
-            Some(Err(e)) if link::cut_by_the_kernel(&e) => format!("{} (the connection was cut)", stalled()),
-            Some(Err(e)) => format!("{what}: {e}"),
-            None => stalled(),
+            Some(Err(e)) if link::cut_by_the_kernel(&e) => RemoteError::Stalled { doing, timeout, cut: true },
+            Some(Err(e)) => RemoteError::Failed { doing, message: e.to_string() },
+            None => RemoteError::Stalled { doing, timeout, cut: false },
         };
-        self.down.lock().unwrap().get_or_insert(why);
-        Err(())
+        Err(self.down.lock().unwrap().get_or_insert(why).clone())
     }
 
     /// The whole body of `key` if it is at most `limit` bytes: `None` when it is absent or the
@@ -400,7 +432,7 @@ impl Remote {
     ) -> anyhow::Result<Pulled> {
         let clock = Instant::now();
         let mut record = match self.record(key) {
-            None => return Ok(Pulled::Miss),
+            None => return Ok(self.down().map_or(Pulled::Miss, Pulled::Unreachable)),
             Some(Ok(r)) if r.key == *key && r.preimage.key() == *key => r,
             Some(Ok(_)) => return Ok(Pulled::Corrupt { why: format!("the record of {} is not that key's", key.short()) }),
             Some(Err(why)) => return Ok(Pulled::Corrupt { why }),
@@ -414,6 +446,7 @@ impl Remote {
             Fetched::Present => 0,
             Fetched::Downloaded(bytes) => bytes,
             Fetched::Missing => return Ok(Pulled::Miss),
+            Fetched::Unreachable(e) => return Ok(Pulled::Unreachable(e)),
             Fetched::Corrupt(why) => return Ok(Pulled::Corrupt { why }),
         };
         store.write_record(&record)?;
@@ -464,7 +497,7 @@ impl Remote {
                     Some(Streamed::TooLarge(size)) => {
                         Fetched::Corrupt(format!("its artifact's tar has {size} bytes, more than its record's files could take ({limit})"))
                     }
-                    _ => Fetched::Missing,
+                    _ => self.down().map_or(Fetched::Missing, Fetched::Unreachable),
                 });
             }
         };

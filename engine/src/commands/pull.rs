@@ -59,9 +59,7 @@ fn pull(
             rlmflow_remote::Pulled::Miss => println!("  missing  {}", inst.label),
             rlmflow_remote::Pulled::Corrupt { why } => println!("  corrupt  {}  the remote's copy is not used: {why}", inst.label),
             rlmflow_remote::Pulled::Untrusted { why } => println!("  untrusted {}  the remote's record is not used: {why}", inst.label),
-        }
-        if let Some(why) = remote.down() {
-            bail!("remote cache {}: {why}", remote.url());
+            rlmflow_remote::Pulled::Unreachable(why) => bail!("remote cache {}: {why}", remote.url()),
         }
     }
     Ok((pulled, bytes))

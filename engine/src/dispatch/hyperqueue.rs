@@ -375,7 +375,7 @@ impl OwnTask {
         let request = engine.request(&launch.key)?.with_context(|| format!("the store has no request for action {}", launch.key))?;
         for input in &request.preimage.inputs {
             if remote.push_object(&engine, &input.digest, false, &mut |_, _| {})?.is_none() {
-                let why = remote.down().unwrap_or_default();
+                let why = remote.down().map(|e| e.to_string()).unwrap_or_default();
                 return Ok(Err(Exit::Lost(format!("could not hand input {} to the workers through the remote cache: {why}", input.digest.short()))));
             }
         }
@@ -433,7 +433,8 @@ impl OwnTask {
             // The engine's own task's result: its type is the operator's own business here.
             let why = match self.remote.pull(&self.engine, &self.key, &|_| Ok(()), &mut |_, _| {})? {
                 rlmflow_remote::Pulled::Hit { .. } => None,
-                rlmflow_remote::Pulled::Miss => Some(self.remote.down().unwrap_or_else(|| "the remote cache does not have it".into())),
+                rlmflow_remote::Pulled::Miss => Some("the remote cache does not have it".into()),
+                rlmflow_remote::Pulled::Unreachable(e) => Some(e.to_string()),
                 rlmflow_remote::Pulled::Corrupt { why } | rlmflow_remote::Pulled::Untrusted { why } => Some(why),
             };
             if let Some(why) = why {

@@ -5,9 +5,6 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-/// Operator directories that hold libraries every family may use, not a family of their own.
-const SHARED: [&str; 2] = ["nn", "radar"];
-
 fn cargo(root: &Path, args: &[&str]) -> String {
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     let out = Command::new(cargo).current_dir(root).args(args).output().expect("running cargo");
@@ -39,16 +36,19 @@ pub fn members(root: &Path) -> Vec<(String, PathBuf, Vec<String>)> {
         .collect()
 }
 
-/// The operator family a crate belongs to (`operators/<family>/...`), `None` for a crate outside
-/// `operators/` or in a shared library there.
-fn family(operators: &Path, dir: &Path) -> Option<String> {
-    let family = dir.strip_prefix(operators).ok()?.components().next()?.as_os_str().to_str()?.to_owned();
-    (!SHARED.contains(&family.as_str())).then_some(family)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Operator directories that hold libraries every family may use, not a family of their own.
+    const SHARED: [&str; 2] = ["nn", "radar"];
+
+    /// The operator family a crate belongs to (`operators/<family>/...`), `None` for a crate outside
+    /// `operators/` or in a shared library there.
+    fn family(operators: &Path, dir: &Path) -> Option<String> {
+        let family = dir.strip_prefix(operators).ok()?.components().next()?.as_os_str().to_str()?.to_owned();
+        (!SHARED.contains(&family.as_str())).then_some(family)
+    }
 
     /// `rlmflow` never links libtorch and `rlmflow-torch` never embeds Python; the engine depends
     /// on no operator crate; an operator family depends on `stages` and the shared libraries,
