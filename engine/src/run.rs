@@ -544,7 +544,7 @@ impl Executor<'_> {
             Pulled::Miss => {}
             // Told once: every pull after the first failure answers with it at once.
             Pulled::Unreachable(why) => {
-                if self.pulls.remote(&self.ui).is_some_and(|r| r.newly_down().is_some()) {
+                if self.pulls.remote(&self.ui).is_some_and(|r| r.newly_down()) {
                     self.warn_remote_down(&why)?;
                 }
             }
@@ -578,22 +578,23 @@ impl Executor<'_> {
         let mut bar = self.ui.transfer(label, "pushing");
         let pushed = remote.push(self.store, record, replace, &mut |done, total| bar.moved(done, total))?;
         drop(bar);
-        if let Some(why) = remote.newly_down() {
-            return self.warn_remote_down(&why);
+        let pushed = match pushed {
+            Ok(pushed) => pushed,
+            // Told once: every request after the first failure answers with it at once.
+            Err(why) if remote.newly_down() => return self.warn_remote_down(&why),
+            Err(_) => return Ok(()),
+        };
+        if let Some(why) = &pushed.refused {
+            self.events.write(Event::PushRefused { stage: label.to_owned(), key: record.key, why: why.clone() })?;
+            self.ui.say(format!("  warning  {label}: {why}"));
+            return Ok(());
         }
-        if let Some(pushed) = pushed {
-            if let Some(why) = &pushed.refused {
-                self.events.write(Event::PushRefused { stage: label.to_owned(), key: record.key, why: why.clone() })?;
-                self.ui.say(format!("  warning  {label}: {why}"));
-                return Ok(());
-            }
-            if let Some(why) = &pushed.disagrees {
-                self.events.write(Event::RemoteDisagrees { stage: label.to_owned(), key: record.key, output: record.output, why: why.clone() })?;
-                self.ui.say(format!("  WARNING  {label}: {why}"));
-            }
-            let seconds = clock.elapsed().as_secs_f64();
-            self.events.write(Event::Pushed { stage: label.to_owned(), key: record.key, bytes: pushed.bytes, seconds })?;
+        if let Some(why) = &pushed.disagrees {
+            self.events.write(Event::RemoteDisagrees { stage: label.to_owned(), key: record.key, output: record.output, why: why.clone() })?;
+            self.ui.say(format!("  WARNING  {label}: {why}"));
         }
+        let seconds = clock.elapsed().as_secs_f64();
+        self.events.write(Event::Pushed { stage: label.to_owned(), key: record.key, bytes: pushed.bytes, seconds })?;
         Ok(())
     }
 

@@ -105,8 +105,7 @@ fn run_task(
         return Ok(code);
     }
     let record = store.fresh(&key)?.context("the action finished without a record")?;
-    if cache.push(store, &record, replace, &mut |_, _| {})?.is_none() {
-        let why = cache.down().map(|e| e.to_string()).unwrap_or_default();
+    if let Err(why) = cache.push(store, &record, replace, &mut |_, _| {})? {
         transcript
             .send(&Message::Failed { message: format!("computed, but the result could not be pushed to the remote cache ({why})"), setting: None });
         return Ok(1);

@@ -73,6 +73,8 @@ pub enum RemoteError {
     Stalled { doing: String, timeout: Duration, cut: bool },
     /// The request failed while `doing` it; `message` is the client's or the server's.
     Failed { doing: String, message: String },
+    /// An upload asked of a client not made with `push`.
+    ReadOnly,
 }
 
 impl std::fmt::Display for RemoteError {
@@ -87,6 +89,7 @@ impl std::fmt::Display for RemoteError {
                 )
             }
             RemoteError::Failed { doing, message } => write!(f, "{doing}: {message}"),
+            RemoteError::ReadOnly => write!(f, "this client does not push"),
         }
     }
 }
@@ -312,9 +315,10 @@ impl Remote {
         self.down.lock().unwrap().clone()
     }
 
-    /// Why the remote went down, the first time it is asked after it did: a caller warns once.
-    pub fn newly_down(&self) -> Option<RemoteError> {
-        self.down().filter(|_| !self.told.swap(true, Ordering::Relaxed))
+    /// Whether the remote is down and no caller was told yet (this one is now): a caller warns
+    /// once, though every request after the first failure answers with it.
+    pub fn newly_down(&self) -> bool {
+        self.down().is_some() && !self.told.swap(true, Ordering::Relaxed)
     }
 
     /// Runs one request until it ends or waits for its next bytes longer than the timeout; the
@@ -529,20 +533,32 @@ impl Remote {
     /// Uploads `record` and its artifact from `store`: the object unless the remote has it (or
     /// `replace`: it is known corrupt or untrusted), then the record unless the remote has one.
     /// A record already there that names another output is reported, not overwritten; one that
-    /// agrees but lacks this client's signature gets it. `Ok(None)` when the remote is down or
-    /// this client does not push. `progress` hears the artifact's bytes as they leave.
-    pub fn push(&self, store: &Store, record: &ActionRecord, replace: bool, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Option<Pushed>> {
+    /// agrees but lacks this client's signature gets it. The inner error when the remote is down
+    /// or this client does not push. `progress` hears the artifact's bytes as they leave.
+    pub fn push(
+        &self,
+        store: &Store,
+        record: &ActionRecord,
+        replace: bool,
+        progress: &mut dyn FnMut(u64, u64),
+    ) -> anyhow::Result<Result<Pushed, RemoteError>> {
         // Where this store got it is this store's business, not the remote's readers'.
         let record = &ActionRecord { pulled: None, ..record.clone() };
         let signed = self.signer.as_ref().map(|key| key.sign(record));
         let body = serde_json::to_vec_pretty(signed.as_ref().unwrap_or(record))?;
         if body.len() as u64 > MAX_RECORD_BYTES {
             let why = format!("its record has {} bytes; readers take records of at most {MAX_RECORD_BYTES}, so it is not pushed", body.len());
-            return Ok(Some(Pushed { bytes: 0, disagrees: None, refused: Some(why) }));
+            return Ok(Ok(Pushed { bytes: 0, disagrees: None, refused: Some(why) }));
         }
-        let Some(mut bytes) = self.push_object(store, &record.output, replace, progress)? else { return Ok(None) };
+        let mut bytes = match self.push_object(store, &record.output, replace, progress)? {
+            Ok(bytes) => bytes,
+            Err(e) => return Ok(Err(e)),
+        };
         let key = Self::record_key(&record.key);
-        let Ok(present) = self.call("checking a record", self.objects.head(&key)) else { return Ok(None) };
+        let present = match self.call("checking a record", self.objects.head(&key)) {
+            Ok(present) => present,
+            Err(e) => return Ok(Err(e)),
+        };
         let mut write = present.is_none() || replace;
         let mut disagrees = None;
         if !write {
@@ -565,24 +581,32 @@ impl Remote {
         }
         if write {
             bytes += body.len() as u64;
-            if self.call("uploading a record", self.objects.put(&key, PutPayload::from(body))).is_err() {
-                return Ok(None);
+            if let Err(e) = self.call("uploading a record", self.objects.put(&key, PutPayload::from(body))) {
+                return Ok(Err(e));
             }
         }
-        Ok(Some(Pushed { bytes, disagrees, refused: None }))
+        Ok(Ok(Pushed { bytes, disagrees, refused: None }))
     }
 
     /// Uploads the artifact `digest` from `store` unless the remote has it (or `replace`): what
-    /// the engine does for a cluster task's inputs. Returns the bytes uploaded; `Ok(None)` when
-    /// the remote is down or this client does not push. `progress` hears the bytes as they leave.
-    pub fn push_object(&self, store: &Store, digest: &Digest, replace: bool, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Option<u64>> {
+    /// the engine does for a cluster task's inputs. Returns the bytes uploaded, or the inner
+    /// error when the remote is down or this client does not push. `progress` hears the bytes as
+    /// they leave.
+    pub fn push_object(
+        &self,
+        store: &Store,
+        digest: &Digest,
+        replace: bool,
+        progress: &mut dyn FnMut(u64, u64),
+    ) -> anyhow::Result<Result<u64, RemoteError>> {
         if !self.push {
-            return Ok(None);
+            return Ok(Err(RemoteError::ReadOnly));
         }
         let object = Self::object_key(digest);
-        let Ok(present) = self.call("checking an object", self.objects.head(&object)) else { return Ok(None) };
-        if present.is_some() && !replace {
-            return Ok(Some(0));
+        match self.call("checking an object", self.objects.head(&object)) {
+            Ok(Some(_)) if !replace => return Ok(Ok(0)),
+            Err(e) => return Ok(Err(e)),
+            Ok(_) => {}
         }
         // Packed into a file in a work directory of the store's `tmp/`, then sent from it; the
         // digest's lock keeps another process's sweep of `tmp/` off it meanwhile.
@@ -592,14 +616,14 @@ impl Remote {
         let sent = pack(&store.object_dir(digest), &tar_path).and_then(|size| Ok((size, self.upload(&object, &tar_path, size, progress)?)));
         remove_dir(&work);
         let (size, uploaded) = sent?;
-        Ok(uploaded.then_some(size))
+        Ok(uploaded.map(|()| size))
     }
 
     /// Sends the file at `path` (`size` bytes) as `key`: in parts of [`PART`] where the remote
     /// takes parts (S3, a directory) and the file is larger than one, so neither memory nor one
     /// request holds all of it. The timeout bounds the wait for the link to take the next bytes;
-    /// `progress` hears the bytes sent. `false` when the remote went down.
-    fn upload(&self, key: &Key, path: &Path, size: u64, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<bool> {
+    /// `progress` hears the bytes sent. The inner error when the remote went down.
+    fn upload(&self, key: &Key, path: &Path, size: u64, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Result<(), RemoteError>> {
         use std::io::Read as _;
         let mut file = std::fs::File::open(path).with_context(|| format!("reading {}", path.display()))?;
         let watch = Watch::new();
@@ -608,13 +632,17 @@ impl Remote {
             let mut body = Vec::with_capacity(size as usize);
             file.read_to_end(&mut body)?;
             let put = self.objects.put(key, PutPayload::from(body));
-            let sent = self.watched("uploading an object", &watch, put, &mut |w| progress(w.sent().min(size), size)).is_ok();
-            if sent {
+            let sent = self.watched("uploading an object", &watch, put, &mut |w| progress(w.sent().min(size), size)).map(|_| ());
+            if sent.is_ok() {
                 progress(size, size);
             }
             return Ok(sent);
         }
-        let Ok(Some(mut upload)) = self.call("starting an upload", self.objects.put_multipart(key)) else { return Ok(false) };
+        let mut upload = match self.call("starting an upload", self.objects.put_multipart(key)) {
+            Ok(Some(upload)) => upload,
+            Ok(None) => return Ok(Err(RemoteError::Failed { doing: "starting an upload".into(), message: "the remote answered: not found".into() })),
+            Err(e) => return Ok(Err(e)),
+        };
         let mut part = vec![0u8; PART];
         let mut parts_done = 0u64;
         loop {
@@ -629,14 +657,14 @@ impl Remote {
                 break;
             }
             let put = upload.put_part(PutPayload::from(part[..filled].to_vec()));
-            if self.watched("uploading a part", &watch, put, &mut |w| progress(parts_done.max(w.sent()).min(size), size)).is_err() {
+            if let Err(e) = self.watched("uploading a part", &watch, put, &mut |w| progress(parts_done.max(w.sent()).min(size), size)) {
                 let _ = self.runtime.block_on(link::bounded(&Watch::new(), self.timeout, upload.abort(), &mut |_| {}));
-                return Ok(false);
+                return Ok(Err(e));
             }
             parts_done += filled as u64;
             progress(parts_done, size);
         }
-        Ok(self.call("finishing an upload", upload.complete()).is_ok())
+        Ok(self.call("finishing an upload", upload.complete()).map(|_| ()))
     }
 
     /// Writes a cluster task's transcript (its protocol lines and other output) under
@@ -748,7 +776,7 @@ mod tests {
         std::fs::write(dir.join("data.bin"), vec![7u8; 100_000]).unwrap();
         let digest = a.commit_tree(&dir).unwrap().digest;
         let remote = Remote::open(&format!("file://{}", root.join("remote").display()), true, Duration::from_secs(5)).unwrap();
-        assert!(remote.push_object(&a, &digest, false, &mut |_, _| {}).unwrap().is_some());
+        assert!(remote.push_object(&a, &digest, false, &mut |_, _| {}).unwrap().is_ok());
         let mut heard = Vec::new();
         assert!(matches!(remote.fetch_object(&b, &digest, &mut |done, total| heard.push((done, total))).unwrap(), Fetched::Downloaded(_)));
         assert!(heard.len() > 1, "more than one chunk: {heard:?}");
@@ -771,7 +799,7 @@ mod tests {
         std::fs::write(dir.join("data.bin"), vec![1u8; 1000]).unwrap();
         let digest = a.commit_tree(&dir).unwrap().digest;
         let remote = Remote::open(&format!("file://{}", root.join("remote").display()), true, Duration::from_secs(5)).unwrap();
-        assert!(remote.push_object(&a, &digest, false, &mut |_, _| {}).unwrap().is_some());
+        assert!(remote.push_object(&a, &digest, false, &mut |_, _| {}).unwrap().is_ok());
         let object = root.join("remote").join(format!("cas/{}.tar", digest.hex()));
         let refused = |tar: Vec<u8>| -> String {
             std::fs::write(&object, tar).unwrap();

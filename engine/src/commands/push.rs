@@ -2,7 +2,7 @@
 
 use std::process::ExitCode;
 
-use anyhow::{Context as _, bail};
+use anyhow::Context as _;
 use rlmflow_stages::{Device, Registry};
 
 use super::{Transfer, open_remote, ran_store};
@@ -26,17 +26,15 @@ pub(crate) fn exec(args: Transfer, registry: &Registry) -> anyhow::Result<ExitCo
         let mut bar = ui.transfer(&plan.instances[i].label, "pushing");
         let sent = remote.push(&store, record, false, &mut |done, total| bar.moved(done, total))?;
         drop(bar);
-        if let Some(why) = remote.down() {
-            bail!("remote cache {}: {why}", remote.url());
-        }
-        if let Some(why) = sent.as_ref().and_then(|p| p.disagrees.as_ref()) {
+        let sent = sent.map_err(|why| anyhow::anyhow!("remote cache {}: {why}", remote.url()))?;
+        if let Some(why) = &sent.disagrees {
             println!("  WARNING  {}: {why}", plan.instances[i].label);
         }
-        if let Some(why) = sent.as_ref().and_then(|p| p.refused.as_ref()) {
+        if let Some(why) = &sent.refused {
             println!("  warning  {}: {why}", plan.instances[i].label);
             continue;
         }
-        let sent = sent.map_or(0, |p| p.bytes);
+        let sent = sent.bytes;
         println!("  {}  {}  {:.1} MB", if sent > 0 { "pushed" } else { "held  " }, plan.instances[i].label, sent as f64 / 1e6);
         pushed += usize::from(sent > 0);
         bytes += sent;

@@ -374,8 +374,7 @@ impl OwnTask {
             rlmflow_cache::Store::open_existing(&launch.store)?.with_context(|| format!("no rlmflow store at {}", launch.store.display()))?;
         let request = engine.request(&launch.key)?.with_context(|| format!("the store has no request for action {}", launch.key))?;
         for input in &request.preimage.inputs {
-            if remote.push_object(&engine, &input.digest, false, &mut |_, _| {})?.is_none() {
-                let why = remote.down().map(|e| e.to_string()).unwrap_or_default();
+            if let Err(why) = remote.push_object(&engine, &input.digest, false, &mut |_, _| {})? {
                 return Ok(Err(Exit::Lost(format!("could not hand input {} to the workers through the remote cache: {why}", input.digest.short()))));
             }
         }
