@@ -146,38 +146,58 @@ pub enum Pulled {
 /// `Ok` for a remote URL this client can use, else what is wrong with it and what is valid:
 /// checked before any client is built (a malformed endpoint would otherwise panic inside the S3
 /// client), for `[pipeline] remote` at validation and for `--remote` before a run.
-pub fn check_url(url: &str) -> Result<(), String> {
+pub fn check_url(url: &str) -> Result<(), BadRemote> {
     const VALID: &str = "valid: s3://bucket/prefix, https://host/path (WebDAV), file:///path";
+    let bad = |problem: String| Err(BadRemote { variable: None, problem });
     if let Some(rest) = url.strip_prefix("s3://") {
         if rest.split('/').next().is_none_or(str::is_empty) {
-            return Err(format!("`{url}` names no bucket; {VALID}"));
+            return bad(format!("`{url}` names no bucket; {VALID}"));
         }
         // Every variable the S3 client reads, and the endpoint it names.
         s3_from_env()?;
         for var in ["AWS_ENDPOINT_URL", "AWS_ENDPOINT"] {
             if let Ok(endpoint) = std::env::var(var) {
-                check_endpoint(&format!("the environment variable {var}"), &aws_value(var, &endpoint)?)?;
+                let in_variable = |problem| BadRemote { variable: Some(var.to_owned()), problem };
+                check_endpoint(&format!("the environment variable {var}"), &aws_value(var, &endpoint)?).map_err(in_variable)?;
             }
         }
         Ok(())
     } else if url.starts_with("http://") || url.starts_with("https://") {
-        check_endpoint("the remote", url)
+        check_endpoint("the remote", url).or_else(bad)
     } else if let Some(path) = url.strip_prefix("file://") {
         match path {
-            "" => Err(format!("`{url}` names no directory; {VALID}")),
-            p if !Path::new(p).is_absolute() => Err(format!("`{url}` is not an absolute path; {VALID}")),
+            "" => bad(format!("`{url}` names no directory; {VALID}")),
+            p if !Path::new(p).is_absolute() => bad(format!("`{url}` is not an absolute path; {VALID}")),
             _ => Ok(()),
         }
     } else {
-        Err(format!("`{url}`: unknown scheme; {VALID}"))
+        bad(format!("`{url}`: unknown scheme; {VALID}"))
     }
 }
+
+/// A remote URL, or an `AWS_*` variable the S3 client reads, that this client cannot use:
+/// [`check_url`]'s answer, before any client is built.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BadRemote {
+    /// The environment variable at fault; `None`: the URL.
+    pub variable: Option<String>,
+    /// What is wrong, and what would be valid (it names the variable, never its value).
+    pub problem: String,
+}
+
+impl std::fmt::Display for BadRemote {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.problem)
+    }
+}
+
+impl std::error::Error for BadRemote {}
 
 /// The S3 client's settings from the standard `AWS_*` variables, read as
 /// `AmazonS3Builder::from_env` reads them, but each value without surrounding whitespace (a value
 /// from a secrets file ends with a newline more often than not) and a control character inside a
 /// value refused by the variable's name: the client panics on either.
-fn s3_from_env() -> Result<AmazonS3Builder, String> {
+fn s3_from_env() -> Result<AmazonS3Builder, BadRemote> {
     let mut builder = AmazonS3Builder::new();
     for (name, value) in std::env::vars_os().filter_map(|(k, v)| Some((k.into_string().ok()?, v.into_string().ok()?))) {
         if let Some(key) = name.starts_with("AWS_").then(|| name.to_ascii_lowercase().parse::<AmazonS3ConfigKey>().ok()).flatten() {
@@ -189,12 +209,15 @@ fn s3_from_env() -> Result<AmazonS3Builder, String> {
 
 /// The value of the environment variable `name` without surrounding whitespace; an error naming
 /// the variable (never its value: it may be a secret) for a control character inside it.
-fn aws_value(name: &str, value: &str) -> Result<String, String> {
+fn aws_value(name: &str, value: &str) -> Result<String, BadRemote> {
     let trimmed = value.trim();
     match trimmed.char_indices().find(|(_, c)| c.is_control()) {
-        Some((at, c)) => Err(format!(
-            "the environment variable {name} holds the control character {c:?} at byte {at} of its value; valid: a value without control characters (surrounding whitespace is dropped)"
-        )),
+        Some((at, c)) => Err(BadRemote {
+            variable: Some(name.to_owned()),
+            problem: format!(
+                "the environment variable {name} holds the control character {c:?} at byte {at} of its value; valid: a value without control characters (surrounding whitespace is dropped)"
+            ),
+        }),
         None => Ok(trimmed.to_owned()),
     }
 }

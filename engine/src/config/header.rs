@@ -143,7 +143,7 @@ impl Checker {
             if !REMOTE_SCHEMES.iter().any(|scheme| url.starts_with(scheme)) {
                 self.error(self.line("pipeline.remote"), "pipeline.remote", format!("`{url}` is not a remote URL"), Some(help.into()));
             } else if let Err(problem) = rlmflow_remote::check_url(&resolved) {
-                self.error(self.line("pipeline.remote"), "pipeline.remote", problem, Some(help.into()));
+                self.error(self.line("pipeline.remote"), "pipeline.remote", problem.to_string(), Some(help.into()));
             }
             remote.url = Some(resolved);
         }
