@@ -463,8 +463,13 @@ impl Store {
 
     /// Records the keys a run resolved, keeping entries for instances it did not touch.
     pub fn update_last_keys(&self, pipeline: &str, keys: &BTreeMap<String, Digest>) -> anyhow::Result<()> {
-        let mut all = self.last_keys(pipeline)?;
+        let before = self.last_keys(pipeline)?;
+        let mut all = before.clone();
         all.extend(keys.iter().map(|(k, v)| (k.clone(), *v)));
+        // A rerun with the same keys (a no-op run) leaves the file as it is: no write, no sync.
+        if all == before {
+            return Ok(());
+        }
         atomic_write(self, &self.pipeline_ref(pipeline), &serde_json::to_vec_pretty(&all)?)
     }
 

@@ -33,7 +33,7 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
     let targets: Vec<bool> = plan.instances.iter().map(|inst| stages.iter().any(|s| plan.pipeline.stages[inst.stage].name == *s)).collect();
     let upstream: Vec<bool> = wanted.iter().zip(&targets).map(|(w, t)| *w && !t).collect();
     if upstream.iter().any(|u| *u) {
-        let summary = run(plan, registry, store, &upstream, opts)?;
+        let summary = run(plan, registry, store, &upstream, Vec::new(), opts)?;
         if summary.failed + summary.skipped > 0 {
             bail!("the stages {} need did not all finish; nothing was checked", stages.join(", "));
         }

@@ -90,6 +90,8 @@ struct Executor<'a> {
 /// What the run knows of one stage instance.
 struct InstanceRun {
     state: State,
+    /// Its record as the preflight found it fresh, until the run uses it.
+    known: Option<Box<ActionRecord>>,
     /// Its key, once its inputs are known.
     key: Option<Digest>,
     /// How it ended, and its compute time: this run's when it ran, the original computation's
@@ -110,18 +112,28 @@ struct Attempts {
     earlier_s: f64,
 }
 
-/// Runs the plan; returns its summary.
-pub fn run(plan: &Plan, registry: &Registry, store: &Store, selected: &[bool], opts: &RunOptions) -> anyhow::Result<Counts> {
+/// Runs the plan; returns its summary. `known`: the records the preflight found fresh, by
+/// instance (empty: none), which the run uses without reading them again.
+pub fn run(
+    plan: &Plan,
+    registry: &Registry,
+    store: &Store,
+    selected: &[bool],
+    known: Vec<Option<Box<ActionRecord>>>,
+    opts: &RunOptions,
+) -> anyhow::Result<Counts> {
     let _shared = store.lock_shared()?;
     store.sweep_tmp(None)?;
     // Before the run exists: a results directory that cannot be used stops it with nothing done.
     let links = plan.pipeline.results.as_deref().map(|dir| store.links(dir)).transpose()?;
     let run = run_id();
     let events = EventLog::create(&store.run_dir(&run), opts.json)?;
+    let mut known = known.into_iter();
     let instances = selected
         .iter()
         .map(|&s| InstanceRun {
             state: if s { State::Waiting } else { State::Excluded },
+            known: known.next().flatten(),
             key: None,
             result: None,
             recoveries: 0,
@@ -466,7 +478,13 @@ impl Executor<'_> {
                 self.instances[i].key = Some(key);
                 self.plan_dirty = true;
             }
-            if let Some(record) = self.store.fresh(&key)?
+            // The preflight's record of this key, its object still there, or the store's.
+            let known = self.instances[i].known.take().filter(|r| r.key == key && self.store.has_object(&r.output));
+            let fresh = match known {
+                Some(record) => Some(*record),
+                None => self.store.fresh(&key)?,
+            };
+            if let Some(record) = fresh
                 && self.intact(&inst.label, &record.output)?
             {
                 self.done(i, record.output);

@@ -9,6 +9,7 @@ use rlmflow_stages::{Device, Registry};
 
 use super::{RemoteArg, SetArg, StoreArg, UsageError, store_root};
 use crate::config;
+use crate::plan::Freshness;
 use crate::preflight::Preflight;
 use crate::run::{RunOptions, run};
 use crate::ui::print_status;
@@ -74,6 +75,7 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
         .max(1);
     pre.refuse_cuda_stages(registry, device)?;
     pre.refuse_oversized()?;
+    let known = pre.states.into_iter().map(|s| if let Freshness::Cached(record) = s { Some(record) } else { None }).collect();
     let (plan, selected) = (pre.plan, pre.selected);
     let opts = RunOptions { jobs, json, device, verify_inputs, remote: remote.settings(&p)? };
     // A pushing run that cannot sign stops before anything runs, as `push` does.
@@ -85,6 +87,6 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
         let same = crate::determinism::check(&plan, registry, &store, &check_determinism, &opts)?;
         return Ok(if same { ExitCode::SUCCESS } else { ExitCode::FAILURE });
     }
-    let summary = run(&plan, registry, &store, &selected, &opts)?;
+    let summary = run(&plan, registry, &store, &selected, known, &opts)?;
     Ok(if summary.failed > 0 { ExitCode::FAILURE } else { ExitCode::SUCCESS })
 }
