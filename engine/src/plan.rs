@@ -52,9 +52,13 @@ pub struct Plan<'p> {
     pub platform: Platform,
 }
 
-/// Every instance of `pipeline`, keyed for a run on this machine with the default `--device`
-/// (set [`Plan::platform`] for another).
+/// Every instance of `pipeline`, keyed for a run on this machine with the default `--device`.
 pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
+    plan_on(pipeline, Platform::detect(rlmflow_stages::Device::Cpu))
+}
+
+/// Every instance of `pipeline`, keyed for a run on `platform`.
+pub fn plan_on(pipeline: &Pipeline, platform: Platform) -> Plan<'_> {
     let mut instances: Vec<Instance> = Vec::new();
     let dims_of = crate::config::dimensions(&pipeline.stages, !pipeline.seeds.is_empty());
     // The whole (not shard) instances of each stage so far, for inputs that gather them all.
@@ -151,7 +155,7 @@ pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
             instances.push(whole);
         }
     }
-    Plan { pipeline, instances, tracked: BTreeMap::new(), platform: Platform::detect(rlmflow_stages::Device::Cpu) }
+    Plan { pipeline, instances, tracked: BTreeMap::new(), platform }
 }
 
 fn restrict(a: &BTreeMap<String, String>, dims: &[String]) -> BTreeMap<String, String> {

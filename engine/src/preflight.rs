@@ -11,7 +11,7 @@ use rlmflow_stages::{Device, Registry};
 use crate::config::{ConfigError, Diagnostic, Executor, Pipeline};
 use crate::dispatch::{Dispatch as _, Local};
 use crate::footprint::{Fit, fits, refuse_oversized};
-use crate::plan::{Freshness, Plan, assess, plan};
+use crate::plan::{Freshness, Plan, assess, plan_on};
 use crate::platform::Platform;
 
 /// A pipeline checked against its store, before anything runs.
@@ -61,8 +61,7 @@ impl<'p> Preflight<'p> {
 /// The pipeline's plan for a run on `device`, with the content of every tracked path (recorded
 /// in `store`, if any).
 pub fn planned<'p>(pipeline: &'p Pipeline, store: Option<&Store>, device: Device) -> anyhow::Result<Plan<'p>> {
-    let mut plan = plan(pipeline);
-    plan.platform = Platform::detect(device);
+    let mut plan = plan_on(pipeline, Platform::detect(device));
     plan.fingerprint(store)?;
     Ok(plan)
 }

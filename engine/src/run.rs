@@ -97,6 +97,8 @@ struct InstanceRun {
     /// How it ended, and its compute time: this run's when it ran, the original computation's
     /// (which reuse saved) when reused.
     result: Option<(Outcome, f64)>,
+    /// The numeric platform class its output's record names, once it has one.
+    platform: Option<String>,
     /// How many times an input it found damaged was recomputed for it.
     recoveries: u32,
     attempts: Attempts,
@@ -136,6 +138,7 @@ pub fn run(
             known: known.next().flatten(),
             key: None,
             result: None,
+            platform: None,
             recoveries: 0,
             attempts: Attempts::default(),
             live_linked: false,
@@ -361,8 +364,7 @@ impl Executor<'_> {
             };
             let key = self.instances[i].key.map_or("-".to_owned(), |k| k.to_string());
             let output = if let State::Done { output } = &self.instances[i].state { output.to_string() } else { "-".to_owned() };
-            let record = self.instances[i].key.and_then(|k| self.store.record(&k).ok().flatten());
-            let platform = record.and_then(|r| r.preimage.platform).unwrap_or_else(|| "-".to_owned());
+            let platform = self.instances[i].platform.as_deref().unwrap_or("-");
             md += &format!("| {} | {status} | {secs:.1} | {key} | {output} | {platform} |\n", inst.label);
         }
         let path = self.store.run_dir(&self.run).join("provenance.md");
@@ -489,6 +491,7 @@ impl Executor<'_> {
             {
                 self.done(i, record.output);
                 self.instances[i].result = Some((Outcome::Reused, record.duration_s));
+                self.instances[i].platform = record.preimage.platform.clone();
                 let (output, saved_s) = (Some(record.output), Some(record.duration_s));
                 self.events.write(Event::StageFinished(Finished {
                     key: Some(key),
@@ -558,6 +561,7 @@ impl Executor<'_> {
                 self.ui.say(format!("  pulled   {label}  {:.1} MB in {seconds:.1}s ({:.1}s saved)", bytes as f64 / 1e6, record.duration_s));
                 self.done(i, record.output);
                 self.instances[i].result = Some((Outcome::Pulled, record.duration_s));
+                self.instances[i].platform = record.preimage.platform.clone();
             }
             Pulled::Miss => {}
             // Told once: every pull after the first failure answers with it at once.
@@ -743,6 +747,7 @@ impl Executor<'_> {
                 let Attempts { started, earlier_s } = self.instances[i].attempts;
                 let total = earlier_s + secs;
                 self.instances[i].result = Some(if reused { (Outcome::Reused, record.duration_s) } else { (Outcome::Ran, total) });
+                self.instances[i].platform = record.preimage.platform.clone();
                 self.events.write(Event::StageFinished(Finished {
                     key: Some(key),
                     output: Some(record.output),
@@ -845,10 +850,12 @@ impl EventLog {
 
     fn write(&mut self, event: Event) -> anyhow::Result<()> {
         let t = (self.clock.elapsed().as_secs_f64() * 1000.0).round() / 1000.0;
-        let line = serde_json::to_string(&Logged { event, t })?;
-        writeln!(self.file, "{line}")?;
+        let mut line = serde_json::to_string(&Logged { event, t })?;
+        line.push('\n');
+        // One write a line: a killed run leaves whole lines.
+        self.file.write_all(line.as_bytes())?;
         if self.echo {
-            println!("{line}");
+            print!("{line}");
         }
         Ok(())
     }

@@ -485,7 +485,7 @@ impl<O: Operator> DynOperator for O {
 /// bad value inside the group: both are recovered here, so every struct reports alike.
 fn parse_settings<S: Settings>(raw: Value) -> Result<S, SettingError> {
     let defaults = serde_json::to_value(S::default()).expect("settings serialise to JSON");
-    if let Some(e) = not_finite(&defaults, &raw, "") {
+    if let Some(e) = not_finite(&defaults, &raw, &mut Vec::new()) {
         return Err(e);
     }
     let Value::Object(given) = &raw else { return deserialize::<S>(raw).and_then(|t| t.check().map(|()| t)) };
@@ -534,13 +534,20 @@ fn deserialize<S: Settings>(value: Value) -> Result<S, SettingError> {
 
 /// The first `nan` or `inf` given where the defaults hold a number: the config reader hands
 /// them over as their text (JSON has no such numbers), which serde would call a type error.
-fn not_finite(defaults: &Value, given: &Value, path: &str) -> Option<SettingError> {
-    let inside = |key: String, value: &Value| not_finite(defaults, value, &if path.is_empty() { key.clone() } else { format!("{path}.{key}") });
+/// `path` holds the keys (or item indices) down to `given`, written out only for a hit.
+fn not_finite(defaults: &Value, given: &Value, path: &mut Vec<String>) -> Option<SettingError> {
+    let mut inside = |segment: String, value: &Value| {
+        path.push(segment);
+        let found = not_finite(defaults, value, path);
+        path.pop();
+        found
+    };
     match given {
         Value::Object(table) => table.iter().find_map(|(key, value)| inside(key.clone(), value)),
         Value::Array(items) => items.iter().enumerate().find_map(|(i, value)| inside(i.to_string(), value)),
-        Value::String(text) if matches!(text.trim_start_matches(['+', '-']), "nan" | "inf") && number_expected(defaults, path) => {
-            Some(SettingError::new(path, format!("`{text}` is not a finite number")))
+        Value::String(text) if matches!(text.trim_start_matches(['+', '-']), "nan" | "inf") => {
+            let key = path.join(".");
+            number_expected(defaults, &key).then(|| SettingError::new(&key, format!("`{text}` is not a finite number")))
         }
         _ => None,
     }
