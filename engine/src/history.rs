@@ -40,14 +40,11 @@ pub struct Counts {
     pub skipped: usize,
 }
 
-impl PastRun {
-    pub fn id(&self) -> &str {
-        &self.plan.run
-    }
-
-    pub fn counts(&self) -> Counts {
+impl Counts {
+    /// How many of `outcomes` ended each way.
+    pub fn of(outcomes: impl Iterator<Item = Status>) -> Counts {
         let mut counts = Counts::default();
-        for outcome in self.outcomes.values() {
+        for outcome in outcomes {
             match outcome {
                 Status::Ran => counts.ran += 1,
                 Status::Reused => counts.reused += 1,
@@ -57,6 +54,16 @@ impl PastRun {
             }
         }
         counts
+    }
+}
+
+impl PastRun {
+    pub fn id(&self) -> &str {
+        &self.plan.run
+    }
+
+    pub fn counts(&self) -> Counts {
+        Counts::of(self.outcomes.values().copied())
     }
 
     /// Each instance with a key, in plan order, with its record where the store still has it

@@ -96,7 +96,7 @@ struct InstanceRun {
     key: Option<Digest>,
     /// How it ended, and its compute time: this run's when it ran, the original computation's
     /// (which reuse saved) when reused.
-    result: Option<(Outcome, f64)>,
+    result: Option<(Status, f64)>,
     /// The numeric platform class its output's record names, once it has one.
     platform: Option<String>,
     /// How many times an input it found damaged was recomputed for it.
@@ -187,16 +187,6 @@ fn dispatcher(plan: &Plan, store: &Store, run: &str, device: Device, remote: Opt
             anyhow::bail!("executor = \"hyperqueue\" needs the embedded Python (build rlmflow with its default `python` feature)")
         }
     }
-}
-
-#[derive(Clone, Copy, Debug, PartialEq)]
-enum Outcome {
-    Ran,
-    Reused,
-    /// Reused from the remote cache.
-    Pulled,
-    Failed,
-    Skipped,
 }
 
 impl Executor<'_> {
@@ -304,7 +294,7 @@ impl Executor<'_> {
             .instances
             .iter()
             .filter_map(|x| x.result)
-            .filter(|r| matches!(r.0, Outcome::Reused | Outcome::Pulled))
+            .filter(|r| matches!(r.0, Status::Reused | Status::Pulled))
             .fold(0.0, |total, r| total + r.1);
         let wall = clock.elapsed().as_secs_f64();
         self.events.write(Event::RunFinished {
@@ -354,14 +344,8 @@ impl Executor<'_> {
         }
         md += "| instance | status | seconds | key | output | platform |\n|---|---|---|---|---|---|\n";
         for (i, inst) in self.plan.instances.iter().enumerate() {
-            let Some((outcome, secs)) = self.instances[i].result else { continue };
-            let status = match outcome {
-                Outcome::Ran => "ran",
-                Outcome::Reused => "reused",
-                Outcome::Pulled => "pulled",
-                Outcome::Failed => "failed",
-                Outcome::Skipped => "skipped",
-            };
+            let Some((status, secs)) = self.instances[i].result else { continue };
+            let status = status.as_str();
             let key = self.instances[i].key.map_or("-".to_owned(), |k| k.to_string());
             let output = if let State::Done { output } = &self.instances[i].state { output.to_string() } else { "-".to_owned() };
             let platform = self.instances[i].platform.as_deref().unwrap_or("-");
@@ -444,14 +428,7 @@ impl Executor<'_> {
     }
 
     fn summary(&self) -> Counts {
-        let count = |o: Outcome| self.instances.iter().filter(|x| x.result.is_some_and(|r| r.0 == o)).count();
-        Counts {
-            ran: count(Outcome::Ran),
-            reused: count(Outcome::Reused),
-            pulled: count(Outcome::Pulled),
-            failed: count(Outcome::Failed),
-            skipped: count(Outcome::Skipped),
-        }
+        Counts::of(self.instances.iter().filter_map(|x| x.result.map(|(status, _)| status)))
     }
 
     /// Moves waiting instances whose inputs are settled to ready, reused, pulling or skipped.
@@ -465,7 +442,7 @@ impl Executor<'_> {
             if let Some(bad) = providers.clone().find(|&p| matches!(self.instances[p].state, State::Failed | State::Skipped)) {
                 let upstream = self.plan.instances[bad].label.clone();
                 self.instances[i].state = State::Skipped;
-                self.instances[i].result = Some((Outcome::Skipped, 0.0));
+                self.instances[i].result = Some((Status::Skipped, 0.0));
                 let label = inst.label.clone();
                 let reason = Some(format!("upstream {upstream} did not finish"));
                 self.events.write(Event::StageFinished(Finished { reason, ..Finished::new(&label, Status::Skipped) }))?;
@@ -490,7 +467,7 @@ impl Executor<'_> {
                 && self.intact(&inst.label, &record.output)?
             {
                 self.done(i, record.output);
-                self.instances[i].result = Some((Outcome::Reused, record.duration_s));
+                self.instances[i].result = Some((Status::Reused, record.duration_s));
                 self.instances[i].platform = record.preimage.platform.clone();
                 let (output, saved_s) = (Some(record.output), Some(record.duration_s));
                 self.events.write(Event::StageFinished(Finished {
@@ -560,7 +537,7 @@ impl Executor<'_> {
                 }))?;
                 self.ui.say(format!("  pulled   {label}  {:.1} MB in {seconds:.1}s ({:.1}s saved)", bytes as f64 / 1e6, record.duration_s));
                 self.done(i, record.output);
-                self.instances[i].result = Some((Outcome::Pulled, record.duration_s));
+                self.instances[i].result = Some((Status::Pulled, record.duration_s));
                 self.instances[i].platform = record.preimage.platform.clone();
             }
             Pulled::Miss => {}
@@ -726,7 +703,7 @@ impl Executor<'_> {
     fn fail_unstarted(&mut self, i: usize, key: Digest, message: String) -> anyhow::Result<()> {
         let label = self.plan.instances[i].label.clone();
         self.instances[i].state = State::Failed;
-        self.instances[i].result = Some((Outcome::Failed, 0.0));
+        self.instances[i].result = Some((Status::Failed, 0.0));
         let (error, duration_s) = (Some(message.clone()), Some(0.0));
         self.events.write(Event::StageFinished(Finished { key: Some(key), error, duration_s, ..Finished::new(&label, Status::Failed) }))?;
         self.ui.say(format!("  FAILED   {label}  {message}"));
@@ -746,7 +723,7 @@ impl Executor<'_> {
                 // Every attempt's time: a stage that ran on its third attempt took all three.
                 let Attempts { started, earlier_s } = self.instances[i].attempts;
                 let total = earlier_s + secs;
-                self.instances[i].result = Some(if reused { (Outcome::Reused, record.duration_s) } else { (Outcome::Ran, total) });
+                self.instances[i].result = Some(if reused { (Status::Reused, record.duration_s) } else { (Status::Ran, total) });
                 self.instances[i].platform = record.preimage.platform.clone();
                 self.events.write(Event::StageFinished(Finished {
                     key: Some(key),
@@ -815,7 +792,7 @@ impl Executor<'_> {
                     _ => message,
                 };
                 self.instances[i].state = State::Failed;
-                self.instances[i].result = Some((Outcome::Failed, secs));
+                self.instances[i].result = Some((Status::Failed, secs));
                 self.relink_previous(i)?;
                 let log = self.log_path(i);
                 self.events.write(Event::StageFinished(Finished {

@@ -488,8 +488,8 @@ fn parse_settings<S: Settings>(raw: Value) -> Result<S, SettingError> {
     if let Some(e) = not_finite(&defaults, &raw, &mut Vec::new()) {
         return Err(e);
     }
-    let Value::Object(given) = &raw else { return deserialize::<S>(raw).and_then(|t| t.check().map(|()| t)) };
-    let typed: S = deserialize(over_defaults(&defaults, given)).map_err(|e| match e.key.is_empty() {
+    let Value::Object(given) = &raw else { return deserialize::<S>(raw, &defaults).and_then(|t| t.check().map(|()| t)) };
+    let typed: S = deserialize(over_defaults(&defaults, given), &defaults).map_err(|e| match e.key.is_empty() {
         true => locate::<S>(&defaults, given).unwrap_or(e),
         false => e,
     })?;
@@ -514,18 +514,18 @@ fn over_defaults(defaults: &Value, given: &serde_json::Map<String, Value>) -> Va
 fn locate<S: Settings>(defaults: &Value, given: &serde_json::Map<String, Value>) -> Option<SettingError> {
     given.iter().find_map(|(key, value)| {
         let one = serde_json::Map::from_iter([(key.clone(), value.clone())]);
-        deserialize::<S>(over_defaults(defaults, &one)).err().map(|e| SettingError { key: key.clone(), ..e })
+        deserialize::<S>(over_defaults(defaults, &one), defaults).err().map(|e| SettingError { key: key.clone(), ..e })
     })
 }
 
-fn deserialize<S: Settings>(value: Value) -> Result<S, SettingError> {
+/// `value` as `S`; an error is read against `defaults` (`S::default()` as JSON).
+fn deserialize<S: Settings>(value: Value, defaults: &Value) -> Result<S, SettingError> {
     serde_path_to_error::deserialize(value).map_err(|e| {
         let key = e.path().to_string();
         // Read from where the error is, never from serde's wording: a key the defaults' table
         // there lacks is unknown (and the valid keys are what a user may set: those the defaults
         // show, so an internal one such as a shard's share, skipped while unset, is not offered).
-        let defaults = serde_json::to_value(S::default()).expect("settings serialise to JSON");
-        if let Some((field, valid)) = unknown_key(&defaults, &key) {
+        if let Some((field, valid)) = unknown_key(defaults, &key) {
             return SettingError { message: format!("unknown setting `{field}`"), key, valid };
         }
         SettingError::new(if key == "." { String::new() } else { key }, e.inner().to_string())
