@@ -445,7 +445,7 @@ impl Store {
     pub fn write_plan(&self, plan: &RunPlan) -> anyhow::Result<()> {
         let dir = self.run_dir(&plan.run);
         fs::create_dir_all(dir.join("logs"))?;
-        atomic_write(self, &dir.join("plan.json"), &serde_json::to_vec_pretty(plan)?)
+        atomic_write_unsynced(self, &dir.join("plan.json"), &serde_json::to_vec_pretty(plan)?)
     }
 
     pub fn plan(&self, run: &str) -> anyhow::Result<Option<RunPlan>> {
@@ -544,15 +544,28 @@ fn abandoned_write(path: &Path, writer: &str) -> bool {
     gone || age.is_some_and(|a| a > OLDEST_WRITE)
 }
 
-/// Writes `bytes` to a temporary file in the store's `tmp/` and renames it over `path`.
+/// Writes `bytes` to a temporary file in the store's `tmp/`, synced, and renames it over `path`:
+/// after a crash of the machine, `path` holds the old bytes or the new, whole.
 pub(crate) fn atomic_write(store: &Store, path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    replace(store, path, bytes, true)
+}
+
+/// [`atomic_write`] without the sync, for what a run rewrites as it goes and a crash of the
+/// machine may lose (`runs/<id>/plan.json`): readers still see the old bytes or the new, whole.
+fn atomic_write_unsynced(store: &Store, path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    replace(store, path, bytes, false)
+}
+
+fn replace(store: &Store, path: &Path, bytes: &[u8], sync: bool) -> anyhow::Result<()> {
     static COUNTER: AtomicU64 = AtomicU64::new(0);
     let n = COUNTER.fetch_add(1, Ordering::Relaxed);
     let tmp = store.root.join("tmp").join(format!("write-{}-{n}", std::process::id()));
     fs::create_dir_all(tmp.parent().unwrap())?;
     let mut f = fs::File::create(&tmp).with_context(|| format!("writing {}", tmp.display()))?;
     f.write_all(bytes)?;
-    f.sync_data()?;
+    if sync {
+        f.sync_data()?;
+    }
     drop(f);
     fs::create_dir_all(path.parent().unwrap())?;
     fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))?;

@@ -47,6 +47,10 @@ fn gib(bytes: u64) -> String {
 /// The fit of each instance that will run (`runs[i]`), for the operators that estimate one;
 /// `device` is the run's `--device`. A device's memory is read only when an estimate needs it.
 pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> anyhow::Result<Vec<Option<Fit>>> {
+    // Nothing to fit, so no outlines to derive (a run that reuses everything).
+    if !runs.contains(&true) {
+        return Ok(runs.iter().map(|_| None).collect());
+    }
     let mut outlines: Vec<Outline> = Vec::with_capacity(plan.instances.len());
     let mut capacity = Capacities::default();
     let mut fits = Vec::with_capacity(plan.instances.len());

@@ -290,17 +290,22 @@ impl Plan<'_> {
     /// Instance `i`'s preimage once its inputs' outputs are known (`None` before); an error for
     /// settings its operator cannot read (a broken invariant: validation normalised them).
     pub fn preimage(&self, i: usize, registry: &Registry, outputs: &[Option<Digest>]) -> Result<Option<Preimage>, SettingError> {
+        let Some(inputs) = self.input_digests(i, outputs) else { return Ok(None) };
+        self.preimage_with(i, registry, inputs).map(Some)
+    }
+
+    /// Instance `i`'s preimage with `inputs` ([`Plan::input_digests`]).
+    pub fn preimage_with(&self, i: usize, registry: &Registry, inputs: Vec<InputDigest>) -> Result<Preimage, SettingError> {
         let inst = &self.instances[i];
         let op = registry.get(&inst.operator).expect("validated operator");
-        let Some(inputs) = self.input_digests(i, outputs) else { return Ok(None) };
         let config = rlmflow_stages::operator::result_settings(&inst.settings, op.non_result_keys(), op.tracked_keys());
         let seed = inst.assignment.get(SEED_DIMENSION).map_or(self.pipeline.seed, |s| s.parse().expect("seeds are integers"));
         let platform = op.resources(&inst.settings)?.kernels.map(|k| self.platform.class(k));
-        Ok(Some(Preimage { operator: inst.operator.clone(), operator_version: op.spec().version, config, seed, inputs, platform }))
+        Ok(Preimage { operator: inst.operator.clone(), operator_version: op.spec().version, config, seed, inputs, platform })
     }
 
     /// Instance `i`'s inputs by digest, sorted; `None` while one's output is unknown.
-    fn input_digests(&self, i: usize, outputs: &[Option<Digest>]) -> Option<Vec<InputDigest>> {
+    pub fn input_digests(&self, i: usize, outputs: &[Option<Digest>]) -> Option<Vec<InputDigest>> {
         let inst = &self.instances[i];
         let mut inputs = Vec::new();
         for input in &inst.inputs {

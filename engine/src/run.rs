@@ -226,7 +226,13 @@ impl Executor<'_> {
                 let State::Ready { key } = self.instances[i].state else { continue };
                 let op = self.registry.get(&self.plan.instances[i].operator).unwrap();
                 let wants = op.resources(&self.plan.instances[i].settings)?;
-                let threads = wants.threads.clamp(1, self.opts.jobs).min(self.dispatch.max_threads().unwrap_or(usize::MAX));
+                let mut threads = wants.threads.clamp(1, self.opts.jobs).min(self.dispatch.max_threads().unwrap_or(usize::MAX));
+                // An operator whose bytes do not follow its thread count (no pinned kernels)
+                // starts with the threads that are free: the data stage a chain waits on is not
+                // queued behind a one-thread model stage for want of its second thread.
+                if wants.kernels.is_none() {
+                    threads = threads.min(self.opts.jobs.saturating_sub(threads_in_use)).max(1);
+                }
                 let fits = threads_in_use + threads <= self.opts.jobs && !(wants.gpu && gpu_in_use && self.dispatch.serialises_gpu());
                 if !fits && !started.is_empty() {
                     continue;
@@ -451,14 +457,22 @@ impl Executor<'_> {
             }
             let outputs: Vec<Option<Digest>> =
                 self.instances.iter().map(|x| if let State::Done { output } = x.state { Some(output) } else { None }).collect();
-            let Some(preimage) = self.plan.preimage(i, self.registry, &outputs)? else { continue };
-            let key = preimage.key();
+            let Some(inputs) = self.plan.input_digests(i, &outputs) else { continue };
+            // The record the preflight found is this instance's while its inputs are the ones
+            // it was computed from (its preimage hashes to its key, and the preflight found that
+            // key from this plan), so its key needs no second preimage.
+            let known = self.instances[i].known.take().filter(|r| r.preimage.inputs == inputs && self.store.has_object(&r.output));
+            let (key, mut preimage) = match &known {
+                Some(record) => (record.key, None),
+                None => {
+                    let preimage = self.plan.preimage_with(i, self.registry, inputs.clone())?;
+                    (preimage.key(), Some(preimage))
+                }
+            };
             if self.instances[i].key != Some(key) {
                 self.instances[i].key = Some(key);
                 self.plan_dirty = true;
             }
-            // The preflight's record of this key, its object still there, or the store's.
-            let known = self.instances[i].known.take().filter(|r| r.key == key && self.store.has_object(&r.output));
             let fresh = match known {
                 Some(record) => Some(*record),
                 None => self.store.fresh(&key)?,
@@ -491,6 +505,10 @@ impl Executor<'_> {
             let inst = &self.plan.instances[i];
             let stage = &self.plan.pipeline.stages[inst.stage];
             let resumes = self.registry.get(&inst.operator).expect("validated operator").resumes_from();
+            let preimage = match preimage.take() {
+                Some(preimage) => preimage,
+                None => self.plan.preimage_with(i, self.registry, inputs)?,
+            };
             let reasons = why(Some(self.store), self.last.get(&inst.label), &key, &preimage, &stage.name, resumes)?;
             self.ui.say(format!("  run      {}  ({})", inst.label, crate::ui::words(&reasons)));
             self.events.write(Event::StagePlanned { stage: inst.label.clone(), key, reasons })?;

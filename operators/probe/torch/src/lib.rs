@@ -19,7 +19,7 @@ use rlmflow_stages::{Context, Outcome, Settings};
 use serde_json::json;
 
 pub use clipcap::{clipcap, score_captions};
-pub use ridge::Ridge;
+use ridge::RidgeProblem;
 
 /// `linear`'s training, attached by the worker to `rlmflow_probe::linear()`.
 pub fn linear(s: &LinearSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
@@ -60,16 +60,18 @@ fn linear_on(s: &LinearSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         };
         // The strength with the best held-out F1 (the first of equals).
         let mut best: Option<(f64, f64)> = None;
+        let problem = RidgeProblem::new(&rows_of(x, *width, fit), *width, &rows_of(&counts, CELLS, fit), CELLS);
+        let held_out = rows_of(x, *width, validate);
         for &lambda in &s.lambdas {
-            let ridge = Ridge::fit(&rows_of(x, *width, fit), *width, &rows_of(&counts, CELLS, fit), CELLS, lambda)?;
-            let f1 = score(&round(&ridge.predict(&rows_of(x, *width, validate))), &truth(validate)).overall.f1;
+            let ridge = problem.solve(lambda)?;
+            let f1 = score(&round(&ridge.predict(&held_out)), &truth(validate)).overall.f1;
             if best.is_none_or(|(_, b)| f1 > b) {
                 best = Some((lambda, f1));
             }
             progress.inc(1);
         }
         let (lambda, held_f1) = best.expect("at least one strength");
-        let ridge = Ridge::fit(&rows_of(x, *width, &train), *width, &rows_of(&counts, CELLS, &train), CELLS, lambda)?;
+        let ridge = RidgeProblem::new(&rows_of(x, *width, &train), *width, &rows_of(&counts, CELLS, &train), CELLS).solve(lambda)?;
         let predicted = round(&ridge.predict(&rows_of(x, *width, &test)));
         progress.inc(1);
         for (&frame, grid) in test.iter().zip(&predicted) {
