@@ -211,31 +211,28 @@ fn independent_stages_share_the_thread_budget() {
             })
             .collect()
     };
+    let threads = |events: &Events| -> Vec<u64> { events.of("stage_started").iter().map(|e| e["threads"].as_u64().unwrap()).collect() };
     let both = s.run_expecting(0, &["--jobs", "2"]);
     assert_eq!(order(&both), ["start", "start", "finish", "finish"]);
-    let threads: Vec<u64> = both.of("stage_started").iter().map(|e| e["threads"].as_u64().unwrap()).collect();
-    assert_eq!(threads, [1, 1]);
+    assert_eq!(threads(&both), [1, 1]);
 
     s.pipeline(&two_slow.replace("step_ms = 50", "step_ms = 50\nthreads = 2").replace("\"a\"", "\"a2\"").replace("\"b\"", "\"b2\""));
     let serial = s.run_expecting(0, &["--jobs", "2"]);
     assert_eq!(order(&serial), ["start", "finish", "start", "finish"]);
     assert!(s.trace().iter().any(|l| l.contains("threads=2")));
 
-    // A stage that could use two threads starts with the one left beside a one-thread stage
-    // (its bytes do not follow its threads), as a model stage (kernels pinned, its `threads`
-    // in its key) does not: it waits for both.
-    let beside = "[pipeline]\nname = \"b\"\n[stages.a]\nkind = \"source\"\noperator = \"write-text\"\ntext = \"a4\"\nsteps = 2\nstep_ms = 50\n\
-                  [stages.b]\nkind = \"source\"\noperator = \"write-text\"\ntext = \"b4\"\nsteps = 2\nstep_ms = 50\nthreads = 2\n";
-    s.pipeline(beside);
+    // A stage that could use two threads (`b`, last in the file) starts with the one left
+    // beside a one-thread stage (its bytes do not follow its threads), as a model stage
+    // (kernels pinned, its `threads` in its key) does not: it waits for both.
+    let beside = format!("{two_slow}threads = 2\n").replace("\"a\"", "\"a4\"").replace("\"b\"", "\"b4\"");
+    s.pipeline(&beside);
     let shared = s.run_expecting(0, &["--jobs", "2"]);
     assert_eq!(order(&shared), ["start", "start", "finish", "finish"]);
-    let threads: Vec<u64> = shared.of("stage_started").iter().map(|e| e["threads"].as_u64().unwrap()).collect();
-    assert_eq!(threads, [1, 1]);
+    assert_eq!(threads(&shared), [1, 1]);
     s.pipeline(&beside.replace("threads = 2", "threads = 2\nnumerics = \"portable\"").replace("a4", "a5").replace("b4", "b5"));
     let model = s.run_expecting(0, &["--jobs", "2"]);
     assert_eq!(order(&model), ["start", "finish", "start", "finish"]);
-    let threads: Vec<u64> = model.of("stage_started").iter().map(|e| e["threads"].as_u64().unwrap()).collect();
-    assert_eq!(threads.iter().max(), Some(&2), "the model stage ran with its two threads");
+    assert_eq!(threads(&model).iter().max(), Some(&2), "the model stage ran with its two threads");
 
     // Two stages that can use a GPU, in a run that names one: one GPU, one stage at a time.
     s.pipeline(&two_slow.replace("step_ms = 50", "step_ms = 50\ngpu = true").replace("\"a\"", "\"a3\"").replace("\"b\"", "\"b3\""));
