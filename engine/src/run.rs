@@ -462,7 +462,7 @@ impl Executor<'_> {
             // it was computed from (its preimage hashes to its key, and the preflight found that
             // key from this plan), so its key needs no second preimage.
             let known = self.instances[i].known.take().filter(|r| r.preimage.inputs == inputs && self.store.has_object(&r.output));
-            let (key, mut preimage) = match &known {
+            let (key, preimage) = match &known {
                 Some(record) => (record.key, None),
                 None => {
                     let preimage = self.plan.preimage_with(i, self.registry, inputs.clone())?;
@@ -505,7 +505,7 @@ impl Executor<'_> {
             let inst = &self.plan.instances[i];
             let stage = &self.plan.pipeline.stages[inst.stage];
             let resumes = self.registry.get(&inst.operator).expect("validated operator").resumes_from();
-            let preimage = match preimage.take() {
+            let preimage = match preimage {
                 Some(preimage) => preimage,
                 None => self.plan.preimage_with(i, self.registry, inputs)?,
             };
