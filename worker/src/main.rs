@@ -37,7 +37,7 @@ fn main() -> ExitCode {
 /// freed so far) back to the kernel and trims the heap's free top, so a training step, which
 /// allocates the same activations every step, pays page faults and zeroing for them every time.
 /// Blocks up to 32 MiB (glibc's ceiling) stay in the heap and its top is kept: a third of the
-/// page faults and 3-8 % of the laptop step. Only where memory comes from changes: c10 aligns
+/// page faults and 3-5 % of the laptop step. Only where memory comes from changes: c10 aligns
 /// every tensor to 64 bytes either way, so the results are the same bytes.
 fn keep_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
@@ -47,4 +47,3 @@ fn keep_freed_memory() {
         libc::mallopt(libc::M_TRIM_THRESHOLD, libc::c_int::MAX);
     }
 }
-
