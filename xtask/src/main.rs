@@ -3,7 +3,8 @@
 //! then calls cargo with `LIBTORCH` set.
 //!
 //! ```text
-//! cargo xtask test [ARGS]          cargo test [ARGS]
+//! cargo xtask test [ARGS]          cargo test [ARGS]; without ARGS, every test target built,
+//!                                  then the end-to-end tests run beside the others
 //! cargo xtask run PIPELINE [ARGS]  build rlmflow and its torch worker (release), then
 //!                                  rlmflow run PIPELINE [ARGS]
 //! cargo xtask build [ARGS]         cargo build [ARGS]
@@ -80,6 +81,7 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
             println!("{}", libtorch.display());
             Ok(ExitCode::SUCCESS)
         }
+        "test" if rest.is_empty() => test_everything(&cargo),
         "test" => status(cargo().arg("test").args(test_targets(rest)).args(rest)),
         "build" | "bench" => status(cargo().arg(command).args(rest)),
         "run" | "rlmflow" => {
@@ -165,6 +167,38 @@ fn pack(release: &std::path::Path, into: &std::path::Path) -> anyhow::Result<()>
     let name = libpython.file_name().context("libpython's file name")?;
     std::fs::copy(&libpython, into.join(name)).with_context(|| format!("copying {}", libpython.display()))?;
     Ok(())
+}
+
+/// The package whose tests `cargo xtask test` runs beside the others, and its test target: the
+/// engine's end-to-end tests spend most of their time waiting on throttled links, servers and
+/// child processes (47 CPU-seconds in 55 s on 2 cores), room the other test binaries, run one
+/// after another, leave. The package's library and binary hold no tests of their own.
+const BESIDE: (&str, &str) = ("rlmflow-e2e", "e2e");
+
+/// `cargo xtask test` without arguments (what CI runs): every test target built first, then
+/// [`BESIDE`]'s tests run beside the rest, their output held and printed whole when they end.
+/// The end-to-end target is named with `--test` over the default members rather than by its
+/// package alone, so cargo resolves the same features and builds nothing twice.
+fn test_everything(cargo: &dyn Fn() -> Command) -> anyhow::Result<ExitCode> {
+    let (package, target) = BESIDE;
+    let rest = [test_targets(&[]), &["--workspace", "--exclude", package, "--exclude", "xtask"][..]].concat();
+    let beside = ["--test", target];
+    for selection in [&rest[..], &beside[..]] {
+        if status(cargo().args(["test", "--no-run"]).args(selection))? != ExitCode::SUCCESS {
+            return Ok(ExitCode::FAILURE);
+        }
+    }
+    let log_path = target_dir()?.join(format!("{package}.log"));
+    let log = std::fs::File::create(&log_path).with_context(|| format!("creating {}", log_path.display()))?;
+    let mut running = cargo().arg("test").args(beside).stdout(log.try_clone()?).stderr(log).spawn().context("starting cargo test")?;
+    let others = status(cargo().arg("test").args(&rest));
+    let finished = running.wait().context("waiting for cargo test")?;
+    println!("\n{package}'s tests, run beside the others ({}):", log_path.display());
+    print!("{}", std::fs::read_to_string(&log_path).with_context(|| format!("reading {}", log_path.display()))?);
+    if !finished.success() {
+        return Ok(ExitCode::FAILURE);
+    }
+    others
 }
 
 fn status(cmd: &mut Command) -> anyhow::Result<ExitCode> {

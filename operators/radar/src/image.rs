@@ -4,7 +4,7 @@
 
 use std::f64::consts::PI;
 
-use rand::Rng;
+use rand_chacha::ChaCha8Rng;
 
 use crate::RadarConfig;
 use crate::response::{Path, range_angle};
@@ -102,7 +102,7 @@ impl Projection {
 }
 
 /// The four radars' range-angle power grids for one scene (index as [`MOUNTS`]).
-pub fn radar_grids(cfg: &RadarConfig, vehicles: &[VehicleBox], edges: &[Segment], path: Path, rng: &mut impl Rng) -> Vec<Vec<f64>> {
+pub fn radar_grids(cfg: &RadarConfig, vehicles: &[VehicleBox], edges: &[Segment], path: Path, rng: &mut ChaCha8Rng) -> Vec<Vec<f64>> {
     MOUNTS
         .iter()
         .map(|mount| {
@@ -192,7 +192,7 @@ impl ImageMap {
 
     /// Renders one scene into this view alone (see [`radar_grids`] and [`ImageMap::merge`] to
     /// render several views of one scene).
-    pub fn render(&self, vehicles: &[VehicleBox], edges: &[Segment], path: Path, rng: &mut impl Rng) -> Vec<f32> {
+    pub fn render(&self, vehicles: &[VehicleBox], edges: &[Segment], path: Path, rng: &mut ChaCha8Rng) -> Vec<f32> {
         self.merge(&radar_grids(&self.cfg, vehicles, edges, path, rng))
     }
 
@@ -232,7 +232,6 @@ impl ImageMap {
 mod tests {
     use super::*;
     use rand::SeedableRng;
-    use rand_chacha::ChaCha8Rng;
 
     #[test]
     fn pixels_and_points_invert() {

@@ -3,9 +3,10 @@
 
 use std::f64::consts::PI;
 
-use rand::{Rng, RngExt};
+use rand::RngExt;
+use rand_chacha::ChaCha8Rng;
 use rustfft::num_complex::Complex64;
-use rustfft::{FftPlanner, FftPlannerScalar};
+use rustfft::FftPlannerScalar;
 
 use crate::RadarConfig;
 use crate::scatter::Scatterer;
@@ -50,7 +51,7 @@ fn hann(len: usize) -> Vec<f64> {
     (0..len).map(|n| 0.5 - 0.5 * (2.0 * PI * n as f64 / len as f64).cos()).collect()
 }
 
-fn gaussian(rng: &mut impl Rng) -> (f64, f64) {
+fn gaussian(rng: &mut ChaCha8Rng) -> (f64, f64) {
     // Box-Muller: two independent standard normals.
     let u1: f64 = 1.0 - rng.random::<f64>();
     let u2: f64 = rng.random::<f64>();
@@ -61,14 +62,14 @@ fn gaussian(rng: &mut impl Rng) -> (f64, f64) {
 
 /// The response of one radar to `scatterers`, with receiver noise drawn from `rng` (none when
 /// `noise` is false).
-pub fn range_angle(cfg: &RadarConfig, scatterers: &[Scatterer], path: Path, noise: bool, rng: &mut impl Rng) -> RangeAngle {
+pub fn range_angle(cfg: &RadarConfig, scatterers: &[Scatterer], path: Path, noise: bool, rng: &mut ChaCha8Rng) -> RangeAngle {
     match path {
         Path::Exact => exact(cfg, scatterers, noise, rng),
         Path::Fast => fast(cfg, scatterers, noise, rng),
     }
 }
 
-fn fast(cfg: &RadarConfig, scatterers: &[Scatterer], noise: bool, rng: &mut impl Rng) -> RangeAngle {
+fn fast(cfg: &RadarConfig, scatterers: &[Scatterer], noise: bool, rng: &mut ChaCha8Rng) -> RangeAngle {
     let (n, k, m) = (cfg.range_samples, cfg.antennas, cfg.angle_bins);
     let mut grid = vec![Complex64::new(0.0, 0.0); n * m];
     let dr = cfg.range_resolution();
@@ -115,7 +116,7 @@ fn fast(cfg: &RadarConfig, scatterers: &[Scatterer], noise: bool, rng: &mut impl
 /// The FFTs of the exact path: rustfft's scalar planner on every machine. Its default planner
 /// picks AVX, SSE or NEON code at run time, and those round differently, so the same key would
 /// give other scenes on another CPU (the test below shows the difference).
-fn exact(cfg: &RadarConfig, scatterers: &[Scatterer], noise: bool, rng: &mut impl Rng) -> RangeAngle {
+fn exact(cfg: &RadarConfig, scatterers: &[Scatterer], noise: bool, rng: &mut ChaCha8Rng) -> RangeAngle {
     exact_with(&mut FftPlannerScalar::new(), cfg, scatterers, noise, rng)
 }
 
@@ -130,13 +131,7 @@ impl Plan for FftPlannerScalar<f64> {
     }
 }
 
-impl Plan for FftPlanner<f64> {
-    fn forward(&mut self, len: usize) -> std::sync::Arc<dyn rustfft::Fft<f64>> {
-        self.plan_fft_forward(len)
-    }
-}
-
-fn exact_with(planner: &mut impl Plan, cfg: &RadarConfig, scatterers: &[Scatterer], noise: bool, rng: &mut impl Rng) -> RangeAngle {
+fn exact_with(planner: &mut impl Plan, cfg: &RadarConfig, scatterers: &[Scatterer], noise: bool, rng: &mut ChaCha8Rng) -> RangeAngle {
     let (n, k, m) = (cfg.range_samples, cfg.antennas, cfg.angle_bins);
     let dr = cfg.range_resolution();
     // The ADC cube: k antennas by n fast-time samples.
@@ -195,7 +190,14 @@ fn exact_with(planner: &mut impl Plan, cfg: &RadarConfig, scatterers: &[Scattere
 mod tests {
     use super::*;
     use rand::SeedableRng;
-    use rand_chacha::ChaCha8Rng;
+    use rustfft::FftPlanner;
+
+    /// The planner that picks vector code at run time: only the test below compares with it.
+    impl Plan for FftPlanner<f64> {
+        fn forward(&mut self, len: usize) -> std::sync::Arc<dyn rustfft::Fft<f64>> {
+            self.plan_fft_forward(len)
+        }
+    }
 
     fn scatterers() -> Vec<Scatterer> {
         // A handful at awkward fractional bins, some close enough to interfere coherently.

@@ -1,6 +1,7 @@
 //! Scene geometry to point scatterers, as one radar sees them.
 
-use rand::{Rng, RngExt};
+use rand::RngExt;
+use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::RadarConfig;
@@ -74,7 +75,7 @@ const CLUTTER_RCS: f64 = 0.05;
 const CLUTTER_SPACING: f64 = 1.0;
 
 /// The scatterers `mount` sees. `rng` draws surface phases and RCS fluctuation (speckle).
-pub fn scatterers(cfg: &RadarConfig, mount: &Mount, vehicles: &[VehicleBox], edges: &[Segment], rng: &mut impl Rng) -> Vec<Scatterer> {
+pub fn scatterers(cfg: &RadarConfig, mount: &Mount, vehicles: &[VehicleBox], edges: &[Segment], rng: &mut ChaCha8Rng) -> Vec<Scatterer> {
     let origin = (mount.x, mount.y);
     // (position, RCS, the vehicle it lies on: its own outline cannot shadow it)
     let mut points: Vec<((f64, f64), f64, Option<usize>)> = Vec::new();

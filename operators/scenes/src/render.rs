@@ -3,6 +3,7 @@
 //! both scene operators.
 
 use rand::{Rng, RngExt};
+use rand_chacha::ChaCha8Rng;
 use rlmflow_radar::{ImageMap, Path, RadarConfig, Segment, VehicleBox, View, radar_grids};
 use rlmflow_stages::SettingError;
 pub use rlmflow_stages::parallel_map;
@@ -73,7 +74,7 @@ impl Renderer {
             .collect()
     }
 
-    pub fn render(&self, index: u64, scene: &Scene, rng: &mut impl Rng) -> Rendered {
+    pub fn render(&self, index: u64, scene: &Scene, rng: &mut ChaCha8Rng) -> Rendered {
         let bodies: Vec<VehicleBox> = scene.vehicles.iter().map(|v| v.body).collect();
         let grids = radar_grids(&self.cfg, &bodies, &scene.edges, self.path, rng);
         let images: Vec<Vec<u8>> = self.maps.iter().map(|m| m.merge(&grids).iter().map(|&v| (v * 255.0).round() as u8).collect()).collect();
