@@ -5,8 +5,8 @@ use std::f64::consts::PI;
 
 use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
-use rustfft::num_complex::Complex64;
 use rustfft::FftPlannerScalar;
+use rustfft::num_complex::Complex64;
 
 use crate::RadarConfig;
 use crate::scatter::Scatterer;
