@@ -18,7 +18,7 @@
 //!
 //! Every draw comes from a `ChaCha8Rng` (the project's seeded generator), named as such rather
 //! than as any `Rng`: the rendering code is then compiled once, here, and not again inside each
-//! crate that renders (a generic took half of `rlmflow-scenes`'s build).
+//! crate that renders (generic, it cost a fresh test build 73 CPU-seconds more).
 
 pub mod image;
 pub mod response;
