@@ -1,8 +1,10 @@
 fn main() {
     rlmflow_libtorch::link();
-    // libtorch settings tch does not expose (`src/settings.rs`), compiled against the same
-    // libtorch headers torch-sys builds with.
+    // libtorch settings tch does not expose (`src/libtorch.rs`) and the portable numerics' matrix
+    // products, compiled against the same libtorch headers torch-sys builds with; optimised in
+    // every profile (the chain kernels do a model's matrix work).
     println!("cargo:rerun-if-changed=cpp/torch_settings.cpp");
+    println!("cargo:rerun-if-changed=cpp/chain_gemm.cpp");
     let libtorch = std::path::PathBuf::from(std::env::var_os("LIBTORCH").expect("rlmflow-libtorch's build script checked LIBTORCH"));
     // For the test that this process runs with the libtorch it was built against.
     println!("cargo:rustc-env=RLMFLOW_LIBTORCH={}", libtorch.display());
@@ -10,6 +12,8 @@ fn main() {
         .cpp(true)
         .std("c++17")
         .file("cpp/torch_settings.cpp")
+        .file("cpp/chain_gemm.cpp")
+        .opt_level(2)
         .include(libtorch.join("include"))
         .include(libtorch.join("include/torch/csrc/api/include"))
         .define("_GLIBCXX_USE_CXX11_ABI", "1")

@@ -11,7 +11,9 @@
 //!
 //! `portable` (the default) pins one path for every x86-64 machine of one vendor with AVX2 and
 //! FMA (`cpu/x86-64-v3/intel/portable`, `cpu/x86-64-v3/amd/portable`): ATen's AVX2 kernels,
-//! oneDNN capped at AVX2 and MKL's conditional numerical reproducibility, on its AVX2 branch on
+//! oneDNN capped at AVX2, float32 matrix products by the FMA-chain GEMM (`RLMFLOW_GEMM`, whose
+//! bits do not depend on the vector width, so an AVX-512 machine keeps its width) and MKL's
+//! conditional numerical reproducibility for what still calls MKL, on its AVX2 branch on
 //! Intel and its compatible branch elsewhere. The vendor is in the class because MKL parts them:
 //! it honours its AVX2 branch on Intel CPUs only, and its compatible branch computed other bytes
 //! on an AVX-512 Intel than on AVX-512 and AVX2 AMD machines, which agreed (docs/numerics.md).
@@ -128,6 +130,7 @@ impl Target {
 /// Every environment variable through which a caller could choose a library's kernels. [`apply`]
 /// sets each to its pin or removes it, so none of the caller's choices reaches a pinned action.
 pub const KERNEL_VARIABLES: &[&str] = &[
+    GEMM_VARIABLE,
     "ATEN_CPU_CAPABILITY",
     "ONEDNN_MAX_CPU_ISA",
     "DNNL_MAX_CPU_ISA",
@@ -137,6 +140,16 @@ pub const KERNEL_VARIABLES: &[&str] = &[
     "MKL_DYNAMIC",
     "CUBLAS_WORKSPACE_CONFIG",
 ];
+
+/// Which kernels compute ATen's float32 CPU matrix products: [`CHAIN_GEMM`] (the worker's
+/// `rlmflow_nn::libtorch::pin_gemm` replaces MKL's by it), or unset for ATen's own.
+pub const GEMM_VARIABLE: &str = "RLMFLOW_GEMM";
+/// The FMA-chain GEMM: every output one fused multiply-add chain over k in order, the same bits
+/// at 16, 8 or 1 float lanes.
+pub const CHAIN_GEMM: &str = "fma-chain";
+/// The chain GEMM's vector width in float lanes (1, 8 or 16); unset: the widest this CPU has. It
+/// changes the speed and not the bits, so no pin sets it: a check sets it to compare widths.
+pub const GEMM_LANES_VARIABLE: &str = "RLMFLOW_GEMM_LANES";
 
 /// This machine's CPU, as far as kernel choice goes.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -240,7 +253,13 @@ pub fn pins(numerics: Numerics, cpu: &Cpu, target: Target) -> BTreeMap<&'static 
         // MKL runs its AVX2 branch on Intel CPUs only.
         let mkl = if cpu.is_intel() { "AVX2" } else { "COMPATIBLE" };
         let chosen: &[(&str, &str)] = if cpu.is_x86_64_v3() {
-            &[("ATEN_CPU_CAPABILITY", "avx2"), ("ONEDNN_MAX_CPU_ISA", "AVX2"), ("MKL_CBWR", mkl), ("MKL_DYNAMIC", "FALSE")]
+            &[
+                (GEMM_VARIABLE, CHAIN_GEMM),
+                ("ATEN_CPU_CAPABILITY", "avx2"),
+                ("ONEDNN_MAX_CPU_ISA", "AVX2"),
+                ("MKL_CBWR", mkl),
+                ("MKL_DYNAMIC", "FALSE"),
+            ]
         } else if cpu.arch == "x86_64" {
             &[("ATEN_CPU_CAPABILITY", "default"), ("ONEDNN_MAX_CPU_ISA", "SSE41"), ("MKL_CBWR", "COMPATIBLE"), ("MKL_DYNAMIC", "FALSE")]
         } else {
@@ -318,8 +337,8 @@ pub fn class(numerics: Numerics, cpu: &Cpu, target: Target, gpu: Option<&Gpu>) -
 
 /// An environment that asks every library for other kernels than both the portable pins and its
 /// own automatic choice: older instruction sets than AVX2 (ATen's default, oneDNN's SSE4.1,
-/// MKL's SSE4.2 and automatic branch, OpenBLAS's Prescott kernels) and every one of numpy's
-/// loops. `run --check-determinism` runs a second attempt under it: where a pin is missing the
+/// MKL's SSE4.2 and automatic branch, OpenBLAS's Prescott kernels), every one of numpy's
+/// loops, and the chain GEMM at AVX2's 8 lanes (its widest is 16 on an AVX-512 machine). `run --check-determinism` runs a second attempt under it: where a pin is missing the
 /// first attempt (the library's own choice, AVX-512 on a machine that has it) and this one
 /// differ, and where a pin does not win over the environment this one differs from the pin's.
 pub fn other_kernels() -> Vec<(&'static str, &'static str)> {
@@ -330,6 +349,7 @@ pub fn other_kernels() -> Vec<(&'static str, &'static str)> {
         ("MKL_CBWR", "AUTO"),
         ("OPENBLAS_CORETYPE", "Prescott"),
         ("NPY_DISABLE_CPU_FEATURES", ""),
+        (GEMM_LANES_VARIABLE, "8"),
     ]
 }
 
@@ -425,7 +445,9 @@ mod tests {
         let portable = pins(Numerics::Portable, &zen3, Target::Cpu);
         assert_eq!(portable.len(), KERNEL_VARIABLES.len());
         assert_eq!(portable["ATEN_CPU_CAPABILITY"], Some("avx2"));
+        assert_eq!(portable[GEMM_VARIABLE], Some(CHAIN_GEMM));
         assert_eq!(portable["MKL_CBWR"], Some("COMPATIBLE"));
+        assert_eq!(pins(Numerics::Portable, &cpu("aarch64", &["neon"]), Target::Cpu)[GEMM_VARIABLE], None, "no chain kernel off x86-64-v3");
         assert_eq!(portable["MKL_ENABLE_INSTRUCTIONS"], None);
         assert!(pins(Numerics::Native, &zen3, Target::Cpu).values().all(Option::is_none));
         assert_eq!(pins(Numerics::Native, &zen3, Target::Cuda(0))["CUBLAS_WORKSPACE_CONFIG"], Some(":4096:8"));

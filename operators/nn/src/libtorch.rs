@@ -2,13 +2,15 @@
 //! `cpp/torch_settings.cpp` (compiled by `build.rs` against the same headers): deterministic
 //! algorithms, TF32, bfloat16 autocast on the CPU or CUDA (tch's `autocast` reaches CUDA's
 //! alone, in float16), and the multi-tensor kernels of PyTorch's fused AdamW and gradient
-//! clipping.
+//! clipping; and the portable numerics' matrix products (`cpp/chain_gemm.cpp`).
 
 use std::ffi::{CStr, c_char, c_void};
+use std::sync::Mutex;
 
 use tch::Tensor;
 
 use anyhow::bail;
+use rlmflow_stages::numerics::{CHAIN_GEMM, GEMM_LANES_VARIABLE, GEMM_VARIABLE};
 
 unsafe extern "C" {
     fn rlmflow_free_message(message: *mut c_char);
@@ -33,6 +35,9 @@ unsafe extern "C" {
         eps: f64,
     ) -> *mut c_char;
     fn rlmflow_foreach_clip(grads: *const *mut c_void, n: i32, max: f64) -> *mut c_char;
+    fn rlmflow_chain_gemm_widest() -> i32;
+    fn rlmflow_chain_gemm_install(lanes: i32) -> *mut c_char;
+    fn rlmflow_chain_mm(a: *const c_void, b: *const c_void, lanes: i32, out: *mut *mut c_void) -> *mut c_char;
 }
 
 /// `Ok`, or the C++ exception's message a shim function returned.
@@ -118,6 +123,60 @@ pub fn foreach_clip(grads: &[&Tensor], max: f64) -> anyhow::Result<()> {
     // SAFETY: an array of live tensor handles, borrowed for the call.
     let message = tch::no_grad(|| unsafe { rlmflow_foreach_clip(g.as_ptr(), g.len() as i32, max) });
     checked(message, "clip the gradients")
+}
+
+/// The widest chain GEMM kernel this CPU runs, in float32 lanes: 16 (AVX-512), 8 (AVX2 and FMA)
+/// or 1 (scalar `fma`). Every width computes the same bits.
+pub fn chain_lanes_widest() -> usize {
+    unsafe { rlmflow_chain_gemm_widest() as usize }
+}
+
+/// `a` (m x k) times `b` (k x n), float32 on the CPU, by the chain GEMM at `lanes` (1, 8 or 16,
+/// at most [`chain_lanes_widest`]), whether or not it is installed.
+pub fn chain_mm(a: &Tensor, b: &Tensor, lanes: usize) -> anyhow::Result<Tensor> {
+    check_lanes(lanes)?;
+    let mut out: *mut c_void = std::ptr::null_mut();
+    // SAFETY: two live tensor handles borrowed for the call; on success `out` is a new handle
+    // this function owns.
+    checked(unsafe { rlmflow_chain_mm(a.as_ptr() as *const c_void, b.as_ptr() as *const c_void, lanes as i32, &mut out) }, "multiply")?;
+    Ok(unsafe { Tensor::from_ptr(out.cast()) })
+}
+
+fn check_lanes(lanes: usize) -> anyhow::Result<()> {
+    let widest = chain_lanes_widest();
+    if ![1, 8, 16].contains(&lanes) || lanes > widest {
+        bail!("{GEMM_LANES_VARIABLE}={lanes}: the chain GEMM runs at 1, 8 or 16 lanes, and this CPU at most {widest}");
+    }
+    Ok(())
+}
+
+/// The lanes the chain GEMM is installed at in this process; 0: ATen's own kernels.
+static CHAIN_LANES: Mutex<usize> = Mutex::new(0);
+
+/// Makes ATen's float32 CPU matrix products (`mm`, `addmm`, `bmm`, `baddbmm`) what
+/// `RLMFLOW_GEMM` asks: `fma-chain` (the portable pin, `rlmflow_stages::numerics::pins`)
+/// replaces MKL's kernels by the chain GEMM at this CPU's widest lanes, or at
+/// `RLMFLOW_GEMM_LANES` (what a check asks for to compare widths); unset leaves ATen's own.
+/// Returns the lanes installed (0: none). Every model stage calls it before it computes.
+pub fn pin_gemm() -> anyhow::Result<usize> {
+    let lanes = match std::env::var(GEMM_VARIABLE).ok().as_deref() {
+        None | Some("") => 0,
+        Some(CHAIN_GEMM) => match std::env::var(GEMM_LANES_VARIABLE).ok().filter(|v| !v.is_empty()) {
+            None => chain_lanes_widest(),
+            Some(asked) => {
+                let lanes = asked.parse().map_err(|_| anyhow::anyhow!("{GEMM_LANES_VARIABLE}={asked}: 1, 8 or 16"))?;
+                check_lanes(lanes)?;
+                lanes
+            }
+        },
+        Some(other) => bail!("{GEMM_VARIABLE}={other}: `{CHAIN_GEMM}`, or unset for ATen's own kernels"),
+    };
+    let mut installed = CHAIN_LANES.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    if *installed != lanes {
+        checked(unsafe { rlmflow_chain_gemm_install(lanes as i32) }, "register the chain GEMM")?;
+        *installed = lanes;
+    }
+    Ok(lanes)
 }
 
 /// A bfloat16 autocast region on `device`'s type, as `torch.autocast(device, torch.bfloat16)`:
@@ -214,6 +273,57 @@ mod tests {
         for (p, e) in params.iter().zip(&expected) {
             assert!(p.allclose(e, 1e-5, 1e-6, false), "{p} against {e}");
         }
+    }
+
+    fn bits(t: &Tensor) -> Vec<u32> {
+        Vec::<f32>::try_from(t.contiguous().flatten(0, -1)).unwrap().iter().map(|v| v.to_bits()).collect()
+    }
+
+    /// Every output one fused multiply-add chain over k in order, from 0: what each width must give.
+    fn fma_chain(a: &Tensor, b: &Tensor) -> Vec<u32> {
+        let (m, k, n) = (a.size()[0], a.size()[1], b.size()[1]);
+        let a = Vec::<f32>::try_from(a.contiguous().flatten(0, -1)).unwrap();
+        let b = Vec::<f32>::try_from(b.contiguous().flatten(0, -1)).unwrap();
+        let mut out = Vec::new();
+        for i in 0..m {
+            for j in 0..n {
+                let c = (0..k).fold(0f32, |c, l| a[(i * k + l) as usize].mul_add(b[(l * n + j) as usize], c));
+                out.push(c.to_bits());
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn the_chain_gemm_gives_the_same_bits_at_every_width_this_cpu_runs() {
+        let _generator = crate::generator();
+        tch::manual_seed(4);
+        let widths: Vec<usize> = [1, 8, 16].into_iter().filter(|&l| l <= chain_lanes_widest()).collect();
+        if widths.len() < 3 {
+            eprintln!("this CPU runs the chain GEMM at {widths:?} lanes only: the other widths are compared where a CPU has them");
+        }
+        // Edges of every blocking: rows past a tile, columns past a panel, k past a packed block,
+        // k = 0; and the layouts a model's products take (transposed, expanded).
+        for (m, k, n) in [(1, 1, 1), (13, 257, 33), (25, 600, 70), (7, 0, 5), (64, 256, 16), (3, 31, 129)] {
+            let a = Tensor::randn([m, k], (Kind::Float, Device::Cpu));
+            let b = Tensor::randn([k, n], (Kind::Float, Device::Cpu));
+            let mut layouts = vec![(a.tr().contiguous().tr(), b.tr().contiguous().tr())];
+            if k > 0 {
+                layouts.push((a.select(1, 0).unsqueeze(1).expand([m, k], false), b.select(0, 0).unsqueeze(0).expand([k, n], false)));
+            }
+            layouts.push((a, b));
+            for (a, b) in &layouts {
+                let expected = fma_chain(a, b);
+                for &lanes in &widths {
+                    let c = chain_mm(a, b, lanes).unwrap();
+                    assert_eq!(c.size(), [m, n]);
+                    assert!(bits(&c) == expected, "{m}x{k}x{n} at {lanes} lanes differs from the fma chain");
+                }
+            }
+        }
+        assert!(chain_mm(&Tensor::ones([2, 3], (Kind::Double, Device::Cpu)), &Tensor::ones([3, 2], (Kind::Double, Device::Cpu)), 1).is_err());
+        let wrong = chain_mm(&Tensor::ones([2, 3], (Kind::Float, Device::Cpu)), &Tensor::ones([3, 2], (Kind::Float, Device::Cpu)), 4).unwrap_err();
+        assert!(format!("{wrong}").contains("RLMFLOW_GEMM_LANES=4"), "{wrong}");
     }
 
     #[test]

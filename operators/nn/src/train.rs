@@ -40,8 +40,10 @@ const LOG: &str = "state.json";
 /// The device a `device` setting computes on, given the engine's choice for the action
 /// (`rlmflow_stages::numerics::Target::of`, the rule the action's key was planned by). On CUDA,
 /// deterministic algorithms are on (an op without a deterministic kernel fails naming itself),
-/// cuDNN's autotuner and TF32 off: two runs of a key give the same bytes.
+/// cuDNN's autotuner and TF32 off: two runs of a key give the same bytes. The CPU's matrix
+/// products are first made what the numerics pins ask (`libtorch::pin_gemm`).
 pub fn resolve_device(setting: Device, engine: Device) -> anyhow::Result<tch::Device> {
+    libtorch::pin_gemm()?;
     match Target::of(setting, engine, cuda::available()) {
         Target::Cpu => Ok(tch::Device::Cpu),
         Target::Cuda(_) if !cuda::available() => {

@@ -114,7 +114,7 @@ fn pup_spec() -> OperatorSpec {
     OperatorSpec {
         name: "pup",
         kind: "segment",
-        version: 6,
+        version: 7,
         inputs: None,
         summary: "progressive-upsampling decoder on the frozen encoder's patch tokens, with its attention rollout (libtorch, in rlmflow-torch)",
     }
@@ -124,7 +124,7 @@ fn unet_spec() -> OperatorSpec {
     OperatorSpec {
         name: "unet",
         kind: "segment",
-        version: 6,
+        version: 7,
         // No encoder: the baseline must not fan out over the encoder's variants.
         inputs: Some(&["scenes", "labels"]),
         summary: "U-Net on the heatmap pixels, the segmentation baseline (libtorch, in rlmflow-torch)",
