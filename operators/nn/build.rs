@@ -8,7 +8,17 @@ fn main() {
     let libtorch = std::path::PathBuf::from(std::env::var_os("LIBTORCH").expect("rlmflow-libtorch's build script checked LIBTORCH"));
     // For the test that this process runs with the libtorch it was built against.
     println!("cargo:rustc-env=RLMFLOW_LIBTORCH={}", libtorch.display());
-    cc::Build::new()
+    let mut build = cc::Build::new();
+    // ATen's `parallel_for` is inline OpenMP: compiled without it, the chain GEMM would run on one
+    // thread. It must be libtorch's own OpenMP runtime (the wheel's `lib/libgomp.so.1`), so a
+    // process has one thread pool.
+    let gomp = libtorch.join("lib/libgomp.so.1");
+    if gomp.exists() {
+        build.flag("-fopenmp");
+        println!("cargo:rustc-link-search=native={}", libtorch.join("lib").display());
+        println!("cargo:rustc-link-lib=dylib:+verbatim=libgomp.so.1");
+    }
+    build
         .cpp(true)
         .std("c++17")
         .file("cpp/torch_settings.cpp")

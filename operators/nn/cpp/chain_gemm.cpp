@@ -89,7 +89,10 @@ __attribute__((target("avx512f"))) void tile512(const float* a, View av, const f
 #define DECL(r)                                                        \
   __m512 x##r = _mm512_setzero_ps(), y##r = _mm512_setzero_ps();       \
   const float* a##r = a + (r)*av.s0;                                   \
-  if ((r) < R && k0) {                                                 \
+  if ((r) < R && k0 && cols == 32) {                                   \
+    x##r = _mm512_loadu_ps(c + (r)*ldc);                               \
+    y##r = _mm512_loadu_ps(c + (r)*ldc + 16);                          \
+  } else if ((r) < R && k0) {                                          \
     x##r = _mm512_maskz_loadu_ps(m0, c + (r)*ldc);                     \
     y##r = _mm512_maskz_loadu_ps(m1, c + (r)*ldc + 16);                \
   }
@@ -104,10 +107,14 @@ __attribute__((target("avx512f"))) void tile512(const float* a, View av, const f
   }
     ROWS12(STEP)
   }
-#define PUT(r)                                              \
-  if ((r) < R) {                                            \
-    _mm512_mask_storeu_ps(c + (r)*ldc, m0, x##r);           \
-    _mm512_mask_storeu_ps(c + (r)*ldc + 16, m1, y##r);      \
+  // Plain stores where the panel is full, masked ones at the edge only.
+#define PUT(r)                                                \
+  if ((r) < R && cols == 32) {                                \
+    _mm512_storeu_ps(c + (r)*ldc, x##r);                      \
+    _mm512_storeu_ps(c + (r)*ldc + 16, y##r);                 \
+  } else if ((r) < R) {                                       \
+    _mm512_mask_storeu_ps(c + (r)*ldc, m0, x##r);             \
+    _mm512_mask_storeu_ps(c + (r)*ldc + 16, m1, y##r);        \
   }
   ROWS12(PUT)
 #undef DECL
@@ -123,7 +130,10 @@ __attribute__((target("avx2,fma"))) void tile256(const float* a, View av, const 
 #define DECL(r)                                                  \
   __m256 x##r = _mm256_setzero_ps(), y##r = _mm256_setzero_ps(); \
   const float* a##r = a + (r)*av.s0;                             \
-  if ((r) < R && k0) {                                           \
+  if ((r) < R && k0 && cols == 16) {                             \
+    x##r = _mm256_loadu_ps(c + (r)*ldc);                         \
+    y##r = _mm256_loadu_ps(c + (r)*ldc + 8);                     \
+  } else if ((r) < R && k0) {                                    \
     x##r = _mm256_maskload_ps(c + (r)*ldc, l0);                  \
     y##r = _mm256_maskload_ps(c + (r)*ldc + 8, l1);              \
   }
@@ -138,8 +148,12 @@ __attribute__((target("avx2,fma"))) void tile256(const float* a, View av, const 
   }
     ROWS6(STEP)
   }
+  // Plain stores where the panel is full: AVX2's masked store is slow on AMD.
 #define PUT(r)                                         \
-  if ((r) < R) {                                       \
+  if ((r) < R && cols == 16) {                         \
+    _mm256_storeu_ps(c + (r)*ldc, x##r);               \
+    _mm256_storeu_ps(c + (r)*ldc + 8, y##r);           \
+  } else if ((r) < R) {                                \
     _mm256_maskstore_ps(c + (r)*ldc, l0, x##r);        \
     _mm256_maskstore_ps(c + (r)*ldc + 8, l1, y##r);    \
   }
@@ -188,11 +202,11 @@ void gemm_serial(View a, View b, float* c, int64_t ldc, int64_t m, int64_t k, in
     pack_block(b, k0, k1, n, nr, packed.data());
     for (int64_t i = 0; i < m; i += mr) {
       const int rows = (int)std::min(mr, m - i);
+      const float* ap = a.p + i * a.s0;
       for (int64_t p = 0; p < panels; p++) {
         const float* bp = packed.data() + p * (k1 - k0) * nr;
         float* cp = c + i * ldc + p * nr;
         const int64_t cols = std::min(nr, n - p * nr);
-        const float* ap = a.p + i * a.s0;
 #if defined(__x86_64__)
         if (lanes == 16) {
           tile16(rows, ap, a, bp, cp, ldc, k0, k1, cols);

@@ -1,6 +1,6 @@
 //! The chain GEMM installed over ATen's CPU matrix products (`rlmflow_nn::libtorch::pin_gemm`),
 //! as a model stage's process has it under the portable pins: a model's forward and backward
-//! passes give the same bits at every width this CPU runs, each product is the chain kernel's,
+//! passes give the same bits at every width this CPU runs and on 1 or 2 threads, each product is the chain kernel's,
 //! other dtypes keep ATen's kernels, and unsetting the variable restores them. One test: the
 //! installation and the variables are the process's.
 
@@ -63,6 +63,12 @@ fn installed_the_chain_gemm_computes_every_product_alike_at_every_width_and_unse
         set(GEMM_LANES_VARIABLE, Some(&lanes.to_string()));
         assert_eq!(pin_gemm().unwrap(), lanes);
         assert!(model_products() == widest, "{lanes} lanes computed other bits than {}", chain_lanes_widest());
+    }
+    set(GEMM_LANES_VARIABLE, None);
+    pin_gemm().unwrap();
+    for threads in [1, 2] {
+        tch::set_num_threads(threads);
+        assert!(model_products() == widest, "{threads} threads computed other bits");
     }
     if chain_lanes_widest() < 16 {
         eprintln!("this CPU has no AVX-512: the 16-lane kernel is compared where a CPU has it");
