@@ -4,7 +4,9 @@
 //! kernel environment (libtorch reads its kernel choices once per process):
 //!
 //! - `portable` and `native`, as a model action runs with `numerics = "portable"` (the default)
-//!   or `"native"`, alternating over rounds; the ratio of their medians is the pins' cost;
+//!   or `"native"`, alternating over rounds; the ratio of their medians is the pins' cost; and
+//!   portable with the chain GEMM held to AVX2's 8 lanes (`RLMFLOW_GEMM_LANES=8`), which must
+//!   give the portable weights (on an AVX-512 machine: the other width, the same bytes);
 //! - nothing pinned, with one caller variable at a time asking for other kernels: where the
 //!   weights' digest differs from the unpinned one, that library's choice changes the bytes, and
 //!   its pin is needed.
@@ -15,7 +17,7 @@
 
 use std::process::Command;
 
-use rlmflow_stages::numerics::{Cpu, KERNEL_VARIABLES, other_kernels};
+use rlmflow_stages::numerics::{Cpu, GEMM_LANES_VARIABLE, KERNEL_VARIABLES, other_kernels};
 
 const ROUNDS: usize = 3;
 const STEPS: &str = "8";
@@ -28,7 +30,7 @@ fn median(mut values: Vec<f64>) -> f64 {
 fn main() {
     let cpu = Cpu::detect();
     println!("CPU: {} ({})", cpu.model, cpu.extensions.join(" "));
-    let (mut portable, mut native) = (Vec::new(), Vec::new());
+    let (mut portable, mut native, mut lanes8) = (Vec::new(), Vec::new(), Vec::new());
     let mut digests = Vec::new();
     for _ in 0..ROUNDS {
         let (ms, digest) = measure("portable", &[]);
@@ -37,17 +39,24 @@ fn main() {
         let (ms, digest) = measure("native", &[]);
         native.push(ms);
         digests.push(("native", digest));
+        let (ms, digest) = measure("portable", &[(GEMM_LANES_VARIABLE, "8")]);
+        lanes8.push(ms);
+        digests.push(("portable, chain GEMM at 8 lanes", digest));
     }
-    let (p, n) = (median(portable), median(native));
+    let (p, n, p8) = (median(portable), median(native), median(lanes8));
     println!(
         "laptop step, batch 128, 2 threads: portable {p:.1} ms, native {n:.1} ms; portable / native {:.3} (medians of {ROUNDS} alternating rounds)",
         p / n
     );
-    for mode in ["portable", "native"] {
+    println!("  portable with the chain GEMM at 8 lanes: {p8:.1} ms, {:.3} of native", p8 / n);
+    let portable_weights = &digests[0].1;
+    for mode in ["portable", "native", "portable, chain GEMM at 8 lanes"] {
         let mine: Vec<&String> = digests.iter().filter(|(m, _)| *m == mode).map(|(_, d)| d).collect();
         let same = mine.windows(2).all(|w| w[0] == w[1]);
         println!("  {mode}: weights {} in every round: {}", mine[0], if same { "same bytes" } else { "DIFFERENT BYTES" });
     }
+    let widths_agree = digests.iter().filter(|(m, _)| m.starts_with("portable")).all(|(_, d)| d == portable_weights);
+    println!("  portable at the widest and at 8 lanes: {}", if widths_agree { "same bytes" } else { "DIFFERENT BYTES" });
     let (_, unpinned) = measure("unpinned", &[]);
     println!("nothing pinned: weights {}", unpinned);
     for (var, value) in other_kernels() {
@@ -63,7 +72,7 @@ fn main() {
 fn measure(numerics: &str, env: &[(&str, &str)]) -> (f64, String) {
     let mut command = Command::new(env!("CARGO_BIN_EXE_rlmflow-torch"));
     command.args(["step", "--model", "laptop", "--batch", "128", "--steps", STEPS, "--numerics", numerics, "--digest"]).envs(env.iter().copied());
-    for var in KERNEL_VARIABLES.iter().filter(|v| !env.iter().any(|(k, _)| k == *v)) {
+    for var in KERNEL_VARIABLES.iter().chain([&GEMM_LANES_VARIABLE]).filter(|v| !env.iter().any(|(k, _)| k == *v)) {
         command.env_remove(var);
     }
     let out = command.output().expect("running a measurement");

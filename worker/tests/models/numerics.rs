@@ -1,8 +1,9 @@
 //! Same key, same bytes whatever kernels the caller asks for: every torch operator's action,
 //! stored under the default environment, recomputed in fresh processes whose environment asks
-//! libtorch for AVX-512 kernels everywhere (the first attempt of `--check-determinism`) and for
-//! other kernels again (its second attempt: older instruction sets on a machine without
-//! AVX-512), gives the stored bytes. Without the pins the second attempt differs on any AVX2
+//! libtorch for AVX-512 kernels everywhere (the first attempt of `--check-determinism`, where the
+//! chain GEMM runs at the CPU's widest lanes, 16 on an AVX-512 machine) and for other kernels
+//! again (its second attempt: older instruction sets, and the chain GEMM at AVX2's 8 lanes),
+//! gives the stored bytes. Without the pins the second attempt differs on any AVX2
 //! machine: `cargo xtask bench -p rlmflow-torch --bench numerics` shows which variable alone
 //! changes the bytes.
 
