@@ -5,6 +5,7 @@ fn main() {
     // every profile (the chain kernels do a model's matrix work).
     println!("cargo:rerun-if-changed=cpp/torch_settings.cpp");
     println!("cargo:rerun-if-changed=cpp/chain_gemm.cpp");
+    println!("cargo:rerun-if-changed=cpp/guarded.h");
     let libtorch = std::path::PathBuf::from(std::env::var_os("LIBTORCH").expect("rlmflow-libtorch's build script checked LIBTORCH"));
     // For the test that this process runs with the libtorch it was built against.
     println!("cargo:rustc-env=RLMFLOW_LIBTORCH={}", libtorch.display());

@@ -22,11 +22,11 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstdlib>
 #include <cstring>
-#include <exception>
 #include <memory>
 #include <vector>
+
+#include "guarded.h"
 
 #if defined(__x86_64__)
 #include <immintrin.h>
@@ -279,6 +279,12 @@ at::Tensor epilogue(at::Tensor p, const at::Tensor& self, const at::Scalar& beta
   return beta.toDouble() == 1.0 ? p.add_(self) : p.add_(self.mul(beta));
 }
 
+// An `out` form's result: `p` written into `out`, resized as ATen's kernels resize it.
+at::Tensor& into(at::Tensor& out, const at::Tensor& p) {
+  at::native::resize_output(out, p.sizes());
+  return out.copy_(p);
+}
+
 at::Tensor mm(const at::Tensor& self, const at::Tensor& mat2) {
   if (!is_float(self) || !is_float(mat2)) return at::cpu::mm(self, mat2);
   return product(self, mat2, chosen_lanes);
@@ -286,9 +292,7 @@ at::Tensor mm(const at::Tensor& self, const at::Tensor& mat2) {
 
 at::Tensor& mm_out(const at::Tensor& self, const at::Tensor& mat2, at::Tensor& out) {
   if (!is_float(self) || !is_float(mat2) || !is_float(out)) return at::cpu::mm_outf(self, mat2, out);
-  auto p = product(self, mat2, chosen_lanes);
-  at::native::resize_output(out, p.sizes());
-  return out.copy_(p);
+  return into(out, product(self, mat2, chosen_lanes));
 }
 
 at::Tensor addmm(const at::Tensor& self, const at::Tensor& mat1, const at::Tensor& mat2, const at::Scalar& beta, const at::Scalar& alpha) {
@@ -299,9 +303,7 @@ at::Tensor addmm(const at::Tensor& self, const at::Tensor& mat1, const at::Tenso
 at::Tensor& addmm_out(const at::Tensor& self, const at::Tensor& mat1, const at::Tensor& mat2, const at::Scalar& beta, const at::Scalar& alpha,
                       at::Tensor& out) {
   if (!is_float(self) || !is_float(mat1) || !is_float(mat2) || !is_float(out)) return at::cpu::addmm_outf(self, mat1, mat2, beta, alpha, out);
-  auto p = epilogue(product(mat1, mat2, chosen_lanes), self, beta, alpha);
-  at::native::resize_output(out, p.sizes());
-  return out.copy_(p);
+  return into(out, epilogue(product(mat1, mat2, chosen_lanes), self, beta, alpha));
 }
 
 at::Tensor& addmm_(at::Tensor& self, const at::Tensor& mat1, const at::Tensor& mat2, const at::Scalar& beta, const at::Scalar& alpha) {
@@ -316,9 +318,7 @@ at::Tensor bmm(const at::Tensor& self, const at::Tensor& mat2) {
 
 at::Tensor& bmm_out(const at::Tensor& self, const at::Tensor& mat2, at::Tensor& out) {
   if (!is_float(self) || !is_float(mat2) || !is_float(out)) return at::cpu::bmm_outf(self, mat2, out);
-  auto p = batched(self, mat2, chosen_lanes);
-  at::native::resize_output(out, p.sizes());
-  return out.copy_(p);
+  return into(out, batched(self, mat2, chosen_lanes));
 }
 
 at::Tensor baddbmm(const at::Tensor& self, const at::Tensor& b1, const at::Tensor& b2, const at::Scalar& beta, const at::Scalar& alpha) {
@@ -329,9 +329,7 @@ at::Tensor baddbmm(const at::Tensor& self, const at::Tensor& b1, const at::Tenso
 at::Tensor& baddbmm_out(const at::Tensor& self, const at::Tensor& b1, const at::Tensor& b2, const at::Scalar& beta, const at::Scalar& alpha,
                         at::Tensor& out) {
   if (!is_float(self) || !is_float(b1) || !is_float(b2) || !is_float(out)) return at::cpu::baddbmm_outf(self, b1, b2, beta, alpha, out);
-  auto p = epilogue(batched(b1, b2, chosen_lanes), self, beta, alpha);
-  at::native::resize_output(out, p.sizes());
-  return out.copy_(p);
+  return into(out, epilogue(batched(b1, b2, chosen_lanes), self, beta, alpha));
 }
 
 at::Tensor& baddbmm_(at::Tensor& self, const at::Tensor& b1, const at::Tensor& b2, const at::Scalar& beta, const at::Scalar& alpha) {
@@ -354,18 +352,6 @@ int widest_lanes() {
   if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma")) return 8;
 #endif
   return 1;
-}
-
-template <typename F>
-char* guarded(F f) {
-  try {
-    f();
-    return nullptr;
-  } catch (const std::exception& e) {
-    return strdup(e.what());
-  } catch (...) {
-    return strdup("an unknown C++ exception");
-  }
 }
 }  // namespace
 

@@ -13,23 +13,11 @@
 #include <c10/core/ScalarType.h>
 
 #include <cstdlib>
-#include <cstring>
-#include <exception>
 #include <vector>
 
-namespace {
-template <typename F>
-char* guarded(F f) {
-  try {
-    f();
-    return nullptr;
-  } catch (const std::exception& e) {
-    return strdup(e.what());
-  } catch (...) {
-    return strdup("an unknown C++ exception");
-  }
-}
+#include "guarded.h"
 
+namespace {
 at::DeviceType device_type(int cuda) { return cuda ? at::kCUDA : at::kCPU; }
 
 std::vector<at::Tensor> tensors(at::Tensor** handles, int n) {
