@@ -17,17 +17,24 @@ It runs, each part in its own processes, with the GPU's memory sampled by nvidia
    each measurement in its own process.
 5. Memory: pretraining at a batch of 160 in chunks of 80 (the paper's per-GPU batch) against the
    dry run's estimate.
+6. This machine's CPU, another CPU model than the one that wrote docs/digests/: examples/ci.toml
+   into fresh stores (portable numerics, the FMA-chain GEMM at the CPU's widest lanes, then at 8)
+   against docs/digests/ci.toml.digests, and the laptop model's step, portable against native.
+   Its highway-env scenes come from DIR/ci-seeds, a file remote `--build-only` fills (the GPU
+   machine has no network to make the Python environment highway-env runs in).
 
 and prints one Markdown table, row by row (also written to --out after each row; a failed part
 is a row saying why, and the check goes on). Without a CUDA device (or with --dry) it
 checks its inputs (binaries run, the pipeline and its overrides validate, the reference script
 is there), says so and exits 0: the test suite runs it that way, so it cannot rot between loans.
+`--cpu` runs part 6 alone, on any machine.
 """
 
 import argparse
 import json
 import lzma
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -38,6 +45,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 PIPELINE = ROOT / "examples/paper-smoke.toml"
+CI = ROOT / "examples/ci.toml"
+CI_DIGESTS = ROOT / "docs/digests/ci.toml.digests"
 REFERENCE = ROOT / "worker/benches/step_reference.py"
 BINARIES = ("rlmflow", "rlmflow-torch")
 MODEL_STAGES = ("pretrain", "clipcap", "pup", "unet")
@@ -155,12 +164,57 @@ def pipeline(rlmflow, store, sets):
     return time.time() - start, memory.peak
 
 
+def cpu_checks(table, rlmflow, worker, bin_dir):
+    """Part 6: this CPU's portable bytes against the shipped digests, and what the pins cost here."""
+    model = lscpu_model()
+    seeds = bin_dir / "ci-seeds"
+    # Every instance but the report, whose sample figures read nothing the others do not.
+    stages = [re.split(r"[\[#]", row.split()[0])[0] for row in CI_DIGESTS.read_text().splitlines() if row.strip() and not row.startswith("#")]
+    only = [a for stage in dict.fromkeys(stages) if stage != "report" for a in ("--only", stage)]
+    for lanes in ("", "8"):
+        def against(lanes=lanes):
+            if not seeds.is_dir():
+                raise Failed(f"{seeds} is missing: `cargo xtask device-check --build-only` makes it")
+            store = Path(tempfile.mkdtemp(prefix="rlmflow-cpu-check-"))
+            env = dict(os.environ, RLMFLOW_GEMM_LANES=lanes) if lanes else os.environ
+            start = time.time()
+            run([rlmflow, "run", CI, "--cache", store, "--remote", f"file://{seeds.resolve()}"] + only, cwd=ROOT, env=env)
+            seconds = time.time() - start
+            out = subprocess.run([rlmflow, "verify", CI, "--cache", store, "--against", CI_DIGESTS], capture_output=True, text=True)
+            shutil.rmtree(store, ignore_errors=True)
+            summary = next((line for line in out.stdout.splitlines() if line.startswith("verify --against")), out.stderr.strip()[-300:])
+            differs = [line.split()[1] for line in out.stdout.splitlines() if line.strip().startswith("DIFFERS")]
+            if differs:
+                raise Failed(f"{summary.split(': ', 1)[-1]}; differ: {', '.join(differs)}")
+            return f"{seconds:.0f} s", summary.split(": ", 1)[-1]
+
+        width = f"{lanes} lanes" if lanes else "its widest lanes"
+        table.measure(f"cpu: examples/ci.toml on {model} (GEMM at {width}) against {CI_DIGESTS.name}", against)
+
+    def pins():
+        times = {}
+        for numerics in ("native", "portable"):
+            times[numerics] = float(run([worker, "step", "--model", "laptop", "--batch", "128", "--steps", "8", "--numerics", numerics, "--threads", "2"]))
+        return f"{times['portable']:.0f} / {times['native']:.0f} ms", f"portable {times['portable'] / times['native']:.2f}x native (laptop model, batch 128, 2 threads)"
+
+    table.measure(f"cpu: step, portable against native, {model}", pins)
+
+
+def lscpu_model():
+    """The CPU's model name, as /proc/cpuinfo says it."""
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return "this CPU"
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--bin", type=Path, default=ROOT / "target/device-check")
     parser.add_argument("--torch-python", default=os.environ.get("RLMFLOW_TORCH_PYTHON", "/opt/torch/.venv/bin/python"))
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--dry", action="store_true", help="check the inputs only, even on a GPU")
+    parser.add_argument("--cpu", action="store_true", help="only this CPU against the shipped digests (part 6)")
     args = parser.parse_args()
 
     bins = binaries(args.bin)
@@ -175,13 +229,17 @@ def main():
         os.environ["LD_LIBRARY_PATH"] = ":".join(filter(None, [os.environ.get("LD_LIBRARY_PATH"), libtorch]))
     doctor = run([worker, "doctor"])
     print(doctor)
-    for path in (PIPELINE, REFERENCE):
+    for path in (PIPELINE, REFERENCE, CI, CI_DIGESTS):
         if not path.is_file():
             sys.exit(f"device-check: {path} is missing")
     # The overrides every part uses validate as the file does (dag checks every setting).
     for sets in (CUDA, CUDA + [s for s in MEMORY if "=" in s]):
         run([rlmflow, "dag", PIPELINE] + overrides(sets))
     usable = "CUDA           usable" in doctor
+    if args.cpu:
+        table = Table(args.out, doctor)
+        cpu_checks(table, rlmflow, worker, args.bin)
+        sys.exit(f"device-check: {table.failed} checks failed (the table says which and why)" if table.failed else 0)
     if args.dry or not usable:
         why = "--dry" if args.dry else "no CUDA device (the doctor's report above says why)"
         print(f"device-check: dry mode, {why}: inputs checked (binaries run, {PIPELINE.name} and its overrides validate, the reference is there); nothing measured")
@@ -224,6 +282,7 @@ def main():
 
     table.measure("memory: pretrain, batch 160 in chunks of 80", memory)
     shutil.rmtree(scratch, ignore_errors=True)
+    cpu_checks(table, rlmflow, worker, args.bin)
     if table.failed:
         sys.exit(f"device-check: {table.failed} checks failed (the table says which and why)")
 

@@ -17,7 +17,8 @@
 //! cargo xtask device-check [--build-only] [ARGS]
 //!                                  build rlmflow and its torch worker (release), pack them
 //!                                  (xz) with the libpython rlmflow embeds into
-//!                                  target/device-check/ for a GPU machine, then run
+//!                                  target/device-check/ for a GPU machine, with ci.toml's
+//!                                  highway-env scenes as a file remote, then run
 //!                                  xtask/device-check.py ARGS on them (without a GPU: a dry
 //!                                  run that checks its inputs)
 //! cargo xtask digests [PIPELINE..] build (release), run each pipeline (default: examples/ci.toml
@@ -99,7 +100,8 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
                 return Ok(ExitCode::FAILURE);
             }
             let packed = target_dir()?.join("device-check");
-            pack(&target_dir()?.join("release"), &packed)?;
+            pack(&target_dir()?.join("release"), &libtorch, &packed)?;
+            seed_ci(&target_dir()?.join("release/rlmflow"), &packed)?;
             if rest.iter().any(|a| a == "--build-only") {
                 println!(
                     "{}: carry it to the GPU machine and run `python3 xtask/device-check.py --bin {}` there",
@@ -148,9 +150,11 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
     }
 }
 
-/// The release binaries of `release`, xz-compressed, and the libpython `rlmflow` embeds, in
-/// `into`: what a GPU machine without Rust needs (`xtask/device-check.py` unpacks them).
-fn pack(release: &std::path::Path, into: &std::path::Path) -> anyhow::Result<()> {
+/// The release binaries of `release`, xz-compressed, the libpython `rlmflow` embeds and the
+/// OpenMP runtime the worker's GEMM links (`libtorch`'s own, which a torch packaged without it in
+/// `lib/` lacks), in `into`: what a GPU machine without Rust needs (`xtask/device-check.py`
+/// unpacks them).
+fn pack(release: &std::path::Path, libtorch: &std::path::Path, into: &std::path::Path) -> anyhow::Result<()> {
     std::fs::create_dir_all(into)?;
     for name in ["rlmflow", "rlmflow-torch"] {
         let _ = std::fs::remove_file(into.join(name));
@@ -166,6 +170,29 @@ fn pack(release: &std::path::Path, into: &std::path::Path) -> anyhow::Result<()>
     let libpython = PathBuf::from(String::from_utf8_lossy(&out.stdout).trim());
     let name = libpython.file_name().context("libpython's file name")?;
     std::fs::copy(&libpython, into.join(name)).with_context(|| format!("copying {}", libpython.display()))?;
+    let openmp = libtorch.join("lib/libgomp.so.1");
+    std::fs::copy(&openmp, into.join("libgomp.so.1")).with_context(|| format!("copying {}", openmp.display()))?;
+    Ok(())
+}
+
+/// `examples/ci.toml`'s highway-env scenes in a file remote, `into/ci-seeds`: the device check
+/// computes the rest of ci.toml on the GPU machine's CPU, which has no network to make the
+/// Python environment highway-env needs. The pipeline runs from a copy beside its store, so the
+/// user's `examples/results` links stay as they were.
+fn seed_ci(rlmflow: &std::path::Path, into: &std::path::Path) -> anyhow::Result<()> {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().context("xtask lives in the workspace")?.to_path_buf();
+    let work = target_dir()?.join("device-check-seeding");
+    std::fs::create_dir_all(&work)?;
+    let pipeline = work.join("ci.toml");
+    std::fs::copy(root.join("examples/ci.toml"), &pipeline).context("copying examples/ci.toml")?;
+    let remote = format!("file://{}", std::path::absolute(into.join("ci-seeds"))?.display());
+    for command in ["run", "push"] {
+        let mut seed = Command::new(rlmflow);
+        seed.arg(command).arg(&pipeline).args(["--only", "scenes", "--remote", &remote]);
+        if status(&mut seed)? != ExitCode::SUCCESS {
+            bail!("rlmflow {command} {} --only scenes failed", pipeline.display());
+        }
+    }
     Ok(())
 }
 
