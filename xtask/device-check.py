@@ -176,7 +176,8 @@ def cpu_checks(table, rlmflow, worker, bin_dir):
             if not seeds.is_dir():
                 raise Failed(f"{seeds} is missing: `cargo xtask device-check --build-only` makes it")
             store = Path(tempfile.mkdtemp(prefix="rlmflow-cpu-check-"))
-            env = dict(os.environ, RLMFLOW_GEMM_LANES=lanes) if lanes else os.environ
+            # No CUDA device is visible, or the stages set to `auto` (the probes) would compute there.
+            env = dict(os.environ, CUDA_VISIBLE_DEVICES="", **({"RLMFLOW_GEMM_LANES": lanes} if lanes else {}))
             start = time.time()
             run([rlmflow, "run", CI, "--cache", store, "--remote", f"file://{seeds.resolve()}"] + only, cwd=ROOT, env=env)
             seconds = time.time() - start

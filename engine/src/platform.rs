@@ -40,9 +40,21 @@ impl Platform {
     }
 }
 
-/// Whether this machine has a CUDA device, as far as the driver's device nodes tell.
+/// Whether this process can see a CUDA device, as far as the driver's device nodes and
+/// `CUDA_VISIBLE_DEVICES` tell: a GPU the variable hides is one libtorch in the worker will not
+/// see, so a stage set to `auto` must be keyed and run on the CPU there.
 pub fn cuda_present() -> bool {
-    cuda_device_nodes(Path::new("/dev"))
+    cuda_device_nodes(Path::new("/dev")) && cuda_visible(std::env::var("CUDA_VISIBLE_DEVICES").ok().as_deref())
+}
+
+/// Whether `CUDA_VISIBLE_DEVICES` (`None`: unset) leaves a device visible. As CUDA reads it, the
+/// list ends at its first entry that is neither a device index nor a `GPU-`/`MIG-` UUID, so an
+/// empty value, `-1` or `none` hides them all.
+pub(crate) fn cuda_visible(variable: Option<&str>) -> bool {
+    let Some(list) = variable else { return true };
+    list.split(',').next().map(str::trim).is_some_and(|first| {
+        first.parse::<u32>().is_ok() || ["GPU-", "MIG-"].iter().any(|prefix| first.len() > prefix.len() && first.starts_with(prefix))
+    })
 }
 
 /// Whether `dev` holds a node the CUDA driver creates: `nvidiactl`, or `dxg` under WSL 2.

@@ -166,6 +166,18 @@ mod tests {
         assert!(cuda_device_nodes(&dev));
         std::fs::remove_dir_all(&dev).unwrap();
         assert!(Local::new(Device::Cuda(0)).serialises_gpu(), "a run that names CUDA shares one GPU");
-        assert_eq!(Local::new(Device::Cpu).serialises_gpu(), cuda_device_nodes(Path::new("/dev")));
+        assert_eq!(Local::new(Device::Cpu).serialises_gpu(), crate::platform::cuda_present());
+    }
+
+    #[test]
+    fn a_gpu_that_cuda_visible_devices_hides_is_no_gpu() {
+        use crate::platform::cuda_visible;
+        assert!(cuda_visible(None), "unset: every device");
+        for visible in ["0", "1,0", " 2", "GPU-8f3c", "MIG-1a2b/0", "0,-1"] {
+            assert!(cuda_visible(Some(visible)), "{visible:?}");
+        }
+        for hidden in ["", "-1", "none", "NoDevFiles", "-1,0", "GPU-"] {
+            assert!(!cuda_visible(Some(hidden)), "{hidden:?}");
+        }
     }
 }
