@@ -10,8 +10,9 @@
 // by one panel keeps its accumulators in registers over the block, and the next block continues
 // the chain from C (a float accumulator stored and loaded: the same bits). docs/numerics.md
 // has the measurements.
-#include <ATen/ATen.h>
+#include <ATen/core/Tensor.h>
 #include <ATen/Parallel.h>
+#include <ATen/ops/empty.h>
 #include <ATen/ops/addmm_cpu_dispatch.h>
 #include <ATen/ops/baddbmm_cpu_dispatch.h>
 #include <ATen/ops/bmm_cpu_dispatch.h>
