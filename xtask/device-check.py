@@ -166,7 +166,7 @@ def pipeline(rlmflow, store, sets):
 
 def cpu_checks(table, rlmflow, worker, bin_dir):
     """Part 6: this CPU's portable bytes against the shipped digests, and what the pins cost here."""
-    model = lscpu_model()
+    model = cpu_model()
     seeds = bin_dir / "ci-seeds"
     # Every instance but the report, whose sample figures read nothing the others do not.
     stages = [re.split(r"[\[#]", row.split()[0])[0] for row in CI_DIGESTS.read_text().splitlines() if row.strip() and not row.startswith("#")]
@@ -201,7 +201,7 @@ def cpu_checks(table, rlmflow, worker, bin_dir):
     table.measure(f"cpu: step, portable against native, {model}", pins)
 
 
-def lscpu_model():
+def cpu_model():
     """The CPU's model name, as /proc/cpuinfo says it."""
     for line in Path("/proc/cpuinfo").read_text().splitlines():
         if line.startswith("model name"):

@@ -117,7 +117,7 @@ fn xtask(args: Vec<String>) -> anyhow::Result<ExitCode> {
             if !build_release()? {
                 return Ok(ExitCode::FAILURE);
             }
-            let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().context("xtask lives in the workspace")?.to_path_buf();
+            let root = workspace_root()?;
             let pipelines: Vec<PathBuf> = if rest.is_empty() {
                 vec![root.join("examples/ci.toml"), root.join("pipeline.toml")]
             } else {
@@ -180,7 +180,7 @@ fn pack(release: &std::path::Path, libtorch: &std::path::Path, into: &std::path:
 /// Python environment highway-env needs. The pipeline runs from a copy beside its store, so the
 /// user's `examples/results` links stay as they were.
 fn seed_ci(rlmflow: &std::path::Path, into: &std::path::Path) -> anyhow::Result<()> {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().context("xtask lives in the workspace")?.to_path_buf();
+    let root = workspace_root()?;
     let work = target_dir()?.join("device-check-seeding");
     std::fs::create_dir_all(&work)?;
     let pipeline = work.join("ci.toml");
@@ -238,6 +238,10 @@ fn target_dir() -> anyhow::Result<PathBuf> {
     if let Some(dir) = std::env::var_os("CARGO_TARGET_DIR") {
         return Ok(dir.into());
     }
-    let manifest = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    Ok(manifest.parent().context("xtask lives in the workspace")?.join("target"))
+    Ok(workspace_root()?.join("target"))
+}
+
+/// The workspace's root directory, where `xtask/` lives.
+fn workspace_root() -> anyhow::Result<PathBuf> {
+    Ok(PathBuf::from(env!("CARGO_MANIFEST_DIR")).parent().context("xtask lives in the workspace")?.to_path_buf())
 }
