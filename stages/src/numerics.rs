@@ -131,6 +131,7 @@ impl Target {
 /// sets each to its pin or removes it, so none of the caller's choices reaches a pinned action.
 pub const KERNEL_VARIABLES: &[&str] = &[
     GEMM_VARIABLE,
+    ATTENTION_VARIABLE,
     "ATEN_CPU_CAPABILITY",
     "ONEDNN_MAX_CPU_ISA",
     "DNNL_MAX_CPU_ISA",
@@ -150,6 +151,16 @@ pub const CHAIN_GEMM: &str = "fma-chain";
 /// The chain GEMM's vector width in float lanes (1, 8 or 16); unset: the widest this CPU has. It
 /// changes the speed and not the bits, so no pin sets it: a check sets it to compare widths.
 pub const GEMM_LANES_VARIABLE: &str = "RLMFLOW_GEMM_LANES";
+
+/// How the transformers' attention computes on the CPU: [`ATTENTION_BY_PRODUCTS`], or unset for
+/// ATen's fused kernel (`scaled_dot_product_attention`), whose blocks call MKL's `sgemm`
+/// directly, past the chain GEMM.
+pub const ATTENTION_VARIABLE: &str = "RLMFLOW_ATTENTION";
+/// Attention as its two matrix products and a softmax, so the products are the chain GEMM's: the
+/// portable pin where MKL's pinned branch is its SSE2 one (every vendor but Intel), which made the
+/// fused kernel's blocks the slowest part of a step. On Intel, MKL's pinned AVX2 branch keeps the
+/// fused kernel as fast (docs/numerics.md).
+pub const ATTENTION_BY_PRODUCTS: &str = "products";
 
 /// This machine's CPU, as far as kernel choice goes.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -250,14 +261,22 @@ fn extensions() -> Vec<String> {
 pub fn pins(numerics: Numerics, cpu: &Cpu, target: Target) -> BTreeMap<&'static str, Option<&'static str>> {
     let mut env: BTreeMap<&'static str, Option<&'static str>> = KERNEL_VARIABLES.iter().map(|v| (*v, None)).collect();
     if numerics == Numerics::Portable {
-        // MKL runs its AVX2 branch on Intel CPUs only.
-        let mkl = if cpu.is_intel() { "AVX2" } else { "COMPATIBLE" };
-        let chosen: &[(&str, &str)] = if cpu.is_x86_64_v3() {
+        // MKL runs its AVX2 branch on Intel CPUs only; elsewhere its pinned branch is SSE2 code.
+        let chosen: &[(&str, &str)] = if cpu.is_x86_64_v3() && cpu.is_intel() {
             &[
                 (GEMM_VARIABLE, CHAIN_GEMM),
                 ("ATEN_CPU_CAPABILITY", "avx2"),
                 ("ONEDNN_MAX_CPU_ISA", "AVX2"),
-                ("MKL_CBWR", mkl),
+                ("MKL_CBWR", "AVX2"),
+                ("MKL_DYNAMIC", "FALSE"),
+            ]
+        } else if cpu.is_x86_64_v3() {
+            &[
+                (GEMM_VARIABLE, CHAIN_GEMM),
+                (ATTENTION_VARIABLE, ATTENTION_BY_PRODUCTS),
+                ("ATEN_CPU_CAPABILITY", "avx2"),
+                ("ONEDNN_MAX_CPU_ISA", "AVX2"),
+                ("MKL_CBWR", "COMPATIBLE"),
                 ("MKL_DYNAMIC", "FALSE"),
             ]
         } else if cpu.arch == "x86_64" {
@@ -447,7 +466,12 @@ mod tests {
         assert_eq!(portable["ATEN_CPU_CAPABILITY"], Some("avx2"));
         assert_eq!(portable[GEMM_VARIABLE], Some(CHAIN_GEMM));
         assert_eq!(portable["MKL_CBWR"], Some("COMPATIBLE"));
+        assert_eq!(portable[ATTENTION_VARIABLE], Some(ATTENTION_BY_PRODUCTS), "off MKL's SSE2 branch");
+        let intel = Cpu { vendor: "GenuineIntel".into(), ..zen3.clone() };
+        assert_eq!(pins(Numerics::Portable, &intel, Target::Cpu)[ATTENTION_VARIABLE], None, "MKL's AVX2 branch keeps the fused kernel");
+        assert_eq!(pins(Numerics::Portable, &intel, Target::Cpu)[GEMM_VARIABLE], Some(CHAIN_GEMM));
         assert_eq!(pins(Numerics::Portable, &cpu("aarch64", &["neon"]), Target::Cpu)[GEMM_VARIABLE], None, "no chain kernel off x86-64-v3");
+        assert_eq!(pins(Numerics::Portable, &cpu("aarch64", &["neon"]), Target::Cpu)[ATTENTION_VARIABLE], None, "no chain kernel to take it");
         assert_eq!(portable["MKL_ENABLE_INSTRUCTIONS"], None);
         assert!(pins(Numerics::Native, &zen3, Target::Cpu).values().all(Option::is_none));
         assert_eq!(pins(Numerics::Native, &zen3, Target::Cuda(0))["CUBLAS_WORKSPACE_CONFIG"], Some(":4096:8"));

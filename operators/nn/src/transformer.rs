@@ -1,8 +1,9 @@
 //! The residual attention blocks both towers share, named as open_clip's `transformer.py`
 //! (`resblocks.N.ln_1`, `attn.in_proj_weight`, `attn.out_proj`, `ln_2`, `mlp.c_fc`, `mlp.c_proj`).
 
-use tch::Tensor;
+use rlmflow_stages::numerics::{ATTENTION_BY_PRODUCTS, ATTENTION_VARIABLE};
 use tch::nn::{self, Module};
+use tch::{Device, Kind, Tensor};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Activation {
@@ -58,7 +59,7 @@ impl Attention {
 
     fn forward(&self, x: &Tensor, causal: bool) -> Tensor {
         let [q, k, v] = self.qkv(x);
-        self.join(&Tensor::scaled_dot_product_attention::<Tensor>(&q, &k, &v, None, 0.0, causal, None, false))
+        self.join(&attend(&q, &k, &v, causal))
     }
 
     /// Causal attention that remembers keys and values: the first call (no `past`) attends
@@ -73,7 +74,7 @@ impl Attention {
                 (Tensor::cat(&[pk, &k], 2), Tensor::cat(&[pv, &v], 2), false)
             }
         };
-        let out = Tensor::scaled_dot_product_attention::<Tensor>(&q, &k, &v, None, 0.0, causal, None, false);
+        let out = attend(&q, &k, &v, causal);
         (self.join(&out), (k, v))
     }
 
@@ -86,6 +87,32 @@ impl Attention {
         let weights = (q.matmul(&k.transpose(-2, -1)) * scale).softmax(-1, q.kind());
         (self.join(&weights.matmul(&v)), weights.mean_dim([1].as_slice(), false, weights.kind()))
     }
+}
+
+/// softmax(q k^T / sqrt(d)) v over (batch, heads, tokens, head width), causal or not: ATen's fused
+/// kernel, or on the CPU under the portable pins that ask for it (`RLMFLOW_ATTENTION=products`)
+/// its two products and a softmax, so the products are the chain GEMM's rather than MKL's.
+pub fn attend(q: &Tensor, k: &Tensor, v: &Tensor, causal: bool) -> Tensor {
+    let by_products = q.device() == Device::Cpu && std::env::var(ATTENTION_VARIABLE).is_ok_and(|v| v == ATTENTION_BY_PRODUCTS);
+    attend_by(q, k, v, causal, by_products)
+}
+
+fn attend_by(q: &Tensor, k: &Tensor, v: &Tensor, causal: bool, by_products: bool) -> Tensor {
+    if !by_products {
+        return Tensor::scaled_dot_product_attention::<Tensor>(q, k, v, None, 0.0, causal, None, false);
+    }
+    let (queries, keys) = (q.size()[2], k.size()[2]);
+    let scores = q.matmul(&k.transpose(-2, -1)) * (q.size()[3] as f64).powf(-0.5);
+    // As the fused kernel's `is_causal`: query i sees keys 0..=i.
+    let scores = if causal {
+        let future = Tensor::ones([queries, keys], (Kind::Bool, q.device())).triu(1);
+        scores.masked_fill(&future, f64::NEG_INFINITY)
+    } else {
+        scores
+    };
+    // exp(log_softmax): ATen's CPU softmax backward gives other bits on other thread counts
+    // (measured; its log_softmax backward does not), and a key's bytes must not depend on them.
+    scores.log_softmax(-1, q.kind()).exp().matmul(v)
 }
 
 /// A pre-LN residual block: x + attn(ln_1(x)), then x + mlp(ln_2(x)).
@@ -217,6 +244,31 @@ mod tests {
             assert_eq!(w.size(), [3, 5, 5]);
             let rows = w.sum_dim_intlist([-1].as_slice(), false, tch::Kind::Float);
             assert!((rows - 1.0).abs().max().double_value(&[]) < 1e-5);
+        }
+    }
+
+    #[test]
+    fn attention_by_products_computes_what_the_fused_kernel_does_with_its_gradients() {
+        let _generator = crate::generator();
+        tch::manual_seed(5);
+        let r = |shape: [i64; 4]| Tensor::randn(shape, (Kind::Float, Device::Cpu)).set_requires_grad(true);
+        // Self-attention, causal or not, and one cached decoding step (a query over every key).
+        for (queries, keys, causal) in [(7, 7, false), (7, 7, true), (1, 9, false)] {
+            let (mut q, mut k, mut v) = (r([2, 3, queries, 8]), r([2, 3, keys, 8]), r([2, 3, keys, 8]));
+            let weight = Tensor::randn([2, 3, queries, 8], (Kind::Float, Device::Cpu));
+            let mut run = |by_products: bool| {
+                for t in [&mut q, &mut k, &mut v] {
+                    t.zero_grad();
+                }
+                let out = attend_by(&q, &k, &v, causal, by_products);
+                (&out * &weight).sum(Kind::Float).backward();
+                [out.detach(), q.grad().detach().copy(), k.grad().detach().copy(), v.grad().detach().copy()]
+            };
+            let (fused, products) = (run(false), run(true));
+            for (name, (a, b)) in ["output", "dq", "dk", "dv"].iter().zip(fused.iter().zip(&products)) {
+                let gap = (a - b).abs().max().double_value(&[]);
+                assert!(gap < 1e-5, "{queries}x{keys} causal {causal}: {name} differs by {gap}");
+            }
         }
     }
 

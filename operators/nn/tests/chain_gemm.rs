@@ -5,7 +5,8 @@
 //! installation and the variables are the process's.
 
 use rlmflow_nn::libtorch::{chain_lanes_widest, chain_mm, pin_gemm};
-use rlmflow_stages::numerics::{CHAIN_GEMM, GEMM_LANES_VARIABLE, GEMM_VARIABLE};
+use rlmflow_nn::transformer::attend;
+use rlmflow_stages::numerics::{ATTENTION_BY_PRODUCTS, ATTENTION_VARIABLE, CHAIN_GEMM, GEMM_LANES_VARIABLE, GEMM_VARIABLE};
 use tch::{Device, Kind, Tensor, nn, nn::Module};
 
 fn set(var: &str, value: Option<&str>) {
@@ -23,8 +24,9 @@ fn bits(t: &Tensor) -> Vec<u32> {
 }
 
 /// A linear layer on a batch of sequences, attention scores (`matmul` of 4-D tensors, ATen's
-/// `bmm`), `addmm` with a bias, `baddbmm` with other coefficients, and the gradients of the weights: every float32
-/// product a model stage's step makes, each as bits.
+/// `bmm`), causal attention by its products (`RLMFLOW_ATTENTION=products`), `addmm` with a bias,
+/// `baddbmm` with other coefficients, and the gradients of the weights: every float32 product a
+/// model stage's step makes, each as bits.
 fn model_products() -> Vec<Vec<u32>> {
     tch::manual_seed(11);
     let vs = nn::VarStore::new(Device::Cpu);
@@ -33,17 +35,19 @@ fn model_products() -> Vec<Vec<u32>> {
     let y = linear.forward(&x);
     let q = y.view([6, 37, 4, 10]).transpose(1, 2);
     let scores = q.matmul(&q.transpose(-2, -1));
+    let attended = attend(&q, &q, &q, true);
     let r = |shape: &[i64]| Tensor::randn(shape, (Kind::Float, Device::Cpu));
     let biased = r(&[7]).addmm(&r(&[5, 300]), &r(&[300, 7]));
     let mixed = r(&[3, 5, 7]).baddbmm(&r(&[3, 5, 300]), &r(&[3, 300, 7]), 0.5, 2.0);
-    scores.sum(Kind::Float).backward();
-    let mut out = vec![bits(&y), bits(&scores), bits(&biased), bits(&mixed)];
+    (scores.sum(Kind::Float) + attended.sum(Kind::Float)).backward();
+    let mut out = vec![bits(&y), bits(&scores), bits(&attended), bits(&biased), bits(&mixed)];
     out.extend(vs.trainable_variables().iter().map(|v| bits(&v.grad())));
     out
 }
 
 #[test]
 fn installed_the_chain_gemm_computes_every_product_alike_at_every_width_and_unset_restores_aten() {
+    set(ATTENTION_VARIABLE, Some(ATTENTION_BY_PRODUCTS));
     set(GEMM_VARIABLE, None);
     set(GEMM_LANES_VARIABLE, None);
     assert_eq!(pin_gemm().unwrap(), 0);
@@ -68,7 +72,9 @@ fn installed_the_chain_gemm_computes_every_product_alike_at_every_width_and_unse
     pin_gemm().unwrap();
     for threads in [1, 2] {
         tch::set_num_threads(threads);
-        assert!(model_products() == widest, "{threads} threads computed other bits");
+        let got = model_products();
+        let differ: Vec<usize> = (0..got.len()).filter(|&i| got[i] != widest[i]).collect();
+        assert!(got == widest, "{threads} threads computed other bits: {differ:?}");
     }
     if chain_lanes_widest() < 16 {
         eprintln!("this CPU has no AVX-512: the 16-lane kernel is compared where a CPU has it");

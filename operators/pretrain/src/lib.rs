@@ -175,7 +175,7 @@ fn spec() -> OperatorSpec {
     OperatorSpec {
         name: "clip",
         kind: "pretrain",
-        version: 7,
+        version: 8,
         inputs: None,
         summary: "radar and text towers trained with CLIP, SG-CLIP (alpha) or on the counts (libtorch, in rlmflow-torch)",
     }

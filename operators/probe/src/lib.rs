@@ -217,7 +217,7 @@ fn clipcap_spec() -> OperatorSpec {
     OperatorSpec {
         name: "clipcap",
         kind: "probe",
-        version: 7,
+        version: 8,
         inputs: None,
         summary: "ClipCap caption probe: mapper and GPT decoder on the frozen CLS embedding, captions parsed and scored per cell",
     }
@@ -243,7 +243,7 @@ fn linear_spec() -> OperatorSpec {
     OperatorSpec {
         name: "linear",
         kind: "probe",
-        version: 4,
+        version: 5,
         inputs: Some(&["encoder", "scenes", "labels"]),
         summary: "closed-form ridge (libtorch) from frozen encoder features or raw pixels to the 48 cell counts",
     }

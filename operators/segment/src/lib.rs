@@ -114,7 +114,7 @@ fn pup_spec() -> OperatorSpec {
     OperatorSpec {
         name: "pup",
         kind: "segment",
-        version: 7,
+        version: 8,
         inputs: None,
         summary: "progressive-upsampling decoder on the frozen encoder's patch tokens, with its attention rollout (libtorch, in rlmflow-torch)",
     }
