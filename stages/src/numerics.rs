@@ -261,22 +261,14 @@ fn extensions() -> Vec<String> {
 pub fn pins(numerics: Numerics, cpu: &Cpu, target: Target) -> BTreeMap<&'static str, Option<&'static str>> {
     let mut env: BTreeMap<&'static str, Option<&'static str>> = KERNEL_VARIABLES.iter().map(|v| (*v, None)).collect();
     if numerics == Numerics::Portable {
-        // MKL runs its AVX2 branch on Intel CPUs only; elsewhere its pinned branch is SSE2 code.
-        let chosen: &[(&str, &str)] = if cpu.is_x86_64_v3() && cpu.is_intel() {
+        // MKL runs its AVX2 branch on Intel CPUs only.
+        let mkl = if cpu.is_intel() { "AVX2" } else { "COMPATIBLE" };
+        let chosen: &[(&str, &str)] = if cpu.is_x86_64_v3() {
             &[
                 (GEMM_VARIABLE, CHAIN_GEMM),
                 ("ATEN_CPU_CAPABILITY", "avx2"),
                 ("ONEDNN_MAX_CPU_ISA", "AVX2"),
-                ("MKL_CBWR", "AVX2"),
-                ("MKL_DYNAMIC", "FALSE"),
-            ]
-        } else if cpu.is_x86_64_v3() {
-            &[
-                (GEMM_VARIABLE, CHAIN_GEMM),
-                (ATTENTION_VARIABLE, ATTENTION_BY_PRODUCTS),
-                ("ATEN_CPU_CAPABILITY", "avx2"),
-                ("ONEDNN_MAX_CPU_ISA", "AVX2"),
-                ("MKL_CBWR", "COMPATIBLE"),
+                ("MKL_CBWR", mkl),
                 ("MKL_DYNAMIC", "FALSE"),
             ]
         } else if cpu.arch == "x86_64" {
@@ -286,6 +278,10 @@ pub fn pins(numerics: Numerics, cpu: &Cpu, target: Target) -> BTreeMap<&'static 
         };
         for (var, value) in chosen {
             env.insert(var, Some(value));
+        }
+        // Off Intel that branch is SSE2 code, so attention leaves MKL for the chain GEMM too.
+        if cpu.is_x86_64_v3() && !cpu.is_intel() {
+            env.insert(ATTENTION_VARIABLE, Some(ATTENTION_BY_PRODUCTS));
         }
     }
     if let Target::Cuda(_) = target {
