@@ -20,6 +20,7 @@
 //! library: model shapes and training settings are plain data here, computed on elsewhere.
 
 pub mod captions;
+pub mod claims;
 pub mod context;
 pub mod encoder;
 pub mod grid;
