@@ -473,7 +473,7 @@ mod tests {
     ];
 
     fn registry() -> Registry {
-        let mut r = Registry::new(Catalog { kinds: KINDS.to_vec(), markers: Vec::new() });
+        let mut r = Registry::new(Catalog { kinds: KINDS.to_vec(), markers: Vec::new(), measures: Vec::new() });
         r.add(Op("oa", "a")).add(Op("ob", "b")).add(Op("oc", "c")).add(Op("od", "d")).add(ShardedOp).add(Op("oj", "join"));
         r.add(SharedInputOp).add(Op("ojc", "joinc"));
         r

@@ -66,6 +66,9 @@ pub struct Catalog {
     /// An artifact type and a file every artifact of it holds: what tells an artifact's type
     /// from its files (a pulled record naming another type's artifact is refused by it).
     pub markers: Vec<(&'static str, &'static str)>,
+    /// How the artifact types that measure something are measured (claims, per-frame
+    /// differences).
+    pub measures: Vec<crate::measure::Measures>,
 }
 
 impl Catalog {
@@ -75,7 +78,12 @@ impl Catalog {
 
     /// The stage kinds of the paper's pipeline (docs/reference/artifacts.md describes each).
     pub fn paper() -> Catalog {
-        Catalog { kinds: PAPER_KINDS.to_vec(), markers: PAPER_MARKERS.to_vec() }
+        Catalog { kinds: PAPER_KINDS.to_vec(), markers: PAPER_MARKERS.to_vec(), measures: crate::measure::PAPER.to_vec() }
+    }
+
+    /// How artifacts of type `artifact` are measured, if they are.
+    pub fn measures(&self, artifact: &str) -> Option<&crate::measure::Measures> {
+        self.measures.iter().find(|m| m.artifact == artifact)
     }
 
     /// `Ok` when the artifact in `dir` is of type `artifact` as far as its files tell (a type

@@ -11,6 +11,8 @@
 //!   [`identity`]: frame identities, the split rule and the train/test overlap check.
 //! * [`scenes`], [`labels`], [`captions`], [`tokens`], [`encoder`], [`probe`]: each artifact's directory layout, its
 //!   writer-side line formats and its reader; [`npy`] for their dense arrays.
+//! * [`claims`]: claims comparing two metrics paired by seed, and the rule deciding them as seeds
+//!   are added; [`measure`]: what an artifact measures (metrics, per-frame differences).
 //! * [`numerics`]: the numeric platform a model action's bytes depend on: its kernel pins and the
 //!   class of machines that share its results.
 //! * [`training`]: the settings every training operator shares; [`weights`]: the check of a
@@ -27,6 +29,7 @@ pub mod grid;
 pub mod identity;
 pub mod kind;
 pub mod labels;
+pub mod measure;
 pub mod memory;
 pub mod npy;
 pub mod numerics;

@@ -25,6 +25,11 @@ pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'stat
     /// reads nothing; an operator that needs it says so in [`Settings::check`].
     const TRACKED: &'static [&'static str] = &[];
 
+    /// The setting through which the operator receives the pipeline's claims
+    /// ([`crate::claims::Spec`], from `[claims]`): the engine fills it in, so it enters the key
+    /// as any setting, and a stage may not set it itself. `None`: the operator reads no claims.
+    const CLAIMS: Option<&'static str> = None;
+
     /// Checks that types cannot express ("impossible settings"). The error names the key.
     fn check(&self) -> Result<(), SettingError> {
         Ok(())
@@ -260,6 +265,13 @@ pub trait Operator: Send + Sync + 'static {
         "its checkpoint"
     }
 
+    /// The dotted paths of the metrics its artifact measures with these settings (its type's
+    /// [`crate::measure::Measures`]), which claims may name; empty: none declared, so a claim's
+    /// metric is checked only once it is measured.
+    fn metrics(&self, _settings: &Self::Settings) -> Vec<String> {
+        Vec::new()
+    }
+
     fn run(&self, settings: &Self::Settings, ctx: &mut Context) -> anyhow::Result<Outcome>;
 }
 
@@ -330,6 +342,8 @@ pub struct InWorker<S: Settings> {
     pub outline: fn(&S, &InputOutlines) -> Result<Outline, SettingError>,
     /// See [`Operator::footprint`].
     pub footprint: fn(&S, &InputOutlines, Target) -> Option<Footprint>,
+    /// See [`Operator::metrics`].
+    pub metrics: fn(&S) -> Vec<String>,
     /// What runs an action: attached in the worker only.
     pub run: Option<fn(&S, &mut Context) -> anyhow::Result<Outcome>>,
 }
@@ -362,6 +376,10 @@ impl<S: Settings> Operator for InWorker<S> {
 
     fn footprint(&self, settings: &S, inputs: &InputOutlines, target: Target) -> Option<Footprint> {
         (self.footprint)(settings, inputs, target)
+    }
+
+    fn metrics(&self, settings: &S) -> Vec<String> {
+        (self.metrics)(settings)
     }
 
     fn run(&self, settings: &S, ctx: &mut Context) -> anyhow::Result<Outcome> {
@@ -401,6 +419,10 @@ pub trait DynOperator: Send + Sync {
     fn outline(&self, settings: &Value, inputs: &InputOutlines) -> Result<Outline, SettingError>;
     fn footprint(&self, settings: &Value, inputs: &InputOutlines, target: Target) -> Option<Footprint>;
     fn resumes_from(&self) -> &'static str;
+    /// [`Operator::metrics`] of valid `settings`.
+    fn metrics(&self, settings: &Value) -> Result<Vec<String>, SettingError>;
+    /// [`Settings::CLAIMS`].
+    fn claims_key(&self) -> Option<&'static str>;
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome>;
 }
 
@@ -471,6 +493,14 @@ impl<O: Operator> DynOperator for O {
 
     fn resumes_from(&self) -> &'static str {
         Operator::resumes_from(self)
+    }
+
+    fn metrics(&self, settings: &Value) -> Result<Vec<String>, SettingError> {
+        Ok(Operator::metrics(self, &parse_settings::<O::Settings>(settings.clone())?))
+    }
+
+    fn claims_key(&self) -> Option<&'static str> {
+        O::Settings::CLAIMS
     }
 
     fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome> {

@@ -169,6 +169,92 @@ pub fn read_summary(dir: &std::path::Path) -> anyhow::Result<Summary> {
     crate::read_summary(dir, SUMMARY, "ProbeReport", "probe", FORMAT)
 }
 
+/// The figures a row's metrics hold, each as `ROW.FIGURE`, `ROW.bins.BIN.FIGURE` (the paper's
+/// per-bin mean) and `ROW.bins_mean.FIGURE` (the four bins' means averaged).
+pub const FIGURES: [&str; 3] = ["f1", "precision", "recall"];
+
+/// What a ProbeReport measures, by dotted path (claims name them): per row (`cls`,
+/// `mean-patch`, `pixels`, ...) its pooled figures, each distance bin's and the bins' mean.
+pub fn metrics(summary: &Summary) -> serde_json::Value {
+    let figures = |p: f64, r: f64, f: f64| serde_json::json!({"f1": f, "precision": p, "recall": r});
+    let rows = summary.rows.iter().map(|row| {
+        let s = &row.scores;
+        let bins: serde_json::Map<String, serde_json::Value> =
+            s.bins.iter().map(|(bin, m)| (bin.clone(), figures(m.precision, m.recall, m.f1))).collect();
+        let n = s.bins.len().max(1) as f64;
+        let mean = |f: fn(&CellMean) -> f64| s.bins.values().map(f).sum::<f64>() / n;
+        let mut row_metrics = figures(s.overall.precision, s.overall.recall, s.overall.f1);
+        row_metrics["bins"] = bins.into();
+        row_metrics["bins_mean"] = figures(mean(|m| m.precision), mean(|m| m.recall), mean(|m| m.f1));
+        (row.features.clone(), row_metrics)
+    });
+    serde_json::Value::Object(rows.collect())
+}
+
+/// Every path [`metrics`] gives for rows of these features.
+pub fn metric_names(rows: &[&str]) -> Vec<String> {
+    let mut names = Vec::new();
+    for row in rows {
+        for figure in FIGURES {
+            names.push(format!("{row}.{figure}"));
+            names.extend(DISTANCE_BINS.iter().map(|bin| format!("{row}.bins.{bin}.{figure}")));
+            names.push(format!("{row}.bins_mean.{figure}"));
+        }
+    }
+    names
+}
+
+/// `predictions.jsonl`: each test frame's predicted counts, per row, in the file's order.
+pub fn read_predictions(dir: &std::path::Path) -> anyhow::Result<Vec<(u64, String, [u32; CELLS])>> {
+    use anyhow::Context as _;
+    let path = dir.join(PREDICTIONS);
+    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let line = |(n, l): (usize, &str)| -> anyhow::Result<(u64, String, [u32; CELLS])> {
+        let bad = |what: &str| anyhow::anyhow!("{}:{}: {what}", path.display(), n + 1);
+        let v: serde_json::Value = serde_json::from_str(l).map_err(|e| bad(&format!("not JSON: {e}")))?;
+        let frame = v["frame"].as_u64().ok_or_else(|| bad("no `frame` count"))?;
+        let features = v["features"].as_str().ok_or_else(|| bad("no `features` string"))?.to_owned();
+        let grid = crate::grid::Grid::from_json(&v["grid"]).map_err(|e| bad(&format!("`grid`: {e}")))?;
+        Ok((frame, features, grid.counts))
+    };
+    text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()).map(line).collect()
+}
+
+/// Where two ProbeReports of the same test frames differ, per frame and row: the cells whose
+/// predicted counts differ, most first (frames in file order among equals).
+pub fn frame_differences(a: &std::path::Path, b: &std::path::Path) -> anyhow::Result<crate::measure::FrameDifferences> {
+    let (pa, pb) = (read_predictions(a)?, read_predictions(b)?);
+    let keys = |p: &[(u64, String, [u32; CELLS])]| p.iter().map(|(f, r, _)| (*f, r.clone())).collect::<Vec<_>>();
+    if keys(&pa) != keys(&pb) {
+        anyhow::bail!(
+            "{} and {} predict other frames or rows ({} and {} predictions): they did not read the same test split",
+            a.display(),
+            b.display(),
+            pa.len(),
+            pb.len()
+        );
+    }
+    let describe = |counts: &[u32; CELLS]| {
+        let cells: Vec<String> = (0..CELLS)
+            .filter(|&c| counts[c] > 0)
+            .map(|c| format!("{}/{} {}", DISTANCE_BINS[c / SECTORS.len()], SECTORS[c % SECTORS.len()], counts[c]))
+            .collect();
+        format!("{} vehicles{}{}", counts.iter().sum::<u32>(), if cells.is_empty() { "" } else { ": " }, cells.join(", "))
+    };
+    let frames = pa
+        .iter()
+        .zip(&pb)
+        .map(|((frame, row, x), (_, _, y))| crate::measure::FrameDifference {
+            frame: *frame,
+            row: row.clone(),
+            differ: (0..CELLS).filter(|&c| x[c] != y[c]).count() as f64,
+            a: describe(x),
+            b: describe(y),
+        })
+        .collect();
+    Ok(crate::measure::FrameDifferences::ranked("cells predicted differently", frames))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

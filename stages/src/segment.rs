@@ -9,6 +9,9 @@
 //! rollout.npy       uint8 (samples, grid, grid): the encoder's CLS attention rollout on the same
 //!                   frames, each map scaled to its maximum (pup only)
 //! head.safetensors  the trained head (PUP decoder or U-Net)
+//! frames.jsonl      per test frame, in order: {"frame", "iou", "dice", "truth_pixels",
+//!                   "predicted_pixels"} at threshold 0.5 (a frame with no vehicle pixel true
+//!                   or predicted scores IoU and Dice 1: nothing to find, nothing found)
 //! ```
 //!
 //! Ground truth is the labels' mask binarised at 0.3 (value / 255 >= 0.3). A prediction in
@@ -26,6 +29,7 @@ pub const SUMMARY: &str = "segment.json";
 pub const SAMPLES: &str = "samples.npy";
 pub const ROLLOUT: &str = "rollout.npy";
 pub const WEIGHTS: &str = "head.safetensors";
+pub const FRAMES: &str = "frames.jsonl";
 pub const FORMAT: u32 = 2;
 
 /// `segment.json`.
@@ -54,10 +58,90 @@ pub fn read_summary(dir: &std::path::Path) -> anyhow::Result<Summary> {
     crate::read_summary(dir, SUMMARY, "SegReport", "segment", FORMAT)
 }
 
+/// What a SegReport measures, by dotted path (claims name them): its test-split figures at
+/// threshold 0.5, Peak IoU, AP and the positive rate.
+pub const METRICS: [&str; 7] = ["precision", "recall", "iou", "dice", "peak_iou", "ap", "positive_rate"];
+
+/// [`METRICS`] of a summary.
+pub fn metrics(summary: &Summary) -> serde_json::Value {
+    let m = &summary.metrics;
+    let values = [m.precision, m.recall, m.iou, m.dice, m.peak_iou, m.ap, m.positive_rate];
+    serde_json::Value::Object(METRICS.iter().zip(values).map(|(k, v)| (k.to_string(), v.into())).collect())
+}
+
+/// One test frame's scores at threshold 0.5 (a line of [`FRAMES`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FrameScore {
+    pub frame: u64,
+    pub iou: f64,
+    pub dice: f64,
+    pub truth_pixels: u64,
+    pub predicted_pixels: u64,
+}
+
+impl FrameScore {
+    /// Frame `frame`'s predictions in [0, 1] against its mask bytes, with [`PixelCounts`]' rule
+    /// for what is positive.
+    pub fn of(frame: u64, predicted: &[f32], mask: &[u8]) -> FrameScore {
+        let (mut tp, mut fp, mut fn_) = (0u64, 0u64, 0u64);
+        for (&p, &m) in predicted.iter().zip(mask) {
+            let positive = bin(p) >= THRESHOLDS / 2;
+            match (positive, f32::from(m) / 255.0 >= TRUTH_THRESHOLD) {
+                (true, true) => tp += 1,
+                (true, false) => fp += 1,
+                (false, true) => fn_ += 1,
+                (false, false) => {}
+            }
+        }
+        let ratio = |a: u64, b: u64| if b == 0 { 1.0 } else { a as f64 / b as f64 };
+        FrameScore { frame, iou: ratio(tp, tp + fp + fn_), dice: ratio(2 * tp, 2 * tp + fp + fn_), truth_pixels: tp + fn_, predicted_pixels: tp + fp }
+    }
+}
+
+/// [`FRAMES`] of a SegReport.
+pub fn read_frames(dir: &std::path::Path) -> anyhow::Result<Vec<FrameScore>> {
+    use anyhow::Context as _;
+    let path = dir.join(FRAMES);
+    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    text.lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty())
+        .map(|(n, l)| serde_json::from_str(l).with_context(|| format!("{}:{}: not a frame score", path.display(), n + 1)))
+        .collect()
+}
+
+/// Where two SegReports of the same test frames differ: each frame's IoU at 0.5 on either
+/// side, the largest difference first.
+pub fn frame_differences(a: &std::path::Path, b: &std::path::Path) -> anyhow::Result<crate::measure::FrameDifferences> {
+    let (fa, fb) = (read_frames(a)?, read_frames(b)?);
+    if fa.iter().map(|f| f.frame).ne(fb.iter().map(|f| f.frame)) {
+        anyhow::bail!("{} and {} score other test frames: they did not read the same test split", a.display(), b.display());
+    }
+    let describe = |f: &FrameScore| format!("IoU {:.3} ({} px predicted, {} true)", f.iou, f.predicted_pixels, f.truth_pixels);
+    let frames = fa
+        .iter()
+        .zip(&fb)
+        .map(|(x, y)| crate::measure::FrameDifference {
+            frame: x.frame,
+            row: String::new(),
+            differ: (x.iou - y.iou).abs(),
+            a: describe(x),
+            b: describe(y),
+        })
+        .collect();
+    Ok(crate::measure::FrameDifferences::ranked("IoU difference at 0.5", frames))
+}
+
 /// Thresholds 0, 0.01, ..., 1.
 pub const THRESHOLDS: usize = 101;
 /// Ground truth is a mask value of at least this share of 255.
 pub const TRUTH_THRESHOLD: f32 = 0.3;
+
+/// The highest threshold k / 100 that a prediction `p` reaches.
+fn bin(p: f32) -> usize {
+    ((p.clamp(0.0, 1.0) as f64 * 100.0 + 1e-9).floor() as usize).min(THRESHOLDS - 1)
+}
 
 /// Pixels of the test frames by predicted-score bin, split by ground truth.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -91,12 +175,10 @@ impl PixelCounts {
     pub fn add(&mut self, predicted: &[f32], mask: &[u8]) {
         assert_eq!(predicted.len(), mask.len(), "one prediction per mask pixel");
         for (&p, &m) in predicted.iter().zip(mask) {
-            // The highest threshold k / 100 that p reaches.
-            let bin = ((p.clamp(0.0, 1.0) as f64 * 100.0 + 1e-9).floor() as usize).min(THRESHOLDS - 1);
             if f32::from(m) / 255.0 >= TRUTH_THRESHOLD {
-                self.positive[bin] += 1;
+                self.positive[bin(p)] += 1;
             } else {
-                self.negative[bin] += 1;
+                self.negative[bin(p)] += 1;
             }
         }
     }

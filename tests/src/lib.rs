@@ -11,6 +11,7 @@ use std::io::Write;
 use std::time::Duration;
 
 use anyhow::bail;
+use rlmflow_stages::measure::Measures;
 use rlmflow_stages::{
     Catalog, Context, Device, Items, Kernels, Numerics, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding, Slot,
     StageKind,
@@ -19,8 +20,9 @@ use serde::{Deserialize, Serialize};
 
 pub fn registry() -> Registry {
     let markers = vec![("Text", "text.txt"), ("Mapped", "mapped.txt"), ("Measure", "count.txt"), ("Collection", "listing.txt")];
-    let mut r = Registry::new(Catalog { kinds: TEST_KINDS.to_vec(), markers });
-    r.add(WriteText).add(Shout).add(Count).add(Sample).add(Collect).add(Echo).add(JoinText);
+    let measures = vec![Measures { artifact: "Measure", metrics: measure_metrics, frames: None }];
+    let mut r = Registry::new(Catalog { kinds: TEST_KINDS.to_vec(), markers, measures });
+    r.add(WriteText).add(Shout).add(Count).add(Sample).add(Collect).add(Echo).add(JoinText).add(Score);
     r
 }
 
@@ -244,6 +246,53 @@ impl Operator for Sample {
         let pick = chars.get(index).copied().unwrap_or(' ');
         fs::write(ctx.output_dir.join("count.txt"), format!("seed {} picks {pick}", ctx.seed))?;
         Ok(Outcome { metrics: serde_json::json!({"index": index}), summary: format!("picks {pick}") })
+    }
+}
+
+/// A Measure's metrics: `score.json` where [`Score`] wrote one, else `chars` of a count.
+fn measure_metrics(dir: &std::path::Path) -> anyhow::Result<serde_json::Value> {
+    match fs::read_to_string(dir.join("score.json")) {
+        Ok(text) => Ok(serde_json::from_str(&text)?),
+        Err(_) => Ok(serde_json::json!({"chars": fs::read_to_string(dir.join("count.txt"))?.trim().parse::<f64>().ok()})),
+    }
+}
+
+/// A noisy measurement, as a trained model's metric is: `mean` plus `sd` times a normal draw of
+/// the seed (and the input's length, so an upstream change moves it), in `score.json`.
+pub struct Score;
+
+#[derive(Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct ScoreSettings {
+    pub mean: f64,
+    pub sd: f64,
+}
+impl Settings for ScoreSettings {}
+
+impl Operator for Score {
+    type Settings = ScoreSettings;
+    fn spec(&self) -> OperatorSpec {
+        OperatorSpec { name: "score", kind: "measure", version: 1, inputs: None, summary: "a noisy score by the seed" }
+    }
+    fn metrics(&self, _: &ScoreSettings) -> Vec<String> {
+        vec!["score.value".into()]
+    }
+    fn run(&self, s: &ScoreSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        trace(format!("start score {} seed {}", ctx.stage, ctx.seed));
+        let chars = fs::read_to_string(ctx.input("mapped")?.join("mapped.txt"))?.chars().count() as u64;
+        // Two uniforms from the seed (splitmix64), a normal draw by Box-Muller.
+        let mix = |x: u64| {
+            let mut z = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let (u, v) = (mix(ctx.seed ^ chars).max(1e-300), mix(ctx.seed.wrapping_mul(31) ^ chars ^ 1));
+        let value = s.mean + s.sd * (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos();
+        let metrics = serde_json::json!({"score": {"value": value}});
+        fs::write(ctx.output_dir.join("score.json"), metrics.to_string())?;
+        fs::write(ctx.output_dir.join("count.txt"), format!("{value}"))?;
+        Ok(Outcome { metrics, summary: format!("score {value:.3}") })
     }
 }
 

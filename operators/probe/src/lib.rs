@@ -235,6 +235,7 @@ pub fn clipcap() -> InWorker<ClipcapSettings> {
         resources: clipcap_resources,
         outline: |s, inputs| s.training.outline(inputs),
         footprint: clipcap_footprint,
+        metrics: |_| rlmflow_stages::probe::metric_names(&["cls"]),
         run: None,
     }
 }
@@ -256,7 +257,23 @@ fn linear_resources(s: &LinearSettings) -> Resources {
 
 /// `linear` as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn linear() -> InWorker<LinearSettings> {
-    InWorker { spec: linear_spec(), worker: WORKER, resources: linear_resources, outline: Outline::pass_on, footprint: |_, _, _| None, run: None }
+    InWorker {
+        spec: linear_spec(),
+        worker: WORKER,
+        resources: linear_resources,
+        outline: Outline::pass_on,
+        footprint: |_, _, _| None,
+        metrics: linear_metrics,
+        run: None,
+    }
+}
+
+/// The rows `linear` scores: the encoder's three feature sets, or the pixels.
+fn linear_metrics(s: &LinearSettings) -> Vec<String> {
+    match s.source {
+        Source::Encoder => rlmflow_stages::probe::metric_names(&["cls", "mean-patch", "patches"]),
+        Source::Pixels => rlmflow_stages::probe::metric_names(&["pixels"]),
+    }
 }
 
 #[cfg(test)]

@@ -114,7 +114,7 @@ fn pup_spec() -> OperatorSpec {
     OperatorSpec {
         name: "pup",
         kind: "segment",
-        version: 8,
+        version: 9,
         inputs: None,
         summary: "progressive-upsampling decoder on the frozen encoder's patch tokens, with its attention rollout (libtorch, in rlmflow-torch)",
     }
@@ -124,7 +124,7 @@ fn unet_spec() -> OperatorSpec {
     OperatorSpec {
         name: "unet",
         kind: "segment",
-        version: 7,
+        version: 8,
         // No encoder: the baseline must not fan out over the encoder's variants.
         inputs: Some(&["scenes", "labels"]),
         summary: "U-Net on the heatmap pixels, the segmentation baseline (libtorch, in rlmflow-torch)",
@@ -238,13 +238,27 @@ pub fn pup() -> InWorker<PupSettings> {
         resources: pup_resources,
         outline: |s, inputs| s.training.outline(inputs),
         footprint: pup_footprint,
+        metrics: segment_metrics,
         run: None,
     }
 }
 
 /// `unet` as `rlmflow` registers it.
 pub fn unet() -> InWorker<UnetSettings> {
-    InWorker { spec: unet_spec(), worker: WORKER, resources: unet_resources, outline: unet_outline, footprint: unet_footprint, run: None }
+    InWorker {
+        spec: unet_spec(),
+        worker: WORKER,
+        resources: unet_resources,
+        outline: unet_outline,
+        footprint: unet_footprint,
+        metrics: segment_metrics,
+        run: None,
+    }
+}
+
+/// Every segmenter measures the same figures.
+fn segment_metrics<S>(_: &S) -> Vec<String> {
+    rlmflow_stages::segment::METRICS.iter().map(|m| m.to_string()).collect()
 }
 
 #[cfg(test)]

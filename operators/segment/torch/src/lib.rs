@@ -18,7 +18,7 @@ use rlmflow_nn::train::{Backward, EpochRng, Figures, Fit, Fitted, Placement, Ste
 use rlmflow_segment::{PupSettings, TOKEN_CACHE_BYTES, UnetSettings, pup_widths};
 use rlmflow_stages::identity::Split;
 use rlmflow_stages::npy::{Dtype, NpyWriter};
-use rlmflow_stages::segment::{self, PixelCounts, SegMetrics};
+use rlmflow_stages::segment::{self, FrameScore, PixelCounts, SegMetrics};
 use rlmflow_stages::{Context, Outcome, Settings, Training};
 use serde_json::{Value, json};
 
@@ -155,21 +155,30 @@ struct Segmenter<'a> {
     forward: Forward<'a>,
 }
 
-/// `scored` frames scored: pixel counts for the metrics and the mean loss.
-fn evaluate(segmenter: &Segmenter, frames: &Frames, scored: &[usize], device: tch::Device, dice_weight: f64) -> anyhow::Result<(PixelCounts, f64)> {
+/// `scored` frames scored: pixel counts for the metrics, the mean loss and each frame's scores.
+fn evaluate(
+    segmenter: &Segmenter,
+    frames: &Frames,
+    scored: &[usize],
+    device: tch::Device,
+    dice_weight: f64,
+) -> anyhow::Result<(PixelCounts, f64, Vec<FrameScore>)> {
     tch::no_grad(|| {
         let mut counts = PixelCounts::new();
         let mut loss = 0.0;
+        let mut per_frame = Vec::with_capacity(scored.len());
         for batch in scored.chunks(CHUNK) {
             let logits = (segmenter.forward)(batch, false);
             loss += dice_bce_loss(&logits, &frames.masks(batch, device), dice_weight).double_value(&[]) * batch.len() as f64;
             let predicted = Vec::<f32>::try_from(logits.sigmoid().to_device(tch::Device::Cpu).to_kind(Kind::Float).flatten(0, -1))?;
             let n = (frames.side * frames.side) as usize;
             for (i, &f) in batch.iter().enumerate() {
-                counts.add(&predicted[i * n..(i + 1) * n], frames.mask(f));
+                let (p, m) = (&predicted[i * n..(i + 1) * n], frames.mask(f));
+                counts.add(p, m);
+                per_frame.push(FrameScore::of(f as u64, p, m));
             }
         }
-        Ok((counts, loss / scored.len() as f64))
+        Ok((counts, loss / scored.len() as f64, per_frame))
     })
 }
 
@@ -189,13 +198,13 @@ fn train(
         Ok(dice_bce_loss(&(segmenter.forward)(batch, true), &frames.masks(batch, device), segmentation.dice_weight).into())
     };
     let validation = || -> anyhow::Result<Figures> {
-        let (counts, loss) = evaluate(&segmenter, frames, &data.split.validation, device, segmentation.dice_weight)?;
+        let (counts, loss, _) = evaluate(&segmenter, frames, &data.split.validation, device, segmentation.dice_weight)?;
         let m = counts.metrics();
         Ok(vec![("validation_loss", loss), ("validation_iou", m.iou), ("validation_ap", m.ap)])
     };
     let fitted = fit(&segmenter.vs, Fit { training: t, placement, frames: &data.split.train, per_batch: false }, ctx, batch_loss, validation)?;
-    let metrics = placement.forward(|| evaluate(&segmenter, frames, &data.split.test, device, segmentation.dice_weight))??.0.metrics();
-    write_artifact(t, segmentation, ctx, data, &segmenter, rollout, fitted, metrics)
+    let (counts, _, per_frame) = placement.forward(|| evaluate(&segmenter, frames, &data.split.test, device, segmentation.dice_weight))??;
+    write_artifact(t, segmentation, ctx, data, &segmenter, rollout, fitted, (counts.metrics(), per_frame))
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -207,9 +216,11 @@ fn write_artifact(
     segmenter: &Segmenter,
     rollout: Option<Rollout>,
     Fitted { log, steps }: Fitted,
-    metrics: SegMetrics,
+    (metrics, per_frame): (SegMetrics, Vec<FrameScore>),
 ) -> anyhow::Result<Outcome> {
     let out = &ctx.output_dir;
+    let lines: Vec<String> = per_frame.iter().map(|f| serde_json::to_string(f).map(|l| l + "\n")).collect::<Result<_, _>>()?;
+    std::fs::write(out.join(segment::FRAMES), lines.concat())?;
     let test = &data.split.test;
     let n = segmentation.samples.min(test.len());
     let samples: Vec<usize> = (0..n).map(|i| test[i * test.len() / n]).collect();
