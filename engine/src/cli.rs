@@ -33,8 +33,13 @@ enum Command {
     /// Download from the remote cache every result of a pipeline (or of `--only` stages and
     /// what they need) that the local store lacks and the remote holds.
     Pull(commands::Transfer),
-    /// Show what changed in a stage's preimage since its last run.
+    /// Show what changed in a stage's preimage since its last run; for a claim, which change
+    /// between two runs made its verdict flip.
     Explain(commands::explain::Args),
+    /// Each claim of `[claims]` from what the store holds (computing nothing): its verdict
+    /// (holds, fails, undecided), the seeds it used, and each comparison's mean paired
+    /// difference with its interval. Exits 1 when a required claim fails.
+    Claims(commands::claims::Args),
     /// List a pipeline's runs, newest first: when, the git commit (and whether the tree was
     /// dirty), overrides, how many stages ran, were reused or pulled, and the headline of each
     /// stage it computed.
@@ -124,6 +129,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
             | Command::Show { .. }
             | Command::Runs { .. }
             | Command::Compare { .. }
+            | Command::Claims { .. }
     ) {
         // These only read and print: a reader that stops early (`| head`) ends them quietly, as
         // it ends `ls`, where a failed write would panic. The others start processes or write
@@ -138,6 +144,7 @@ fn dispatch(command: Command, registry: &Registry) -> anyhow::Result<ExitCode> {
         Command::Push(args) => commands::push::exec(args, registry),
         Command::Pull(args) => commands::pull::exec(args, registry),
         Command::Explain(args) => commands::explain::exec(args, registry),
+        Command::Claims(args) => commands::claims::exec(args, registry),
         Command::Runs(args) => commands::runs::exec(args, registry),
         Command::Compare(args) => commands::compare::exec(args, registry),
         Command::Show(args) => commands::show::exec(args, registry),

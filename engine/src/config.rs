@@ -8,6 +8,7 @@
 //! `checker` holds the diagnostics and the TOML reading they share.
 
 mod checker;
+mod claims;
 mod diagnostic;
 mod graph;
 mod header;
@@ -18,7 +19,7 @@ mod stages;
 pub use checker::ConfigError;
 pub use diagnostic::Diagnostic;
 pub use graph::dimensions;
-pub use header::{Executor, RemoteSettings, SIGNING_KEY_VARIABLE, resolve_remote};
+pub use header::{Executor, RemoteSettings, SIGNING_KEY_VARIABLE, SeedRule, resolve_remote};
 pub use hyperqueue::{HyperQueueSettings, WorkerStore};
 
 use checker::{Checker, line_starts, to_json_table};
@@ -41,7 +42,12 @@ pub struct Pipeline {
     pub name: String,
     pub seed: u64,
     /// `[pipeline] seeds`: every per-seed stage runs once per entry (empty: once, with `seed`).
+    /// Under a [`SeedRule`], the seeds of the look at hand ([`Pipeline::with_seeds`]).
     pub seeds: Vec<u64>,
+    /// `seeds = { min, max, until = "claims" }`: seeds are added until every claim is decided.
+    pub seed_rule: Option<SeedRule>,
+    /// `[claims]`, resolved against the stages.
+    pub claims: Option<rlmflow_stages::claims::Spec>,
     /// The store directory (relative paths in the file are relative to the file).
     pub cache: PathBuf,
     /// `[pipeline] results`: where a run links each instance to its current output
@@ -135,6 +141,14 @@ pub struct Binding {
 }
 
 impl Pipeline {
+    /// Under a [`SeedRule`], the pipeline at its look after `n` seeds (every count is valid
+    /// config: the plan's size was checked at the rule's `max`).
+    pub fn with_seeds(&mut self, n: usize) {
+        if let Some(rule) = self.seed_rule {
+            self.seeds = rule.seeds(n.clamp(rule.min, rule.max));
+        }
+    }
+
     pub fn stage(&self, name: &str) -> Option<usize> {
         self.stages.iter().position(|s| s.name == name)
     }
@@ -279,8 +293,8 @@ fn parse_overridden(file: &Path, text: &str, overrides: &[Override], registry: &
 impl Checker {
     fn check(&mut self, file: &Path, root: &Map<String, Value>, registry: &Registry) -> Option<Pipeline> {
         for key in root.keys() {
-            if key != "pipeline" && key != "stages" {
-                self.unknown_key(key, key, &["pipeline", "stages"]);
+            if !["pipeline", "stages", "claims"].contains(&key.as_str()) {
+                self.unknown_key(key, key, &["pipeline", "stages", "claims"]);
             }
         }
         let header = match root.get("pipeline") {
@@ -305,7 +319,11 @@ impl Checker {
                 0
             }),
         };
-        let seeds = self.seeds(header);
+        let (seeds, seed_rule) = self.seeds(header);
+        if seed_rule.is_some() && !root.contains_key("claims") {
+            let help = "add [claims], or list the seeds: seeds = [1, 2, 3]".to_owned();
+            self.error(self.line("pipeline.seeds"), "pipeline.seeds", "adds seeds until the claims are decided, and the file has no [claims]".into(), Some(help));
+        }
         let max_instances = match header.get("max_instances") {
             None => MAX_INSTANCES,
             Some(v) => v.as_u64().filter(|n| (1..=INSTANCES_CEILING).contains(n)).unwrap_or_else(|| {
@@ -374,12 +392,25 @@ impl Checker {
             self.error(self.line(&path), &path, msg, None);
             return None;
         }
-        let stages = self.topological(stages)?;
-        self.bounded(&stages, seeds.len(), max_instances);
+        let mut stages = self.topological(stages)?;
+        self.bounded(&stages, seed_rule.map_or(seeds.len(), |r| r.max), max_instances);
         if !self.errors.is_empty() {
             return None;
         }
         self.outlines(&stages, registry);
+        if !self.errors.is_empty() {
+            return None;
+        }
+        let looks = match seed_rule {
+            Some(rule) => Some(rlmflow_stages::claims::Looks { first: rule.min, last: rule.max }),
+            None if seeds.is_empty() => None,
+            None => Some(rlmflow_stages::claims::Looks { first: seeds.len(), last: seeds.len() }),
+        };
+        let dims = dimensions(&stages, !seeds.is_empty());
+        let claims = self.claims(root.get("claims"), &stages, &dims, looks, registry);
+        if let Some(spec) = &claims {
+            self.hand_claims(spec, &mut stages, registry);
+        }
         if !self.errors.is_empty() {
             return None;
         }
@@ -388,6 +419,8 @@ impl Checker {
             name,
             seed,
             seeds,
+            seed_rule,
+            claims,
             cache,
             results,
             executor,

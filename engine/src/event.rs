@@ -107,6 +107,12 @@ pub enum Event {
         files: Vec<String>,
         recompute: Vec<String>,
     },
+    /// The claims after a run (`run --json` prints it last, after the run's own log): each
+    /// verdict at the look the run ended at.
+    Claims {
+        seeds: usize,
+        verdicts: Vec<rlmflow_stages::claims::Verdict>,
+    },
     RunFinished {
         ran: usize,
         reused: usize,

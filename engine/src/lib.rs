@@ -12,6 +12,7 @@
 //! binary passes to [`cli::main`] (`rlmflow` registers the shipped ones, `rlmflow-torch` the
 //! libtorch ones, the end-to-end tests their own).
 
+pub mod claims;
 pub mod cli;
 mod commands;
 pub mod compare;

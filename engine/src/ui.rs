@@ -137,6 +137,71 @@ pub(crate) fn print_status(plan: &Plan, states: &[Freshness], selected: &[bool],
     }
 }
 
+/// The claims at a look, as `run` ends and `rlmflow claims` prints them: a line per claim (its
+/// verdict, at how many seeds, the paper's figures) and one per comparison (the mean paired
+/// difference and its interval against the margin).
+pub(crate) fn claims(look: &crate::claims::Look, level: f64) -> String {
+    use rlmflow_stages::claims::{Decision, signed};
+    let rule = match look.max_seeds {
+        Some(max) => format!("seeds added one at a time up to {max}"),
+        None => "the listed seeds".to_owned(),
+    };
+    let decided = look.verdicts.iter().filter(|v| v.decision != Decision::Undecided).count();
+    let mut out = format!(
+        "claims: {decided} of {} decided after {} seeds ({rule}; each verdict wrong with probability at most {level})\n",
+        look.verdicts.len(),
+        look.seeds
+    );
+    let width = look.verdicts.iter().map(|v| v.claim.len()).max().unwrap_or(0);
+    for v in &look.verdicts {
+        let word = match v.decision {
+            Decision::Holds => "holds",
+            Decision::Fails => "FAILS",
+            Decision::Undecided => "undecided",
+        };
+        let at = match v.decided_at {
+            Some(n) => format!("at {n} seeds"),
+            None => format!("at {} seeds", v.seeds),
+        };
+        let required = if v.required { " (required)" } else { "" };
+        let paper = v.paper.as_ref().map_or(String::new(), |p| format!("; the paper: {p}"));
+        out += &format!("  {word:<9}  {:width$}  {at}{required}{paper}\n", v.claim);
+        for c in &v.comparisons {
+            let interval = match c.interval {
+                Some((lo, hi)) => format!("interval [{}, {}] against margin {}", signed(lo), signed(hi), signed(v.margin)),
+                None => "too few seeds for an interval".to_owned(),
+            };
+            let mean = c.mean.map_or("-".to_owned(), signed);
+            out += &format!("             {} vs {}: {mean} over {} seeds, {interval}\n", c.better, c.than, c.differences.len());
+        }
+    }
+    if !look.missing.is_empty() {
+        out += &format!("  not in the store yet (a run computes them): {}\n", look.missing.join(", "));
+    }
+    out
+}
+
+/// `explain CLAIM`: the claim's verdict in the newest run that computed it, and the change
+/// that made it read otherwise than in the run before.
+pub(crate) fn claim_flip(flip: &crate::claims::ClaimFlip, claim: &str) -> String {
+    let decision = |v: &rlmflow_stages::claims::Verdict| format!("{:?} at {} seeds", v.decision, v.seeds).to_lowercase();
+    let (run, verdict) = &flip.now;
+    let mut out = format!("claim {claim}: {} in run {run}\n", decision(verdict));
+    match &flip.before {
+        None => out += "  every earlier run that computed it decided the same\n",
+        Some((then, old, changed)) => {
+            out += &format!("  {} in run {then}, before; what changed since:\n", decision(old));
+            if changed.is_empty() {
+                out += "    no setting or version: only seeds or upstream outputs (the same settings gave other values)\n";
+            }
+            for (label, changes) in changed {
+                out += &format!("    {label}: {}\n", changes.join("; "));
+            }
+        }
+    }
+    out
+}
+
 /// Reasons as one line: `never run`, `pretrain.alpha 1 -> 4; input tokens changed`.
 pub(crate) fn words(reasons: &[RunReason]) -> String {
     reasons.iter().map(ToString::to_string).collect::<Vec<_>>().join("; ")

@@ -274,6 +274,11 @@ fn decide_comparison(c: &Comparison, claim: &Claim, look_level: f64, looks: Look
     }
 }
 
+/// A difference with its sign, to three decimals: `+0.052`, `-0.004`.
+pub fn signed(x: f64) -> String {
+    format!("{x:+.3}")
+}
+
 /// Whether every verdict is decided: the run adds no more seeds.
 pub fn all_decided(verdicts: &[Verdict]) -> bool {
     verdicts.iter().all(|v| v.decision != Decision::Undecided)

@@ -23,7 +23,7 @@ pub(crate) struct Args {
 
 pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
     let Args { pipeline, format, set, store, remote } = args;
-    let p = set.load(&pipeline, registry)?;
+    let p = set.load_at_look(&pipeline, registry, &store)?;
     let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &[])?;
     let remote = remote.open(&p)?;
     print!("{}", crate::dag::draw(&pre.plan, &pre.states, remote.as_ref(), format));

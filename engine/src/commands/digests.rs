@@ -20,7 +20,7 @@ pub(crate) struct Args {
 
 pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
     let Args { pipeline, set, store } = args;
-    let p = set.load(&pipeline, registry)?;
+    let p = set.load_at_look(&pipeline, registry, &store)?;
     let store = ran_store(&p, &store, "nothing to list")?;
     let plan = planned(&p, Some(&store), Device::Cpu)?;
     let states = assess(&plan, registry, Some(&store))?;

@@ -27,8 +27,14 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
 }
 
 fn explain(registry: &Registry, file: &Path, set: &SetArg, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
-    let p = set.load(file, registry)?;
+    let p = set.load_at_look(file, registry, arg)?;
     let store = Store::open_existing(&store_root(&p, arg))?;
+    let is_claim = p.claims.as_ref().is_some_and(|s| s.claims.iter().any(|c| c.name == stage));
+    if p.stage(stage).is_none() && is_claim {
+        let store = store.with_context(|| format!("{} has not run yet; no claim has a verdict", p.file.display()))?;
+        print!("{}", crate::ui::claim_flip(&crate::claims::flip(&p, registry, &store, stage)?, stage));
+        return Ok(ExitCode::SUCCESS);
+    }
     let plan = planned(&p, store.as_ref(), Device::Cpu)?;
     let states = assess(&plan, registry, store.as_ref())?;
     let last = match &store {
@@ -78,3 +84,4 @@ fn explain(registry: &Registry, file: &Path, set: &SetArg, stage: &str, arg: &St
 fn indent(text: &str) -> String {
     text.lines().map(|l| format!("    {l}")).collect::<Vec<_>>().join("\n")
 }
+

@@ -1,6 +1,7 @@
 //! One file per command, as cargo's `commands/`: each holds its arguments and its body; what
 //! several share (the store, `--set` and remote arguments, the helpers below) is here.
 
+pub(crate) mod claims;
 pub(crate) mod compare;
 pub(crate) mod dag;
 pub(crate) mod digests;
@@ -53,6 +54,21 @@ impl SetArg {
     pub(crate) fn load(&self, pipeline: &Path, registry: &Registry) -> anyhow::Result<Pipeline> {
         config::load_with(pipeline, &self.set, &self.set_new, registry)
     }
+
+    /// [`SetArg::load`] at the look its store has reached ([`at_look`]).
+    pub(crate) fn load_at_look(&self, pipeline: &Path, registry: &Registry, store: &StoreArg) -> anyhow::Result<Pipeline> {
+        at_look(self.load(pipeline, registry)?, registry, store)
+    }
+}
+
+/// A pipeline whose seeds a rule adds, at the look its store has reached (the seeds its last
+/// run ended with), so a command that reads the store plans what the run did; others as they are.
+pub(crate) fn at_look(mut p: Pipeline, registry: &Registry, store: &StoreArg) -> anyhow::Result<Pipeline> {
+    if p.seed_rule.is_some() {
+        let store = Store::open_existing(&store_root(&p, store))?;
+        crate::claims::reached(&mut p, registry, store.as_ref(), rlmflow_stages::Device::Cpu)?;
+    }
+    Ok(p)
 }
 
 #[derive(clap::Args)]

@@ -22,7 +22,7 @@ pub(crate) struct Args {
 pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
     let Args { pipeline, name, store } = args;
     config::check_name(&name).map_err(|problem| anyhow::anyhow!("the pin name {problem}"))?;
-    let p = config::load(&pipeline, registry)?;
+    let p = super::at_look(config::load(&pipeline, registry)?, registry, &store)?;
     let store = ran_store(&p, &store, "nothing to pin")?;
     let plan = planned(&p, Some(&store), Device::Cpu)?;
     let states = assess(&plan, registry, Some(&store))?;

@@ -13,7 +13,7 @@ use crate::ui::Ui;
 
 pub(crate) fn exec(args: Transfer, registry: &Registry) -> anyhow::Result<ExitCode> {
     let Transfer { pipeline, only, store, remote } = args;
-    let p = config::load(&pipeline, registry)?;
+    let p = super::at_look(config::load(&pipeline, registry)?, registry, &store)?;
     let store = ran_store(&p, &store, "nothing to push")?;
     let plan = planned(&p, Some(&store), Device::Cpu)?;
     let selected = plan.select(&only)?;

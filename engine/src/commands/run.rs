@@ -9,6 +9,7 @@ use rlmflow_stages::{Device, Registry};
 
 use super::{RemoteArg, SetArg, StoreArg, UsageError, store_root};
 use crate::config;
+use crate::event::{Event, Logged};
 use crate::plan::Freshness;
 use crate::preflight::Preflight;
 use crate::run::{RunOptions, run};
@@ -61,9 +62,17 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
             .with_context(|| format!("unknown executor `{name}` for --executor; valid: {}", config::Executor::NAMES.join(", ")))?;
     }
     let root = store_root(&p, &store);
-    let pre = Preflight::new(&p, registry, &root, device, &only)?;
+    // Under a seed rule the plan is the store's look: a dry run, `--only` and a determinism
+    // check plan at it and add no seed.
+    if p.seed_rule.is_some() {
+        crate::claims::reached(&mut p, registry, Store::open_existing(&root)?.as_ref(), device)?;
+    }
     if dry_run {
+        let pre = Preflight::new(&p, registry, &root, device, &only)?;
         print_status(&pre.plan, &pre.states, &pre.selected, &pre.fits, None, json);
+        if let (Some(rule), false) = (p.seed_rule, json) {
+            println!("  claims    at {} seeds now; a run adds seeds one at a time, up to {}, until every claim is decided", p.seeds.len(), rule.max);
+        }
         pre.refuse_oversized()?;
         return Ok(ExitCode::SUCCESS);
     }
@@ -73,20 +82,57 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
             config::Executor::HyperQueue => p.hyperqueue.workers * p.hyperqueue.cores(),
         })
         .max(1);
-    pre.refuse_cuda_stages(registry, device)?;
-    pre.refuse_oversized()?;
-    let known = pre.states.into_iter().map(|s| if let Freshness::Cached(record) = s { Some(record) } else { None }).collect();
-    let (plan, selected) = (pre.plan, pre.selected);
     let opts = RunOptions { jobs, json, device, verify_inputs, remote: remote.settings(&p)? };
     // A pushing run that cannot sign stops before anything runs, as `push` does.
     if let Some(settings) = &opts.remote {
         settings.signing_key().map_err(|e| UsageError(format!("{e:#}")))?;
     }
-    let store = Store::open(&root)?;
     if !check_determinism.is_empty() {
-        let same = crate::determinism::check(&plan, registry, &store, &check_determinism, &opts)?;
+        let pre = Preflight::new(&p, registry, &root, device, &only)?;
+        pre.refuse_cuda_stages(registry, device)?;
+        pre.refuse_oversized()?;
+        let store = Store::open(&root)?;
+        let same = crate::determinism::check(&pre.plan, registry, &store, &check_determinism, &opts)?;
         return Ok(if same { ExitCode::SUCCESS } else { ExitCode::FAILURE });
     }
-    let summary = run(&plan, registry, &store, &selected, known, &opts)?;
-    Ok(if summary.failed > 0 { ExitCode::FAILURE } else { ExitCode::SUCCESS })
+    // Seeds until decided: each look computes what its claims read, and the next is asked.
+    if p.seed_rule.is_some() && only.is_empty() {
+        loop {
+            let look = crate::claims::reached(&mut p, registry, Store::open_existing(&root)?.as_ref(), device)?;
+            if look.missing.is_empty() {
+                break;
+            }
+            if !json {
+                println!("claims: computing their instances at {} seeds ({} missing)", look.seeds, look.missing.len());
+            }
+            if !run_selected(&p, registry, &root, &crate::claims::claim_stages(&p), &opts)? {
+                return Ok(ExitCode::FAILURE);
+            }
+        }
+    }
+    let mut ok = run_selected(&p, registry, &root, &only, &opts)?;
+    if p.claims.is_some() && only.is_empty() && ok {
+        let store = Store::open(&root)?;
+        let look = crate::claims::reached(&mut p, registry, Some(&store), device)?;
+        match json {
+            true => println!("{}", serde_json::to_string(&Logged { event: Event::Claims { seeds: look.seeds, verdicts: look.verdicts.clone() }, t: 0.0 })?),
+            false => print!("{}", crate::ui::claims(&look, p.claims.as_ref().map_or(0.0, |s| s.level))),
+        }
+        for v in look.required_fails() {
+            eprintln!("error: required claim `{}` fails", v.claim);
+            ok = false;
+        }
+    }
+    Ok(if ok { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+}
+
+/// Runs the instances of `only` (all when empty) and what they need; whether none failed.
+fn run_selected(p: &config::Pipeline, registry: &Registry, root: &std::path::Path, only: &[String], opts: &RunOptions) -> anyhow::Result<bool> {
+    let pre = Preflight::new(p, registry, root, opts.device, only)?;
+    pre.refuse_cuda_stages(registry, opts.device)?;
+    pre.refuse_oversized()?;
+    let known = pre.states.into_iter().map(|s| if let Freshness::Cached(record) = s { Some(record) } else { None }).collect();
+    let store = Store::open(root)?;
+    let summary = run(&pre.plan, registry, &store, &pre.selected, known, opts)?;
+    Ok(summary.failed == 0)
 }

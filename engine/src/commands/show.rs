@@ -25,7 +25,7 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
 }
 
 fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
-    let p = config::load(file, registry)?;
+    let p = super::at_look(config::load(file, registry)?, registry, arg)?;
     let store = Store::open_existing(&store_root(&p, arg))?;
     let plan = planned(&p, store.as_ref(), Device::Cpu)?;
     let states = assess(&plan, registry, store.as_ref())?;

@@ -24,7 +24,7 @@ pub(crate) struct Args {
 
 pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
     let Args { pipeline, json, set, store, remote } = args;
-    let p = set.load(&pipeline, registry)?;
+    let p = set.load_at_look(&pipeline, registry, &store)?;
     let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &[])?;
     let remote = remote.open(&p)?;
     print_status(&pre.plan, &pre.states, &pre.selected, &pre.fits, remote.as_ref(), json);

@@ -174,13 +174,21 @@ impl Checker {
         remote
     }
 
-    /// `seeds = [1, 2, 3]`: distinct non-negative integers, at most [`MAX_SEEDS`].
-    pub(super) fn seeds(&mut self, header: &Map<String, Value>) -> Vec<u64> {
+    /// `seeds = [1, 2, 3]`: distinct non-negative integers, at most [`MAX_SEEDS`]; or
+    /// `seeds = { first = 1, min = 3, max = 12, until = "claims" }`: the seeds a run starts with
+    /// (`min` of them from `first`) and the rule that adds more.
+    pub(super) fn seeds(&mut self, header: &Map<String, Value>) -> (Vec<u64>, Option<SeedRule>) {
         let key = "pipeline.seeds";
-        let Some(value) = header.get("seeds") else { return Vec::new() };
+        let Some(value) = header.get("seeds") else { return (Vec::new(), None) };
+        if let Value::Object(table) = value {
+            return match self.seed_rule(table) {
+                Some(rule) => (rule.seeds(rule.min), Some(rule)),
+                None => (Vec::new(), None),
+            };
+        }
         let seeds: Option<Vec<u64>> = value.as_array().and_then(|items| items.iter().map(Value::as_u64).collect());
         let problem = match &seeds {
-            None => Some(format!("must be a list of non-negative integers, not {value}")),
+            None => Some(format!("must be a list of non-negative integers or a table {{ min, max, until = \"claims\" }}, not {value}")),
             Some(s) if s.is_empty() || s.len() > MAX_SEEDS => Some(format!("must list 1 to {MAX_SEEDS} seeds, not {}", s.len())),
             Some(s) if (1..s.len()).any(|i| s[..i].contains(&s[i])) => Some("lists a seed twice".into()),
             Some(_) => None,
@@ -188,9 +196,61 @@ impl Checker {
         match problem {
             Some(msg) => {
                 self.error(self.line(key), key, msg, Some("e.g. seeds = [1, 2, 3]".into()));
-                Vec::new()
+                (Vec::new(), None)
             }
-            None => seeds.unwrap_or_default(),
+            None => (seeds.unwrap_or_default(), None),
         }
+    }
+
+    fn seed_rule(&mut self, table: &Map<String, Value>) -> Option<SeedRule> {
+        const KEYS: &[&str] = &["first", "min", "max", "until"];
+        let key = "pipeline.seeds";
+        for k in table.keys().filter(|k| !KEYS.contains(&k.as_str())) {
+            self.unknown_key(&format!("{key}.{k}"), k, KEYS);
+        }
+        let mut count = |name: &str, default: u64, range: std::ops::RangeInclusive<u64>| -> Option<u64> {
+            match table.get(name) {
+                None => Some(default),
+                Some(v) => v.as_u64().filter(|n| range.contains(n)).or_else(|| {
+                    let msg = format!("must be an integer in {}..={}, not {v}", range.start(), range.end());
+                    self.error(self.line(&format!("{key}.{name}")), &format!("{key}.{name}"), msg, None);
+                    None
+                }),
+            }
+        };
+        let first = count("first", 1, 0..=u64::MAX - MAX_SEEDS as u64);
+        let min = count("min", 3, 2..=MAX_SEEDS as u64);
+        let max = count("max", 12, 2..=MAX_SEEDS as u64);
+        match table.get("until") {
+            Some(Value::String(until)) if until == "claims" => {}
+            other => {
+                let shown = other.map_or("nothing".to_owned(), Value::to_string);
+                let help = "seeds = { min = 3, max = 12, until = \"claims\" } adds seeds until every claim of [claims] is decided".into();
+                self.error(self.line(&format!("{key}.until")), &format!("{key}.until"), format!("must be \"claims\", not {shown}"), Some(help));
+                return None;
+            }
+        }
+        let (first, min, max) = (first?, min? as usize, max? as usize);
+        if min > max {
+            self.error(self.line(key), key, format!("`min` ({min}) is more than `max` ({max})"), None);
+            return None;
+        }
+        Some(SeedRule { first, min, max })
+    }
+}
+
+/// `[pipeline] seeds = { first, min, max, until = "claims" }`: a run starts with `min` seeds
+/// from `first` and adds the next one until every claim is decided, or `max` are done.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SeedRule {
+    pub first: u64,
+    pub min: usize,
+    pub max: usize,
+}
+
+impl SeedRule {
+    /// The first `n` seeds.
+    pub fn seeds(&self, n: usize) -> Vec<u64> {
+        (0..n as u64).map(|i| self.first + i).collect()
     }
 }
