@@ -258,7 +258,7 @@ fn measure_metrics(dir: &std::path::Path) -> anyhow::Result<serde_json::Value> {
 }
 
 /// A noisy measurement, as a trained model's metric is: `mean` plus `sd` times a normal draw of
-/// the seed (and the input's length, so an upstream change moves it), in `score.json`.
+/// the seed, the mean and the input's length (so an upstream change moves it), in `score.json`.
 pub struct Score;
 
 #[derive(Serialize, Deserialize, Default)]
@@ -287,7 +287,8 @@ impl Operator for Score {
             z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
             ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
         };
-        let (u, v) = (mix(ctx.seed ^ chars).max(1e-300), mix(ctx.seed.wrapping_mul(31) ^ chars ^ 1));
+        let draw = ctx.seed ^ chars ^ s.mean.to_bits();
+        let (u, v) = (mix(draw).max(1e-300), mix(draw.wrapping_mul(31) ^ 1));
         let value = s.mean + s.sd * (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos();
         let metrics = serde_json::json!({"score": {"value": value}});
         fs::write(ctx.output_dir.join("score.json"), metrics.to_string())?;

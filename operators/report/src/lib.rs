@@ -15,6 +15,7 @@
 //! `clip` and `sg-clip` the paper's methods (whose own numbers stand beside ours), a probe on
 //! pixels and the U-Net the baselines.
 
+mod claims;
 mod doc;
 mod images;
 mod paper;
@@ -47,15 +48,19 @@ pub struct PaperSettings {
     /// The paper's segmentation table quoted beside ours: `carla` (its simulated test set) or
     /// `radiate` (its sim-to-real table, for segmenters trained and tested on RADIATE).
     pub paper: paper::Table,
+    /// The pipeline's `[claims]`, which the engine hands over: the report opens with them.
+    pub claims: Option<rlmflow_stages::claims::Spec>,
 }
 
 impl Default for PaperSettings {
     fn default() -> Self {
-        PaperSettings { title: "rlmflow report".into(), samples: 4, captions: 3, rerun: true, paper: paper::Table::Carla }
+        PaperSettings { title: "rlmflow report".into(), samples: 4, captions: 3, rerun: true, paper: paper::Table::Carla, claims: None }
     }
 }
 
 impl Settings for PaperSettings {
+    const CLAIMS: Option<&'static str> = Some("claims");
+
     fn check(&self) -> Result<(), SettingError> {
         SettingError::check_range("samples", self.samples, 0..=32)?;
         SettingError::check_range("captions", self.captions, 0..=64)?;
@@ -73,7 +78,7 @@ impl Operator for Paper {
         OperatorSpec {
             name: "paper",
             kind: "report",
-            version: 6,
+            version: 7,
             inputs: None,
             summary: "the paper's tables and figures for this run: Markdown, self-contained HTML, metrics.json and a Rerun recording",
         }
@@ -83,19 +88,29 @@ impl Operator for Paper {
         let study = study::Study::read(ctx)?;
         let progress = ctx.progress(8, "sections");
         let mut report = sections::Report { blocks: Vec::new(), metrics: serde_json::Map::new() };
-        report.dataset(&study)?;
-        report.hygiene(&study);
-        progress.inc(1);
-        report.pretraining(&study)?;
-        progress.inc(1);
+        // Results first: the claims, the hygiene's verdict, the probes' and segmenters' tables.
+        let (verdicts, contrasts) = match &s.claims {
+            Some(spec) => claims::decided(&study, spec)?,
+            None => Default::default(),
+        };
+        if let Some(spec) = &s.claims {
+            report.claims(spec, &verdicts);
+        }
+        report.hygiene_verdict(&study);
         report.captioning(&study)?;
         progress.inc(1);
         report.segmentation(&study, s.paper)?;
+        progress.inc(1);
+        report.contrasts(&study, &contrasts)?;
+        progress.inc(1);
+        report.pretraining(&study)?;
         progress.inc(1);
         let (samples, captioners) = (samples::samples(&study, s.samples)?, samples::captioners(&study)?);
         report.samples(&samples)?;
         progress.inc(1);
         report.captions(&study, &captioners, s.captions)?;
+        report.dataset(&study)?;
+        report.hygiene(&study);
         report.inputs(&study);
         progress.inc(1);
         doc::write(&ctx.output_dir, &s.title, &report.blocks)?;
@@ -106,7 +121,7 @@ impl Operator for Paper {
         #[cfg(feature = "rerun")]
         let entities = if s.rerun {
             let id = format!("rlmflow-report-{}", &blake3::hash(text.as_bytes()).to_hex()[..16]);
-            recording::write(ctx, &study, &samples, &captioners, &ctx.output_dir, &id)?
+            recording::write(ctx, &study, (&samples, &captioners, &contrasts), &ctx.output_dir, &id)?
         } else {
             0
         };

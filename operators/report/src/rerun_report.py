@@ -59,13 +59,16 @@ def _fix_store_info(path):
     open(path, "wb").write(bytes(data))
 
 
-def record(path, recording_id, scalars_json, frames):
+def record(path, recording_id, scalars_json, frames, contrasts):
     """Writes `path`.
 
     scalars_json: {"entity/path": [[epoch, value], ...]}, training curves on the `epoch` timeline.
     frames: one dict per test frame on the `frame` timeline: "frame", "side", "heatmap" and
     "truth" (side*side bytes), "masks" ({name: bytes}), "actors" ([[col, row], ...] pixel
     centres), "true_grid" (text), "captions" ({name: text}).
+    contrasts: per claim, its most different test frames on the `rank` timeline under
+    `claims/<claim>/`: "claim", "rank", "frame", "side", "heatmap", "true_grid", "outputs"
+    ({instance: text}), "masks" ({instance: bytes}) and, for segmenters, "truth_mask".
     """
     rec = rr.RecordingStream("rlmflow-report", recording_id=recording_id, send_properties=False)
     rec.save(path, write_footer=False)
@@ -76,15 +79,15 @@ def record(path, recording_id, scalars_json, frames):
         values = [float(p[1]) for p in points]
         chunks.append(Chunk.from_columns(entity, indexes=[rr.TimeColumn("epoch", sequence=epochs)], columns=rr.Scalars.columns(scalars=values)))
 
-    def image(entity, frame, side, pixels):
+    def image(entity, frame, side, pixels, timeline="frame"):
         fmt = rr.components.ImageFormat(width=side, height=side, color_model="L", channel_datatype="U8")
         buffer = np.frombuffer(pixels, dtype=np.uint8)
         chunks.append(
-            Chunk.from_columns(entity, indexes=[rr.TimeColumn("frame", sequence=[frame])], columns=rr.Image.columns(buffer=[buffer], format=[fmt]))
+            Chunk.from_columns(entity, indexes=[rr.TimeColumn(timeline, sequence=[frame])], columns=rr.Image.columns(buffer=[buffer], format=[fmt]))
         )
 
-    def text(entity, frame, body):
-        chunks.append(Chunk.from_columns(entity, indexes=[rr.TimeColumn("frame", sequence=[frame])], columns=rr.TextDocument.columns(text=[body])))
+    def text(entity, frame, body, timeline="frame"):
+        chunks.append(Chunk.from_columns(entity, indexes=[rr.TimeColumn(timeline, sequence=[frame])], columns=rr.TextDocument.columns(text=[body])))
 
     for f in frames:
         frame, side = int(f["frame"]), int(f["side"])
@@ -103,6 +106,16 @@ def record(path, recording_id, scalars_json, frames):
         text("captions/true", frame, f["true_grid"])
         for name, caption in sorted(f["captions"].items()):
             text(f"captions/{name}", frame, caption)
+    for c in contrasts:
+        at, rank, side = f"claims/{c['claim']}", int(c["rank"]), int(c["side"])
+        image(f"{at}/heatmap", rank, side, c["heatmap"], "rank")
+        text(f"{at}/true_grid", rank, f"frame {int(c['frame'])}: {c['true_grid']}", "rank")
+        if "truth_mask" in c:
+            image(f"{at}/truth", rank, side, c["truth_mask"], "rank")
+        for i, (name, output) in enumerate(sorted(c["outputs"].items())):
+            text(f"{at}/output{i}", rank, f"{name}: {output}", "rank")
+        for i, (name, mask) in enumerate(sorted(c["masks"].items())):
+            image(f"{at}/predicted{i}", rank, side, mask, "rank")
     rec.send_chunks([ids.fix(c)[0] for c in chunks])
     rec.flush()
     del rec

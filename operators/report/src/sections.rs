@@ -247,17 +247,29 @@ impl Report {
         Ok(())
     }
 
+    /// The hygiene table's one-line verdict, for the report's first screen: how many checks,
+    /// and whether every overlap is zero.
+    pub fn hygiene_verdict(&mut self, study: &Study) {
+        let checks = hygiene_checks(study);
+        if checks.is_empty() {
+            return;
+        }
+        let rows = checks.iter().map(|(_, _, r)| r.len()).sum::<usize>();
+        let flagged = checks.iter().flat_map(|(_, _, rows)| rows.iter()).filter(|r| r.overlap > 0).count();
+        self.blocks.push(Block::Paragraph(match flagged {
+            0 => format!(
+                "Data hygiene: {rows} checks, every overlap 0: no probe or segmenter tests on a frame its encoder trained on or a \
+                 tokenizer learnt from (each check under \"Data hygiene\" below)."
+            ),
+            n => format!("Data hygiene: {rows} checks, {n} OVERLAP by their stages' own choice: those rows are not clean test results (under \"Data hygiene\" below)."),
+        }));
+    }
+
     /// The data-hygiene table: for every probe and segmenter instance, its test frames against
     /// each set of frames upstream learnt from (the encoder's training frames, its tokenizer's,
     /// the probe's own tokenizer's), as the instance counted them before it ran.
     pub fn hygiene(&mut self, study: &Study) {
-        let checks: Vec<(&str, &Instance, &[identity::Overlap])> = study
-            .probes
-            .iter()
-            .map(|p| (p.label.as_str(), &p.instance, p.summary.hygiene.as_slice()))
-            .chain(study.segments.iter().map(|s| (s.label.as_str(), &s.instance, s.summary.hygiene.as_slice())))
-            .filter(|(_, _, rows)| !rows.is_empty())
-            .collect();
+        let checks = hygiene_checks(study);
         if checks.is_empty() {
             return;
         }
@@ -409,6 +421,17 @@ impl Report {
         self.blocks.push(Block::Code(text));
         Ok(())
     }
+}
+
+/// Every probe and segmenter instance with its overlap checks, those that made any.
+fn hygiene_checks(study: &Study) -> Vec<(&str, &Instance, &[identity::Overlap])> {
+    study
+        .probes
+        .iter()
+        .map(|p| (p.label.as_str(), &p.instance, p.summary.hygiene.as_slice()))
+        .chain(study.segments.iter().map(|s| (s.label.as_str(), &s.instance, s.summary.hygiene.as_slice())))
+        .filter(|(_, _, rows)| !rows.is_empty())
+        .collect()
 }
 
 /// An encoder's log averaged across seeds, epoch by epoch.
