@@ -49,9 +49,19 @@ pub enum Change {
     Platform { old: Option<String>, new: Option<String> },
 }
 
+/// How much of a setting's value a change shows in words.
+const SHOWN_CHARS: usize = 60;
+
 impl fmt::Display for Change {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let show = |v: &Option<Value>| v.as_ref().map_or("(unset)".to_owned(), canonical_json);
+        // A long value (a list of claims, say) shows its start: the change as data keeps it whole.
+        let show = |v: &Option<Value>| {
+            let text = v.as_ref().map_or("(unset)".to_owned(), canonical_json);
+            match text.char_indices().nth(SHOWN_CHARS) {
+                Some((cut, _)) => format!("{}... ({} characters)", &text[..cut], text.chars().count()),
+                None => text,
+            }
+        };
         let input = |slot: &str, label: &str| {
             if label.is_empty() { slot.to_owned() } else { format!("{slot} {label}") }
         };

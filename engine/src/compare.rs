@@ -9,7 +9,9 @@ use rlmflow_cache::{ActionRecord, Digest, PlanEntry, Preimage, Store, canonical_
 use serde::Serialize;
 use serde_json::Value;
 
-use crate::config::SEED_DIMENSION;
+use rlmflow_stages::Registry;
+
+use crate::config::{Pipeline, SEED_DIMENSION};
 use crate::history::PastRun;
 
 /// A metric over an instance's seeds (one value without seeds).
@@ -318,6 +320,62 @@ fn numeric_leaves(prefix: &str, value: &Value, out: &mut Vec<(String, f64)>) {
 
 fn join(prefix: &str, key: &str) -> String {
     if prefix.is_empty() { key.to_owned() } else { format!("{prefix}.{key}") }
+}
+
+/// Two instances' per-frame outputs side by side: the test frames where they differ most.
+#[derive(Debug, Serialize)]
+pub struct Frames {
+    pub a: String,
+    pub b: String,
+    #[serde(flatten)]
+    pub differences: rlmflow_stages::measure::FrameDifferences,
+}
+
+/// The frames where instances `a` and `b` (labels as a run prints them) differ, from their
+/// outputs in `store`; both must be computed and of one artifact type that keeps per-frame
+/// outputs.
+pub fn frames(p: &Pipeline, registry: &Registry, store: &Store, a: &str, b: &str) -> anyhow::Result<Frames> {
+    let plan = crate::preflight::planned(p, Some(store), rlmflow_stages::Device::Cpu)?;
+    let states = crate::plan::assess(&plan, registry, Some(store))?;
+    let output = |text: &str| -> anyhow::Result<(String, &'static str, std::path::PathBuf)> {
+        let i = plan.instance_named(text)?;
+        let inst = &plan.instances[i];
+        let crate::plan::Freshness::Cached(record) = &states[i] else {
+            anyhow::bail!("{} is not computed in {}: `rlmflow run` computes it", inst.label, store.root().display());
+        };
+        Ok((inst.label.clone(), p.stages[inst.stage].kind.produces, store.object_dir(&record.output)))
+    };
+    let ((la, ta, da), (lb, tb, db)) = (output(a)?, output(b)?);
+    if ta != tb {
+        anyhow::bail!("{la} is a {ta} and {lb} a {tb}: per-frame outputs compare within one artifact type");
+    }
+    let Some(compare) = registry.catalog.measures(ta).and_then(|m| m.frames) else {
+        anyhow::bail!("a {ta} keeps no per-frame outputs to compare (probes and segmenters do)");
+    };
+    Ok(Frames { a: la, b: lb, differences: compare(&da, &db)? })
+}
+
+impl Frames {
+    /// The `top` most different frames as aligned columns.
+    pub fn terminal(&self, top: usize) -> String {
+        let d = &self.differences;
+        let mut out = format!("{} against {}: {} of {} test frames differ ({})\n", self.a, self.b, d.frames.len(), d.compared, d.unit);
+        let rows: Vec<[String; 5]> =
+            d.frames.iter().take(top).map(|f| [f.frame.to_string(), f.row.clone(), number(f.differ), f.a.clone(), f.b.clone()]).collect();
+        if rows.is_empty() {
+            return out + "  no frame differs\n";
+        }
+        let header = ["frame".to_owned(), "row".into(), "differ".into(), self.a.clone(), self.b.clone()];
+        let widths: Vec<usize> = (0..5).map(|c| std::iter::once(&header).chain(&rows).map(|r| r[c].chars().count()).max().unwrap_or(0)).collect();
+        for row in std::iter::once(&header).chain(&rows) {
+            let cells: Vec<String> = row.iter().zip(&widths).map(|(c, w)| format!("{c:<w$}")).collect();
+            out += &format!("  {}\n", cells.join("  ").trim_end());
+        }
+        if d.frames.len() > top {
+            out += &format!("  ... and {} more (--top N)\n", d.frames.len() - top);
+        }
+        out
+    }
 }
 
 // ---- rendering ----

@@ -204,6 +204,43 @@ impl Plan<'_> {
         order
     }
 
+    /// The one instance `text` names, as a run prints it: `clipcap[alpha4]`, its long form
+    /// `clipcap[pretrain=alpha4]`, with `seed=N` where the stage runs per seed (among several
+    /// seeds one must be named); an error lists what would be valid, the nearest first.
+    pub fn instance_named(&self, text: &str) -> anyhow::Result<usize> {
+        let (stage, items) = match text.split_once('[') {
+            Some((stage, rest)) => (stage, rest.strip_suffix(']').unwrap_or(rest)),
+            None => (text, ""),
+        };
+        let Some(s) = self.pipeline.stage(stage) else {
+            let names = self.pipeline.stage_names();
+            bail!("no stage named `{stage}` in {}; stages: {}{}", self.pipeline.file.display(), names.join(", "), suggest(stage, &names));
+        };
+        let given: Vec<&str> = items.split(',').map(str::trim).filter(|i| !i.is_empty()).collect();
+        let matches = |inst: &Instance| {
+            given.iter().all(|item| match item.split_once('=') {
+                Some((d, v)) => inst.assignment.get(d.trim()).is_some_and(|x| x == v.trim()),
+                None => {
+                    let named: Vec<&String> = inst.assignment.iter().filter(|(d, _)| *d != SEED_DIMENSION).map(|(_, v)| v).collect();
+                    named.len() == 1 && named[0] == item
+                }
+            })
+        };
+        let whole = || self.instances.iter().enumerate().filter(|(_, i)| i.stage == s && i.shard.is_none());
+        let found: Vec<usize> = whole().filter(|(_, i)| matches(i)).map(|(n, _)| n).collect();
+        match found.as_slice() {
+            [one] => Ok(*one),
+            [] => {
+                let labels: Vec<&str> = whole().map(|(_, i)| i.label.as_str()).collect();
+                bail!("no instance `{text}`; instances of `{stage}`: {}{}", labels.join(", "), suggest(text, &labels))
+            }
+            many => {
+                let labels: Vec<&str> = many.iter().map(|&n| self.instances[n].label.as_str()).collect();
+                bail!("`{text}` names {} instances: {}; name one (its seed with `seed=N`)", many.len(), labels.join(", "))
+            }
+        }
+    }
+
     /// Instances of the named stages and everything upstream of them.
     pub fn select(&self, stages: &[String]) -> anyhow::Result<Vec<bool>> {
         let mut keep = vec![stages.is_empty(); self.instances.len()];

@@ -259,6 +259,20 @@ pub struct Summary {
     pub generator: serde_json::Value,
 }
 
+/// What an Encoder measures, by dotted path (claims name them): the last epoch's figures
+/// (`last.loss`, `last.top1`, ... as its log line holds them) and the chance levels.
+pub fn metrics(summary: &Summary) -> serde_json::Value {
+    serde_json::json!({"last": summary.last, "chance_top1": summary.chance_top1, "chance_top5": summary.chance_top5})
+}
+
+/// The paths [`metrics`] gives for an encoder trained on the counts (its test MSE) or
+/// contrastively (its test retrieval).
+pub fn metric_names(counts: bool) -> Vec<String> {
+    let mut names = vec!["last.loss", "last.lr", "last.tau", "last.off_diagonal", "chance_top1", "chance_top5"];
+    names.extend(if counts { &["last.test_mse"][..] } else { &["last.top1", "last.top5"][..] });
+    names.into_iter().map(str::to_owned).collect()
+}
+
 /// An Encoder artifact's config and summary, read (the weights are the worker's to load).
 pub struct Encoder {
     pub config: ModelConfig,

@@ -73,8 +73,9 @@ pub fn paths(metrics: &Value) -> Vec<String> {
     out
 }
 
-/// The paper's artifact types that measure: probe and segmentation reports.
+/// The paper's artifact types that measure: encoders, probe and segmentation reports.
 pub const PAPER: &[Measures] = &[
+    Measures { artifact: "Encoder", metrics: |dir| Ok(crate::encoder::metrics(&crate::encoder::Encoder::open(dir)?.summary)), frames: None },
     Measures {
         artifact: "ProbeReport",
         metrics: |dir| Ok(crate::probe::metrics(&crate::probe::read_summary(dir)?)),

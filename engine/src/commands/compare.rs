@@ -12,9 +12,14 @@ use crate::config;
 #[derive(clap::Args)]
 pub(crate) struct Args {
     pipeline: PathBuf,
-    /// Run ids, or unique beginnings of them (`rlmflow runs` lists them).
+    /// Run ids, or unique beginnings of them (`rlmflow runs` lists them); or two instances of
+    /// a probe or segmenter (`'clipcap[clip]' 'clipcap[random]'`), for the test frames where
+    /// their outputs differ most.
     #[arg(value_name = "RUN", num_args = 0..=2)]
     runs: Vec<String>,
+    /// With two instances: how many of the most different frames to list.
+    #[arg(long, default_value_t = 10)]
+    top: usize,
     /// Compare the variants of each stage of one run (default: the latest).
     #[arg(long)]
     variants: bool,
@@ -31,9 +36,20 @@ pub(crate) struct Args {
 }
 
 pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
-    let Args { pipeline, runs: ids, variants, all, json, markdown, store } = args;
-    let p = config::load(&pipeline, registry)?;
+    let Args { pipeline, runs: ids, top, variants, all, json, markdown, store } = args;
+    let p = super::at_look(config::load(&pipeline, registry)?, registry, &store)?;
     let store = ran_store(&p, &store, "nothing to compare")?;
+    let stage_of = |text: &str| text.split('[').next().map(str::to_owned).unwrap_or_default();
+    if let [a, b] = ids.as_slice()
+        && p.stage(&stage_of(a)).is_some()
+    {
+        let frames = crate::compare::frames(&p, registry, &store, a, b)?;
+        match json {
+            true => println!("{}", serde_json::to_string(&frames)?),
+            false => print!("{}", frames.terminal(top)),
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
     let runs = crate::history::runs_of(&store, &p.name)?;
     // Unnamed runs are the newest that are not plain reruns, in which nothing differs.
     let computing: Vec<&crate::history::PastRun> = runs.iter().filter(|r| !r.repeats).collect();

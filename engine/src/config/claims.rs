@@ -182,7 +182,7 @@ impl Checker {
         let kind = stage.kind;
         if registry.catalog.measures(kind.produces).is_none() {
             let msg = format!("`{text}`: stage `{stage_name}` makes a {} artifact, which measures nothing a claim can compare", kind.produces);
-            self.error(line, path, msg, Some("claims compare the metrics of probe and segment stages".into()));
+            self.error(line, path, msg, Some("claims compare the metrics of encoder, probe and segment stages".into()));
             return None;
         }
         if metric.is_empty() {
@@ -198,8 +198,10 @@ impl Checker {
         if !declared.is_empty() && !declared.iter().any(|m| m == metric) {
             let candidates: Vec<&str> = declared.iter().map(String::as_str).collect();
             let nearest = suggest(metric, &candidates);
+            // Per-bin figures are many: named by their pattern.
             let top: Vec<&str> = candidates.iter().filter(|c| !c.contains(".bins")).copied().collect();
-            let help = format!("`{}` measures {} and more (each ROW.bins.BIN and ROW.bins_mean){nearest}", stage.operator, top.join(", "));
+            let bins = if top.len() < candidates.len() { ", and each ROW.bins.BIN.FIGURE and ROW.bins_mean.FIGURE" } else { "" };
+            let help = format!("`{}` measures {}{bins}{nearest}", stage.operator, top.join(", "));
             self.error(line, path, format!("`{text}`: `{stage_name}` has no metric `{metric}`"), Some(help));
             return None;
         }

@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 use anyhow::{Context as _, bail};
 use rlmflow_stages::claims::{Claim, Decision, Metric, Spec, Values, Verdict, decide, signed};
 use rlmflow_stages::measure::{self, FrameDifferences};
-use rlmflow_stages::{probe, segment};
+use rlmflow_stages::{encoder, probe, segment};
 use serde_json::Value;
 
 use crate::doc::{Block, Picture};
@@ -22,7 +22,15 @@ struct Measured<'s> {
     instance: &'s Instance,
     metrics: Value,
     dir: &'s std::path::Path,
-    segmenter: bool,
+    output: Output,
+}
+
+/// What an instance's artifact is, for how two of them differ frame by frame.
+#[derive(Clone, Copy, PartialEq)]
+enum Output {
+    Encoder,
+    Probe,
+    Segmenter,
 }
 
 /// One claim's first comparison at its first shared seed: where the two differ, most first.
@@ -55,21 +63,28 @@ pub fn decided(study: &Study, spec: &Spec) -> anyhow::Result<(Vec<Verdict>, Vec<
 }
 
 fn measured(study: &Study) -> anyhow::Result<Vec<Measured<'_>>> {
+    let encoders = study.encoders.iter().map(|e| Measured {
+        label: &e.label,
+        instance: &e.instance,
+        metrics: encoder::metrics(&e.encoder.summary),
+        dir: &e.encoder.dir,
+        output: Output::Encoder,
+    });
     let probes = study.probes.iter().map(|p| Measured {
         label: &p.label,
         instance: &p.instance,
         metrics: probe::metrics(&p.summary),
         dir: &p.dir,
-        segmenter: false,
+        output: Output::Probe,
     });
     let segments = study.segments.iter().map(|s| Measured {
         label: &s.label,
         instance: &s.instance,
         metrics: segment::metrics(&s.summary),
         dir: &s.dir,
-        segmenter: true,
+        output: Output::Segmenter,
     });
-    Ok(probes.chain(segments).collect())
+    Ok(encoders.chain(probes).chain(segments).collect())
 }
 
 /// Whether `m` is one of the instances `metric` pools over seeds.
@@ -108,19 +123,18 @@ fn contrast(measured: &[Measured], claim: &Claim) -> anyhow::Result<Option<Contr
         Some((*b, *t))
     });
     let Some((b, t)) = pair else { return Ok(None) };
-    if b.segmenter != t.segmenter {
-        return Ok(None);
-    }
-    let mut differences = match b.segmenter {
-        true => segment::frame_differences(b.dir, t.dir)?,
-        false => probe::frame_differences(b.dir, t.dir)?,
+    let mut differences = match (b.output, t.output) {
+        (Output::Segmenter, Output::Segmenter) => segment::frame_differences(b.dir, t.dir)?,
+        (Output::Probe, Output::Probe) => probe::frame_differences(b.dir, t.dir)?,
+        // Encoders keep no per-frame output; nor do a probe and a segmenter share one.
+        _ => return Ok(None),
     };
     // A probe's row: the one the claim's metric names (`cls.f1` reads the `cls` row).
-    if !b.segmenter {
+    if b.output == Output::Probe {
         let row = comparison.better.path.split('.').next().unwrap_or_default().to_owned();
         differences.frames.retain(|f| f.row == row);
     }
-    let segmenter_dirs = b.segmenter.then(|| [b.dir.to_path_buf(), t.dir.to_path_buf()]);
+    let segmenter_dirs = (b.output == Output::Segmenter).then(|| [b.dir.to_path_buf(), t.dir.to_path_buf()]);
     Ok(Some(Contrast { claim: claim.name.clone(), labels: [b.label.to_owned(), t.label.to_owned()], differences, segmenter_dirs }))
 }
 
