@@ -15,6 +15,8 @@ use rlmflow_test_support::openai::{FakeOpenAi, Response};
 
 #[path = "pipelines/ci.rs"]
 mod ci;
+#[path = "pipelines/claims.rs"]
+mod claims;
 #[path = "pipelines/commands.rs"]
 mod commands;
 #[path = "pipelines/dag.rs"]

@@ -3,6 +3,7 @@
 
 mod bad_input;
 mod bounds;
+mod claims;
 mod config_errors;
 mod digests;
 mod engine;

@@ -326,3 +326,71 @@ json.dump(out, sys.stdout)
         }
     }
 }
+
+/// `rlmflow compare` on two instances lists the test frames where their outputs differ, most
+/// first, and each frame it names does differ in the artifacts; an instance against itself
+/// differs nowhere.
+#[test]
+fn per_frame_differences_name_frames_that_differ_and_none_for_an_instance_with_itself() {
+    let run = ci_run();
+    let compare = |a: &str, b: &str| -> serde_json::Value {
+        let (ok, out) = rlmflow(&run.dir, &["compare", "ci.toml", a, b, "--json"]);
+        assert!(ok, "{out}");
+        serde_json::from_str(out.lines().last().unwrap()).unwrap()
+    };
+    let probes = compare("linear[clip]", "linear[random]");
+    let frames = probes["frames"].as_array().unwrap();
+    assert!(!frames.is_empty() && probes["unit"] == "cells predicted differently", "{probes}");
+    let grids = |label: &str| rlmflow_stages::probe::read_predictions(&run.output(label)).unwrap();
+    let (a, b) = (grids("linear[clip]"), grids("linear[random]"));
+    for f in frames {
+        let at = |p: &[(u64, String, [u32; 48])]| p.iter().find(|(frame, row, _)| *frame == f["frame"] && *row == f["row"]).unwrap().2;
+        let differing = (0..48).filter(|&c| at(&a)[c] != at(&b)[c]).count();
+        assert_eq!(differing as f64, f["differ"].as_f64().unwrap(), "{f}");
+        assert!(differing > 0);
+    }
+    let differs: Vec<f64> = frames.iter().map(|f| f["differ"].as_f64().unwrap()).collect();
+    assert!(differs.windows(2).all(|w| w[0] >= w[1]), "most first: {differs:?}");
+    let segmenters = compare("pup[clip]", "unet");
+    assert_eq!(segmenters["compared"], 10, "{segmenters}");
+    let scores = |label: &str| rlmflow_stages::segment::read_frames(&run.output(label)).unwrap();
+    let (p, u) = (scores("pup[clip]"), scores("unet"));
+    for f in segmenters["frames"].as_array().unwrap() {
+        let iou = |s: &[rlmflow_stages::segment::FrameScore]| s.iter().find(|x| x.frame == f["frame"]).unwrap().iou;
+        assert!(((iou(&p) - iou(&u)).abs() - f["differ"].as_f64().unwrap()).abs() < 1e-12, "{f}");
+    }
+    for same in ["linear[clip]", "pup[random]"] {
+        let itself = compare(same, same);
+        assert_eq!(itself["frames"].as_array().unwrap().len(), 0, "{itself}");
+    }
+    let (ok, out) = rlmflow(&run.dir, &["compare", "ci.toml", "pup[clp]", "unet"]);
+    assert!(!ok && out.contains("no instance `pup[clp]`") && out.contains("did you mean `pup[clip]`?"), "{out}");
+}
+
+/// Every metric an operator declares (what a claim may name, checked when the file is read)
+/// is one its artifact measures.
+#[test]
+fn every_declared_metric_is_measured_by_the_artifact() {
+    use rlmflow_stages::DynOperator;
+    let run = ci_run();
+    let catalog = rlmflow_stages::Catalog::paper();
+    let pretrain = rlmflow_pretrain::operator();
+    let (linear, clipcap, pup, unet) = (rlmflow_probe::linear(), rlmflow_probe::clipcap(), rlmflow_segment::pup(), rlmflow_segment::unet());
+    let cases: [(&dyn DynOperator, serde_json::Value, &str, &str); 6] = [
+        (&pretrain, serde_json::json!({}), "pretrain[clip]", "Encoder"),
+        (&linear, serde_json::json!({}), "linear[clip]", "ProbeReport"),
+        (&linear, serde_json::json!({"source": "pixels"}), "pixels", "ProbeReport"),
+        (&clipcap, serde_json::json!({}), "clipcap[random]", "ProbeReport"),
+        (&pup, serde_json::json!({}), "pup[clip]", "SegReport"),
+        (&unet, serde_json::json!({}), "unet", "SegReport"),
+    ];
+    for (op, settings, label, artifact) in cases {
+        let declared = op.metrics(&op.settings(settings).unwrap()).unwrap();
+        let measured = (catalog.measures(artifact).unwrap().metrics)(&run.output(label)).unwrap();
+        let paths = rlmflow_stages::measure::paths(&measured);
+        assert!(!declared.is_empty(), "{label}");
+        for name in &declared {
+            assert!(paths.contains(name), "{label} declares `{name}`, which it does not measure: {paths:?}");
+        }
+    }
+}
