@@ -22,6 +22,10 @@ It runs, each part in its own processes, with the GPU's memory sampled by nvidia
    against docs/digests/ci.toml.digests, and the laptop model's step, portable against native.
    Its highway-env scenes come from DIR/ci-seeds, a file remote `--build-only` fills (the GPU
    machine has no network to make the Python environment highway-env runs in).
+7. Claims: examples/gpu-claims.toml cold into a fresh store on cuda (its placed scenes computed
+   on this machine's cores), adding seeds until every claim is decided: the verdicts with their
+   seeds and intervals (`rlmflow claims --json`), and the wall time against the 8 minutes the
+   profile is meant to fit.
 
 and prints one Markdown table, row by row (also written to --out after each row; a failed part
 is a row saying why, and the check goes on). Without a CUDA device (or with --dry) it
@@ -47,6 +51,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PIPELINE = ROOT / "examples/paper-smoke.toml"
 CI = ROOT / "examples/ci.toml"
 CI_DIGESTS = ROOT / "docs/digests/ci.toml.digests"
+GPU_CLAIMS = ROOT / "examples/gpu-claims.toml"
 REFERENCE = ROOT / "worker/benches/step_reference.py"
 BINARIES = ("rlmflow", "rlmflow-torch")
 MODEL_STAGES = ("pretrain", "clipcap", "pup", "unet")
@@ -87,10 +92,11 @@ class Failed(Exception):
     """A command of the check failed: which, and its stderr's tail."""
 
 
-def run(command, **kwargs):
-    """Runs `command`; its stdout, or raises `Failed` naming the command and its stderr's tail."""
+def run(command, allowed=(0,), **kwargs):
+    """Runs `command`; its stdout, or raises `Failed` naming the command and its stderr's tail
+    when it exits with a status not `allowed`."""
     out = subprocess.run([str(c) for c in command], capture_output=True, text=True, **kwargs)
-    if out.returncode != 0:
+    if out.returncode not in allowed:
         tail = "\n".join((out.stderr or out.stdout).strip().splitlines()[-15:])
         raise Failed(f"{' '.join(map(str, command))} failed ({out.returncode}):\n{tail}")
     return out.stdout
@@ -230,12 +236,13 @@ def main():
         os.environ["LD_LIBRARY_PATH"] = ":".join(filter(None, [os.environ.get("LD_LIBRARY_PATH"), libtorch]))
     doctor = run([worker, "doctor"])
     print(doctor)
-    for path in (PIPELINE, REFERENCE, CI, CI_DIGESTS):
+    for path in (PIPELINE, REFERENCE, CI, CI_DIGESTS, GPU_CLAIMS):
         if not path.is_file():
             sys.exit(f"device-check: {path} is missing")
     # The overrides every part uses validate as the file does (dag checks every setting).
     for sets in (CUDA, CUDA + [s for s in MEMORY if "=" in s]):
         run([rlmflow, "dag", PIPELINE] + overrides(sets))
+    run([rlmflow, "dag", GPU_CLAIMS])
     usable = "CUDA           usable" in doctor
     if args.cpu:
         table = Table(args.out, doctor)
@@ -282,6 +289,18 @@ def main():
         return f"{seconds:.0f} s", f"peak {peak} MiB (with the CUDA context) against the estimate {estimate_mib:.0f} MiB: {peak / estimate_mib:.2f}x"
 
     table.measure("memory: pretrain, batch 160 in chunks of 80", memory)
+
+    def claims():
+        store = scratch / "claims"
+        start = time.time()
+        # A required claim that fails exits 1 with every verdict printed: still a measurement.
+        run([rlmflow, "run", GPU_CLAIMS, "--cache", store, "--device", "cuda", "--jobs", str(os.cpu_count() or 1)], allowed=(0, 1))
+        seconds = time.time() - start
+        line = json.loads(run([rlmflow, "claims", GPU_CLAIMS, "--json", "--cache", store, "--device", "cuda"], allowed=(0, 1)).strip().splitlines()[-1])
+        said = [f"{v['claim']} {v['decision']} at {v['seeds']} seeds" for v in line["verdicts"]]
+        return f"{seconds:.0f} s ({seconds / 60:.1f} min, target 8)", f"{line['seeds']} seeds: " + "; ".join(said)
+
+    table.measure("claims: gpu-claims.toml cold on cuda, seeds until decided", claims)
     shutil.rmtree(scratch, ignore_errors=True)
     cpu_checks(table, rlmflow, worker, args.bin)
     if table.failed:

@@ -14,7 +14,10 @@ fn a_true_claim_holds_in_few_seeds_a_rerun_reuses_every_seed_and_the_report_open
     assert_eq!((verdict["claim"].as_str(), verdict["decision"].as_str()), (Some("trained_beats_random"), Some("holds")), "{claims}");
     let seeds = claims["seeds"].as_u64().unwrap();
     assert!((3..=8).contains(&seeds) && verdict["decided_at"] == seeds, "{claims}");
-    let pretrained = out.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains("\"stage\":\"pretrain[pretrain=counts,seed=")).count();
+    let pretrained = out
+        .lines()
+        .filter(|l| l.contains("\"stage_finished\"") && l.contains("\"status\":\"ran\"") && l.contains("\"stage\":\"pretrain[pretrain=counts,seed="))
+        .count();
     assert_eq!(pretrained as u64, seeds, "one counts encoder per seed looked at: {out}");
     let report = std::fs::read_to_string(rlmflow_test_support::cli::output_dir(&s.path().join(".rlmflow"), "claims-ci", "report").join("report.md")).unwrap();
     let first = report.lines().find(|l| l.starts_with("## ")).unwrap();

@@ -97,10 +97,15 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
     }
     // Seeds until decided: each look computes what its claims read, and the next is asked.
     if p.seed_rule.is_some() && only.is_empty() {
+        let mut computed = None;
         loop {
             let look = crate::claims::reached(&mut p, registry, Store::open_existing(&root)?.as_ref(), device)?;
             if look.missing.is_empty() {
                 break;
+            }
+            // A look computed and still missing its instances would loop for ever.
+            if computed.replace(look.seeds) == Some(look.seeds) {
+                anyhow::bail!("the claims' instances at {} seeds are still not in the store after computing them: {}", look.seeds, look.missing.join(", "));
             }
             if !json {
                 println!("claims: computing their instances at {} seeds ({} missing)", look.seeds, look.missing.len());
