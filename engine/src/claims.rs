@@ -175,8 +175,16 @@ pub struct ClaimFlip {
     /// The newest run's id and verdict.
     pub now: (String, Verdict),
     /// The newest earlier run with another decision, and what changed in between: per instance
-    /// whose key moved, its changes other than its inputs'.
-    pub before: Option<(String, Verdict, Vec<(String, Vec<String>)>)>,
+    /// whose key moved (its label and stage), its changes other than its inputs' (`None`: a
+    /// record was collected, so they are unknown).
+    pub before: Option<(String, Verdict, Vec<Changed>)>,
+}
+
+/// One instance whose key moved between two runs: its label, stage and own changes.
+pub struct Changed {
+    pub label: String,
+    pub stage: String,
+    pub changes: Option<Vec<rlmflow_cache::Change>>,
 }
 
 /// `claim`'s verdict in each of the pipeline's runs (by today's definition), newest first,
@@ -207,19 +215,17 @@ pub fn flip(p: &Pipeline, registry: &Registry, store: &Store, claim: &str) -> an
             if old.0.key == entry.key {
                 continue;
             }
-            let changes: Vec<String> = match (record, &old.1) {
-                (Some(now), Some(then)) => now
-                    .preimage
-                    .diff(&then.preimage)
-                    .iter()
-                    .filter(|c| !matches!(c, rlmflow_cache::Change::InputChanged { .. }))
-                    .map(|c| crate::ui::describe(&entry.stage, c))
-                    .collect(),
-                _ => vec!["a record was collected".to_owned()],
+            let changes = match (record, &old.1) {
+                (Some(now), Some(then)) => {
+                    let own: Vec<_> = now.preimage.diff(&then.preimage).into_iter().filter(|c| !matches!(c, rlmflow_cache::Change::InputChanged { .. })).collect();
+                    if own.is_empty() {
+                        continue;
+                    }
+                    Some(own)
+                }
+                _ => None,
             };
-            if !changes.is_empty() {
-                changed.push((entry.label.clone(), changes));
-            }
+            changed.push(Changed { label: entry.label.clone(), stage: entry.stage.clone(), changes });
         }
         (run.id().to_owned(), v.clone(), changed)
     });

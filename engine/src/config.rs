@@ -406,6 +406,7 @@ impl Checker {
             None if seeds.is_empty() => None,
             None => Some(rlmflow_stages::claims::Looks { first: seeds.len(), last: seeds.len() }),
         };
+        self.claims_not_set_by_stages(&stages_table, &stages, registry);
         let dims = dimensions(&stages, !seeds.is_empty());
         let claims = self.claims(root.get("claims"), &stages, &dims, looks, registry);
         if let Some(spec) = &claims {

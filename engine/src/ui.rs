@@ -194,8 +194,12 @@ pub(crate) fn claim_flip(flip: &crate::claims::ClaimFlip, claim: &str) -> String
             if changed.is_empty() {
                 out += "    no setting or version: only seeds or upstream outputs (the same settings gave other values)\n";
             }
-            for (label, changes) in changed {
-                out += &format!("    {label}: {}\n", changes.join("; "));
+            for c in changed {
+                let words = match &c.changes {
+                    Some(changes) => changes.iter().map(|change| describe(&c.stage, change)).collect::<Vec<_>>().join("; "),
+                    None => "changed (a record was collected, so not what)".to_owned(),
+                };
+                out += &format!("    {}: {words}\n", c.label);
             }
         }
     }

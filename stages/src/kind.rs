@@ -1,5 +1,7 @@
 //! Stage kinds: what a stage consumes and produces, independent of how (the operator).
 
+use crate::measure::Measures;
+
 /// How many upstream artifacts an input slot takes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Arity {
@@ -78,7 +80,7 @@ impl Catalog {
 
     /// The stage kinds of the paper's pipeline (docs/reference/artifacts.md describes each).
     pub fn paper() -> Catalog {
-        Catalog { kinds: PAPER_KINDS.to_vec(), markers: PAPER_MARKERS.to_vec(), measures: crate::measure::PAPER.to_vec() }
+        Catalog { kinds: PAPER_KINDS.to_vec(), markers: PAPER_MARKERS.to_vec(), measures: PAPER_MEASURES.to_vec() }
     }
 
     /// How artifacts of type `artifact` are measured, if they are.
@@ -105,6 +107,21 @@ const PAPER_MARKERS: &[(&str, &str)] = &[
     ("ProbeReport", crate::probe::SUMMARY),
     ("SegReport", crate::segment::SUMMARY),
     ("Report", "metrics.json"),
+];
+
+/// The paper's artifact types that measure: encoders, probe and segmentation reports.
+const PAPER_MEASURES: &[Measures] = &[
+    Measures { artifact: "Encoder", metrics: |dir| Ok(crate::encoder::metrics(&crate::encoder::Encoder::open(dir)?.summary)), frames: None },
+    Measures {
+        artifact: "ProbeReport",
+        metrics: |dir| Ok(crate::probe::metrics(&crate::probe::read_summary(dir)?)),
+        frames: Some(crate::probe::frame_differences),
+    },
+    Measures {
+        artifact: "SegReport",
+        metrics: |dir| Ok(crate::segment::metrics(&crate::segment::read_summary(dir)?)),
+        frames: Some(crate::segment::frame_differences),
+    },
 ];
 
 const SCENES: &str = "Scenes";

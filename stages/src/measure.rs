@@ -72,18 +72,3 @@ pub fn paths(metrics: &Value) -> Vec<String> {
     out.sort();
     out
 }
-
-/// The paper's artifact types that measure: encoders, probe and segmentation reports.
-pub const PAPER: &[Measures] = &[
-    Measures { artifact: "Encoder", metrics: |dir| Ok(crate::encoder::metrics(&crate::encoder::Encoder::open(dir)?.summary)), frames: None },
-    Measures {
-        artifact: "ProbeReport",
-        metrics: |dir| Ok(crate::probe::metrics(&crate::probe::read_summary(dir)?)),
-        frames: Some(crate::probe::frame_differences),
-    },
-    Measures {
-        artifact: "SegReport",
-        metrics: |dir| Ok(crate::segment::metrics(&crate::segment::read_summary(dir)?)),
-        frames: Some(crate::segment::frame_differences),
-    },
-];

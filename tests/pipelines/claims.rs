@@ -29,3 +29,14 @@ fn a_true_claim_holds_in_few_seeds_a_rerun_reuses_every_seed_and_the_report_open
     assert!(!again.contains("\"status\":\"ran\""), "a rerun computes nothing: {again}");
     assert_eq!(again.lines().last().unwrap(), out.lines().last().unwrap());
 }
+
+/// The report is handed the file's claims; a stage that sets them itself is a config error.
+#[test]
+fn a_stage_may_not_set_the_claims_it_is_handed() {
+    let text = std::fs::read_to_string(root().join("examples/claims-ci.toml")).unwrap();
+    let text = text.replace("[stages.report]\noperator = \"paper\"", "[stages.report]\noperator = \"paper\"\nclaims = { level = 0.1 }");
+    let line = text.lines().position(|l| l.starts_with("claims = ")).unwrap() + 1;
+    let s = scratch("claims-set", &text);
+    let (ok, out) = rlmflow(s.path(), &["status", "p.toml"]);
+    assert!(!ok && out.contains(&format!("p.toml:{line}: stages.report.claims: is filled from the file's [claims]")), "{out}");
+}

@@ -55,6 +55,7 @@ fn render(operators: &[serde_json::Value]) -> String {
             let note = match (listed("non_result", &key), listed("tracked", &key)) {
                 (true, _) => "not in the key",
                 (_, true) => "tracked",
+                _ if op["claims"] == key.as_str() => "filled from `[claims]`",
                 _ => "",
             };
             page += &format!("| `{key}` | `{}` | {note} |\n", default.to_string().replace('|', "\\|"));

@@ -8,7 +8,8 @@ use rlmflow_stages::{ItemCount, Registry};
 #[derive(clap::Args)]
 pub(crate) struct Args {
     /// One JSON object per line, per operator: name, kind, version, summary, inputs, produces,
-    /// merge (the operator joining its shards, or null), defaults, non_result, tracked.
+    /// merge (the operator joining its shards, or null), defaults, non_result, tracked, claims
+    /// (the setting the engine fills from `[claims]`, or null).
     #[arg(long)]
     json: bool,
 }
@@ -30,7 +31,8 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
                 let line = serde_json::json!({
                     "name": spec.name, "kind": spec.kind, "version": spec.version, "summary": spec.summary,
                     "inputs": inputs, "produces": kind.produces.to_string(), "merge": op.merge(),
-                    "defaults": defaults, "non_result": op.non_result_keys(), "tracked": op.tracked_keys()
+                    "defaults": defaults, "non_result": op.non_result_keys(), "tracked": op.tracked_keys(),
+                    "claims": op.claims_key()
                 });
                 println!("{line}");
             }
@@ -46,6 +48,9 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
                 println!("  {} v{}: {}\n    defaults: {}", spec.name, spec.version, spec.summary, canonical_json(&defaults));
                 if !op.tracked_keys().is_empty() {
                     println!("    paths tracked by content (their files' digests enter the key, not the path): {}", op.tracked_keys().join(", "));
+                }
+                if let Some(key) = op.claims_key() {
+                    println!("    `{key}` is filled from the pipeline's [claims] (a stage does not set it)");
                 }
                 if !op.non_result_keys().is_empty() {
                     println!("    not part of the result (left out of the key): {}", op.non_result_keys().join(", "));

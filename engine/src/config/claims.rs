@@ -257,22 +257,29 @@ impl Checker {
         Some(variant)
     }
 
+    /// Refuses a stage table (or a variant) that sets the setting its operator receives the
+    /// claims through: only `[claims]` sets it, checked as claims are.
+    pub(super) fn claims_not_set_by_stages(&mut self, tables: &Map<String, Value>, stages: &[Stage], registry: &Registry) {
+        for stage in stages {
+            let Some(key) = registry.get(&stage.operator).and_then(|op| op.claims_key()) else { continue };
+            let Some(Value::Object(table)) = tables.get(&stage.name) else { continue };
+            let variants = table.get("variants").and_then(Value::as_object).into_iter().flatten();
+            let mut set = table.contains_key(key).then(|| format!("stages.{}.{key}", stage.name)).into_iter().collect::<Vec<_>>();
+            set.extend(variants.filter(|(_, v)| v.get(key).is_some()).map(|(name, _)| format!("stages.{}.variants.{name}.{key}", stage.name)));
+            for path in set {
+                let help = "declare claims in [claims]; every stage that reads them gets them".to_owned();
+                self.error(self.line(&path), &path, format!("is filled from the file's [claims]; a stage does not set `{key}`"), Some(help));
+            }
+        }
+    }
+
     /// Hands the claims to every stage whose operator reads them (the report), as its setting:
-    /// in its key, so a changed claim redoes the report. A stage may not set it itself.
+    /// in its key, so a changed claim redoes the report.
     pub(super) fn hand_claims(&mut self, spec: &Spec, stages: &mut [Stage], registry: &Registry) {
         let value = serde_json::to_value(spec).expect("claims serialise");
         for stage in stages.iter_mut() {
             let op = registry.get(&stage.operator).expect("validated operator");
             let Some(key) = op.claims_key() else { continue };
-            let set_here = self.lines.0.keys().any(|k| {
-                k == &format!("stages.{}.{key}", stage.name)
-                    || (k.starts_with(&format!("stages.{}.variants.", stage.name)) && k.ends_with(&format!(".{key}")))
-            });
-            if set_here {
-                let path = format!("stages.{}.{key}", stage.name);
-                self.error(self.line(&path), &path, format!("is set from the file's [claims]; a stage does not set `{key}` itself"), None);
-                continue;
-            }
             for variant in &mut stage.variants {
                 let mut settings = variant.settings.clone();
                 settings[key] = value.clone();
