@@ -347,7 +347,7 @@ impl Checker {
         let hyperqueue = self.hyperqueue(file, header.get("hyperqueue"));
         let remote = self.remote(file, header);
 
-        let stages_table = match root.get("stages") {
+        let mut stages_table = match root.get("stages") {
             Some(Value::Object(t)) if !t.is_empty() => t.clone(),
             Some(Value::Object(_)) | None => {
                 let help = "add one, e.g. [stages.scenes] with operator = \"procedural\"".to_owned();
@@ -365,6 +365,7 @@ impl Checker {
             self.error(self.line("stages"), "stages", msg, Some("raise `[pipeline] max_instances` if a plan this large is meant".into()));
             return None;
         }
+        self.claims_not_set_by_stages(&mut stages_table, registry);
         let mut stages = Vec::new();
         let mut explicit_inputs = Vec::new();
         for (name, table) in &stages_table {
@@ -406,7 +407,6 @@ impl Checker {
             None if seeds.is_empty() => None,
             None => Some(rlmflow_stages::claims::Looks { first: seeds.len(), last: seeds.len() }),
         };
-        self.claims_not_set_by_stages(&stages_table, &stages, registry);
         let dims = dimensions(&stages, !seeds.is_empty());
         let claims = self.claims(root.get("claims"), &stages, &dims, looks, registry);
         if let Some(spec) = &claims {

@@ -258,14 +258,24 @@ impl Checker {
     }
 
     /// Refuses a stage table (or a variant) that sets the setting its operator receives the
-    /// claims through: only `[claims]` sets it, checked as claims are.
-    pub(super) fn claims_not_set_by_stages(&mut self, tables: &Map<String, Value>, stages: &[Stage], registry: &Registry) {
-        for stage in stages {
-            let Some(key) = registry.get(&stage.operator).and_then(|op| op.claims_key()) else { continue };
-            let Some(Value::Object(table)) = tables.get(&stage.name) else { continue };
-            let variants = table.get("variants").and_then(Value::as_object).into_iter().flatten();
-            let mut set = table.contains_key(key).then(|| format!("stages.{}.{key}", stage.name)).into_iter().collect::<Vec<_>>();
-            set.extend(variants.filter(|(_, v)| v.get(key).is_some()).map(|(name, _)| format!("stages.{}.variants.{name}.{key}", stage.name)));
+    /// claims through: only `[claims]` sets it. The key is taken out of `tables`, so its value
+    /// is not checked as a setting as well.
+    pub(super) fn claims_not_set_by_stages(&mut self, tables: &mut Map<String, Value>, registry: &Registry) {
+        for (name, table) in tables.iter_mut() {
+            let Value::Object(table) = table else { continue };
+            let operator = table.get("operator").and_then(Value::as_str);
+            let Some(key) = operator.and_then(|o| registry.get(o)).and_then(|op| op.claims_key()) else { continue };
+            let mut set = Vec::new();
+            if table.remove(key).is_some() {
+                set.push(format!("stages.{name}.{key}"));
+            }
+            if let Some(Value::Object(variants)) = table.get_mut("variants") {
+                for (variant, v) in variants.iter_mut() {
+                    if v.as_object_mut().and_then(|v| v.remove(key)).is_some() {
+                        set.push(format!("stages.{name}.variants.{variant}.{key}"));
+                    }
+                }
+            }
             for path in set {
                 let help = "declare claims in [claims]; every stage that reads them gets them".to_owned();
                 self.error(self.line(&path), &path, format!("is filled from the file's [claims]; a stage does not set `{key}`"), Some(help));
