@@ -11,7 +11,7 @@ use super::*;
 
 /// The first run of `examples/ci.toml` that the tests of this process share.
 pub(super) struct CiRun {
-    dir: PathBuf,
+    pub(super) dir: PathBuf,
     /// Its `--json` event log.
     events: String,
 }
@@ -22,7 +22,7 @@ impl CiRun {
     }
 
     /// The output directory of stage instance `label`.
-    fn output(&self, label: &str) -> PathBuf {
+    pub(super) fn output(&self, label: &str) -> PathBuf {
         rlmflow_test_support::cli::output_dir(&self.store(), "ci", label)
     }
 

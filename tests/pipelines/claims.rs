@@ -40,3 +40,42 @@ fn a_stage_may_not_set_the_claims_it_is_handed() {
     let (ok, out) = rlmflow(s.path(), &["status", "p.toml"]);
     assert!(!ok && out.contains(&format!("p.toml:{line}: stages.report.claims: is filled from the file's [claims]")), "{out}");
 }
+
+/// The CI pipeline under one listed seed, with claims on its probes and segmenters: every
+/// instance is the CI run's (seed 1 is its seed), only the report runs again, and it opens with
+/// the claims and shows where each claim's instances differ, in the document and the recording.
+#[test]
+fn the_report_opens_with_the_claims_and_shows_where_their_instances_differ() {
+    let run = ci::ci_run();
+    let text = std::fs::read_to_string(root().join("examples/ci.toml")).unwrap().replace("seed = 1\n", "seed = 1\nseeds = [1]\n");
+    let claims = "\n[claims.linear_trained]\nbetter = \"linear[clip].patches.f1\"\nthan = \"linear[random].patches.f1\"\n\n\
+                  [claims.pup_beats_unet]\nbetter = \"pup[clip].iou\"\nthan = \"unet.iou\"\n";
+    std::fs::write(run.dir.join("ci-claims.toml"), text + claims).unwrap();
+    let (ok, out) = rlmflow(&run.dir, &["run", "ci-claims.toml", "--json"]);
+    assert!(ok, "{out}");
+    let ran: Vec<&str> = out.lines().filter(|l| l.contains("\"stage_finished\"") && l.contains("\"status\":\"ran\"")).collect();
+    assert!(ran.len() == 1 && ran[0].contains("\"stage\":\"report\""), "only the report runs again: {ran:?}");
+    let verdicts: serde_json::Value = serde_json::from_str(out.lines().last().unwrap()).unwrap();
+    assert!(verdicts["verdicts"].as_array().unwrap().iter().all(|v| v["decision"] == "undecided" && v["seeds"] == 1), "{verdicts}");
+
+    let report = rlmflow_test_support::cli::output_dir(&run.store(), "ci", "report");
+    let markdown = std::fs::read_to_string(report.join("report.md")).unwrap();
+    assert_eq!(markdown.lines().find(|l| l.starts_with("## ")), Some("## Claims"), "{markdown}");
+    assert!(markdown.contains("| linear_trained | undecided at 1 seeds |"), "{markdown}");
+    let contrast = &markdown[markdown.find("## Where the claims' instances differ").expect("a contrast section")..];
+    assert!(contrast.contains("**linear_trained**: `linear[pretrain=clip,seed=1]` against `linear[pretrain=random,seed=1]`"), "{contrast}");
+    assert!(contrast.contains("**pup_beats_unet**") && contrast.contains("(IoU difference at 0.5)"), "{contrast}");
+    assert!(report.join("figures").read_dir().unwrap().any(|f| f.unwrap().file_name().to_string_lossy().starts_with("claim1-frame")));
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(report.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["claims"].as_array().unwrap().len(), 2);
+    assert!(!metrics["contrasts"]["linear_trained"]["frames"].as_array().unwrap().is_empty(), "{}", metrics["contrasts"]);
+
+    const ENTITIES: &str = "import sys, warnings\nwarnings.simplefilter('ignore')\nfrom rerun.chunk import RrdReader\n\
+                            print('\\n'.join(sorted({c.entity_path for c in RrdReader(sys.argv[1]).stream()})))";
+    let env = rlmflow_python::ensure(&mut |_| {}).unwrap();
+    let out = Command::new(&env.python).arg("-c").arg(ENTITIES).arg(report.join("report.rrd")).output().unwrap();
+    let entities = String::from_utf8_lossy(&out.stdout);
+    for entity in ["/claims/linear_trained/heatmap", "/claims/linear_trained/output0", "/claims/pup_beats_unet/truth", "/claims/pup_beats_unet/predicted1"] {
+        assert!(entities.lines().any(|e| e == entity), "{entity} not in {entities}");
+    }
+}

@@ -216,7 +216,9 @@ impl Report {
             let mut rows = Vec::new();
             for f in &shown {
                 let truth = study.labels.as_ref().and_then(|l| l.frames.get(f.frame as usize)).map_or("–".to_owned(), |t| grid_text(&t.grid));
-                rows.push(vec![f.frame.to_string(), format!("{}", f.differ), truth, f.a.clone(), f.b.clone()]);
+                // A count of cells whole, an IoU difference to three decimals.
+                let differ = if f.differ.fract() == 0.0 { format!("{:.0}", f.differ) } else { format!("{:.3}", f.differ) };
+                rows.push(vec![f.frame.to_string(), differ, truth, f.a.clone(), f.b.clone()]);
                 if let Some(pictures) = pictures(study, c, k, f.frame)? {
                     self.blocks.push(Block::Images(pictures));
                 }
