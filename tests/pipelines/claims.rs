@@ -47,7 +47,9 @@ fn a_stage_may_not_set_the_claims_it_is_handed() {
 #[test]
 fn the_report_opens_with_the_claims_and_shows_where_their_instances_differ() {
     let run = ci::ci_run();
-    let text = std::fs::read_to_string(root().join("examples/ci.toml")).unwrap().replace("seed = 1\n", "seed = 1\nseeds = [1]\n");
+    let text = std::fs::read_to_string(root().join("examples/ci.toml")).unwrap();
+    // Another pipeline name and no results links: the CI run's refs and links stay its own.
+    let text = text.replace("seed = 1\n", "seed = 1\nseeds = [1]\nresults = \"\"\n").replace("name = \"ci\"", "name = \"ci-claims\"");
     let claims = "\n[claims.linear_trained]\nbetter = \"linear[clip].patches.f1\"\nthan = \"linear[random].patches.f1\"\n\n\
                   [claims.pup_beats_unet]\nbetter = \"pup[clip].iou\"\nthan = \"unet.iou\"\n";
     std::fs::write(run.dir.join("ci-claims.toml"), text + claims).unwrap();
@@ -58,7 +60,7 @@ fn the_report_opens_with_the_claims_and_shows_where_their_instances_differ() {
     let verdicts: serde_json::Value = serde_json::from_str(out.lines().last().unwrap()).unwrap();
     assert!(verdicts["verdicts"].as_array().unwrap().iter().all(|v| v["decision"] == "undecided" && v["seeds"] == 1), "{verdicts}");
 
-    let report = rlmflow_test_support::cli::output_dir(&run.store(), "ci", "report");
+    let report = rlmflow_test_support::cli::output_dir(&run.store(), "ci-claims", "report");
     let markdown = std::fs::read_to_string(report.join("report.md")).unwrap();
     assert_eq!(markdown.lines().find(|l| l.starts_with("## ")), Some("## Claims"), "{markdown}");
     assert!(markdown.contains("| linear_trained | undecided at 1 seeds |"), "{markdown}");
