@@ -2,17 +2,15 @@
 
 use super::*;
 
-/// Every key path of a settings object (`radar.image`; arrays are values).
+/// Every key path of a settings object, tables too (`radar` and `radar.image`; arrays are
+/// values): a setting that is null by default and a table where it is set (the report's
+/// `claims`) is one path either way.
 fn key_paths(value: &serde_json::Value, prefix: &str, out: &mut std::collections::BTreeSet<String>) {
     if let serde_json::Value::Object(map) = value {
         for (key, v) in map {
             let path = if prefix.is_empty() { key.clone() } else { format!("{prefix}.{key}") };
-            match v {
-                serde_json::Value::Object(_) => key_paths(v, &path, out),
-                _ => {
-                    out.insert(path);
-                }
-            }
+            key_paths(v, &path, out);
+            out.insert(path);
         }
     }
 }
