@@ -30,6 +30,11 @@ fn pinned() -> impl Iterator<Item = &'static str> {
     LOCK.lines().filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
 }
 
+/// The `rlmflow` Python package (`python/package`: reads a store's artifacts), each file as
+/// `(path under site-packages, content)`: written into the environment after the lock, and part
+/// of the environment's name, so a changed package gets a new environment.
+pub const PACKAGE: &[(&str, &str)] = &[("rlmflow/__init__.py", include_str!("../package/rlmflow/__init__.py"))];
+
 /// Python older than this cannot install the lock (numpy 2.4 needs 3.11).
 pub const MIN_VERSION: (u32, u32) = (3, 11);
 const READY: &str = "rlmflow-env.json";
@@ -102,7 +107,12 @@ pub(crate) fn interpreter_version(python: &Path) -> anyhow::Result<String> {
 
 /// Where the environment for this lock and interpreter lives, whether or not it exists.
 fn env_dir(version: &str) -> anyhow::Result<PathBuf> {
-    let digest = blake3::hash(format!("{LOCK}\0{version}").as_bytes()).to_hex();
+    let mut hasher = blake3::Hasher::new();
+    hasher.update(format!("{LOCK}\0{version}").as_bytes());
+    for (path, content) in PACKAGE {
+        hasher.update(format!("\0{path}\0{content}").as_bytes());
+    }
+    let digest = hasher.finalize().to_hex();
     Ok(data_dir()?.join("python").join(format!("env-{}", &digest[..16])))
 }
 
@@ -155,7 +165,15 @@ fn create(python: &Path, scratch: &Path, root: &Path, version: &str, note: &mut 
     )?;
     let site = Command::new(&venv_python).args(["-c", "import sysconfig; print(sysconfig.get_path('purelib'))"]).output()?;
     let site_packages = PathBuf::from(String::from_utf8_lossy(&site.stdout).trim());
-    run(Command::new(&venv_python).args(["-c", "import highway_env, mcap, tokenizers, rerun, hyperqueue"]), "checking the packages import")?;
+    for (path, content) in PACKAGE {
+        let file = site_packages.join(path);
+        fs::create_dir_all(file.parent().expect("a package file has a directory"))?;
+        fs::write(&file, content).with_context(|| format!("writing {}", file.display()))?;
+    }
+    run(
+        Command::new(&venv_python).args(["-c", "import highway_env, mcap, tokenizers, rerun, hyperqueue, safetensors, rlmflow"]),
+        "checking the packages import",
+    )?;
     // The venv is moved into place: record paths as they will be.
     let relative = site_packages.strip_prefix(scratch).context("site-packages lies outside the venv")?.to_path_buf();
     let env = Environment { root: root.to_path_buf(), python: root.join("bin/python"), site_packages: root.join(relative), version: version.into() };

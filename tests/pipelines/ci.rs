@@ -394,3 +394,83 @@ fn every_declared_metric_is_measured_by_the_artifact() {
         }
     }
 }
+
+/// The `rlmflow` Python package, in rlmflow's own environment, reads every computed instance of
+/// the CI run (every artifact type it ships) as `rlmflow show --json` places and records it, and
+/// what it reads equals what rlmflow's own readers read from the same directories.
+#[test]
+fn the_python_package_reads_every_artifact_type_as_rlmflow_shows_it() {
+    use rlmflow_stages::{captions::Captions, labels::Labels, scenes::Scenes, tokens::Tokens};
+    let run = ci_run();
+    let env = rlmflow_python::ensure(&mut |_| {}).unwrap();
+    let out = Command::new(&env.python)
+        .arg("-c")
+        .arg(include_str!("python/read_artifacts.py"))
+        .arg("ci.toml")
+        .current_dir(&run.dir)
+        .env("RLMFLOW_BIN", env!("CARGO_BIN_EXE_rlmflow"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let facts: serde_json::Map<String, serde_json::Value> = serde_json::from_slice(&out.stdout).unwrap();
+    let ran = finished(&run.events, "ran");
+    let computed: Vec<&String> = ran.iter().map(|(label, _)| label).collect();
+    assert_eq!(facts.keys().collect::<Vec<_>>(), computed, "every instance the run computed (shards too), and only those");
+    let mut types = std::collections::BTreeSet::new();
+    for (label, fact) in &facts {
+        let dir = run.output(label);
+        assert_eq!(Path::new(fact["dir"].as_str().unwrap()), dir, "{label}");
+        let ty = fact["type"].as_str().unwrap();
+        types.insert(ty.to_owned());
+        match ty {
+            "Scenes" => {
+                let scenes = Scenes::open(&dir).unwrap();
+                let pixels: u64 = (0..scenes.len()).map(|i| scenes.image(0, i).unwrap().iter().map(|&p| p as u64).sum::<u64>()).sum();
+                assert_eq!((fact["frames"].as_u64(), fact["pixels"].as_u64()), (Some(scenes.len()), Some(pixels)), "{label}");
+            }
+            "Labels" => {
+                let labels = Labels::open(&dir).unwrap();
+                let counts: u64 = labels.frames.iter().map(|f| f.grid.counts.iter().map(|&c| c as u64).sum::<u64>()).sum();
+                let test = labels.split(rlmflow_stages::identity::Split::Test).count() as u64;
+                let ids: Vec<&str> = labels.frames.iter().map(|f| f.id.as_str()).collect();
+                assert_eq!((fact["counts"].as_u64(), fact["test"].as_u64()), (Some(counts), Some(test)), "{label}");
+                assert_eq!(fact["ids"], serde_json::json!(ids), "{label}");
+            }
+            "Captions" => {
+                let texts: Vec<String> = Captions::open(&dir).unwrap().captions.into_iter().map(|c| c.caption).collect();
+                assert_eq!(fact["captions"], serde_json::json!(texts), "{label}");
+            }
+            "Tokens" => {
+                let tokens = Tokens::open(&dir).unwrap();
+                let sum: u64 = (0..tokens.ids.rows()).map(|r| tokens.ids.row_u32(r).unwrap().iter().map(|&t| t as u64).sum::<u64>()).sum();
+                assert_eq!(fact["shape"], serde_json::json!(tokens.ids.shape), "{label}");
+                assert_eq!(fact["sum"].as_u64(), Some(sum), "{label}");
+            }
+            "ProbeReport" => {
+                let rows = rlmflow_stages::probe::read_predictions(&dir).unwrap().len();
+                assert_eq!(fact["predictions"].as_u64(), Some(rows as u64), "{label}");
+            }
+            "SegReport" => {
+                let frames = rlmflow_stages::segment::read_frames(&dir).unwrap();
+                assert_eq!(fact["frames"], serde_json::json!(frames.iter().map(|f| f.frame).collect::<Vec<_>>()), "{label}");
+                assert_eq!(fact["iou"], serde_json::json!(frames.iter().map(|f| f.iou).collect::<Vec<_>>()), "{label}");
+            }
+            "Encoder" => assert!(fact["tensors"].as_u64().unwrap() > 0, "{label}"),
+            "Report" => assert!(fact["sections"].as_array().is_some_and(|s| !s.is_empty()), "{label}"),
+            other => panic!("{label}: an artifact type the test does not know: {other}"),
+        }
+    }
+    let all = ["Captions", "Encoder", "Labels", "ProbeReport", "Report", "Scenes", "SegReport", "Tokens"];
+    assert_eq!(types.iter().map(String::as_str).collect::<Vec<_>>(), all, "every artifact type the CI run ships");
+    // A setting changed and not run (under the run's name: the reason is against its last run):
+    // the package computes nothing and says why.
+    let text = std::fs::read_to_string(run.dir.join("ci.toml")).unwrap();
+    let unrun = text.replacen("source = \"pixels\"", "source = \"pixels\"\nlambdas = [0.5, 5.0]", 1);
+    let dir = beside_the_run("unrun", &unrun, true);
+    const NOT_COMPUTED: &str = "import rlmflow\ntry:\n    rlmflow.load('ci.toml', 'pixels')\nexcept rlmflow.NotComputed as e:\n    print(e)";
+    let out = Command::new(&env.python).args(["-c", NOT_COMPUTED]).current_dir(&dir).env("RLMFLOW_BIN", env!("CARGO_BIN_EXE_rlmflow")).output().unwrap();
+    let said = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success() && said.contains("pixels: not computed yet") && said.contains("lambdas"), "{said}{}", String::from_utf8_lossy(&out.stderr));
+    let (ok, again) = rlmflow(&dir, &["status", "ci.toml"]);
+    assert!(ok && again.contains("pixels"), "{again}");
+}

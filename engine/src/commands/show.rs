@@ -3,66 +3,106 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use rlmflow_cache::{Store, canonical_json};
+use rlmflow_cache::{ActionRecord, Store, canonical_json};
 use rlmflow_stages::{Device, Registry};
+use serde_json::{Value, json};
 
 use super::{StoreArg, instances_of, store_root};
-use crate::config;
-use crate::plan::{Freshness, assess};
+use crate::config::{self, SEED_DIMENSION};
+use crate::plan::{Freshness, Plan, assess};
 use crate::preflight::planned;
 
 #[derive(clap::Args)]
 pub(crate) struct Args {
     pipeline: PathBuf,
+    /// A stage (every instance of it) or one instance as a run prints it (`pretrain[alpha4]`).
     stage: String,
+    /// One JSON document: every instance's state, output directory, artifact type and record.
+    #[arg(long)]
+    json: bool,
     #[command(flatten)]
     store: StoreArg,
 }
 
 pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
-    let Args { pipeline, stage, store } = args;
-    show(registry, &pipeline, &stage, &store)
+    let Args { pipeline, stage, json, store } = args;
+    show(registry, &pipeline, &stage, json, &store)
 }
 
-fn show(registry: &Registry, file: &Path, stage: &str, arg: &StoreArg) -> anyhow::Result<ExitCode> {
+fn show(registry: &Registry, file: &Path, stage: &str, json: bool, arg: &StoreArg) -> anyhow::Result<ExitCode> {
     let p = super::at_look(config::load(file, registry)?, registry, arg)?;
     let store = Store::open_existing(&store_root(&p, arg))?;
     let plan = planned(&p, store.as_ref(), Device::Cpu)?;
     let states = assess(&plan, registry, store.as_ref())?;
-    for i in instances_of(&plan, stage)? {
+    let shown = if stage.contains('[') { vec![plan.instance_named(stage)?] } else { instances_of(&plan, stage)? };
+    if json {
+        let instances: Vec<Value> = shown.iter().map(|&i| instance_json(&plan, i, &states[i], store.as_ref())).collect();
+        println!("{}", json!({ "pipeline": p.name, "instances": instances }));
+        return Ok(ExitCode::SUCCESS);
+    }
+    for i in shown {
         let label = &plan.instances[i].label;
         match (&states[i], &store) {
-            (Freshness::Cached(r), Some(s)) => {
-                println!("{label}: cached");
-                println!("  output:  {}", s.object_dir(&r.output).display());
-                println!("  files:   {} ({:.1} MB)", r.files, r.bytes as f64 / 1e6);
-                println!("  key:     {}", r.key);
-                println!("  ran:     {} for {:.1}s", r.started, r.duration_s);
-                match &r.pulled {
-                    None => println!("  origin:  computed here"),
-                    Some(rlmflow_cache::PulledFrom { remote, signed_by: Some(key) }) => {
-                        println!("  origin:  pulled from {remote}, signed by {key}")
-                    }
-                    Some(rlmflow_cache::PulledFrom { remote, signed_by: None }) => {
-                        println!("  origin:  pulled from {remote} UNVERIFIED (no trusted keys): its summary and metrics are the remote's word")
-                    }
-                }
-                let unverified = if r.unverified_origin().is_some() { " (unverified)" } else { "" };
-                if !r.summary.is_empty() {
-                    println!("  summary{unverified}: {}", r.summary);
-                }
-                if !r.metrics.is_null() {
-                    println!("  metrics{unverified}: {}", canonical_json(&r.metrics));
-                }
-                // A record from before its operator kept one, or a damaged one, shows none.
-                if let Some(platform) = r.platform.clone().and_then(|p| serde_json::from_value::<rlmflow_stages::numerics::PlatformRecord>(p).ok()) {
-                    platform.to_string().lines().for_each(|line| println!("  {line}"));
-                }
-            }
+            (Freshness::Cached(r), Some(s)) => print_record(label, r, s),
             (Freshness::Stale { reasons, .. }, _) => println!("{label}: not computed yet ({})", crate::ui::words(reasons)),
             (Freshness::Pending(waiting), _) => println!("{label}: not computed yet ({waiting})"),
             (Freshness::Cached(_), None) => unreachable!("cached without a store"),
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// One instance as data: what a reader (the Python package) needs to open its artifact.
+fn instance_json(plan: &Plan, i: usize, state: &Freshness, store: Option<&Store>) -> Value {
+    let inst = &plan.instances[i];
+    let stage = &plan.pipeline.stages[inst.stage];
+    let variants: serde_json::Map<String, Value> =
+        inst.assignment.iter().filter(|(d, _)| *d != SEED_DIMENSION).map(|(d, v)| (d.clone(), json!(v))).collect();
+    let seed = inst.assignment.get(SEED_DIMENSION).and_then(|s| s.parse::<u64>().ok());
+    let mut out = json!({
+        "label": inst.label,
+        "stage": stage.name,
+        "kind": stage.kind.name,
+        "type": stage.kind.produces,
+        "variants": variants,
+        "seed": seed,
+    });
+    let fields = match (state, store) {
+        (Freshness::Cached(r), Some(s)) => json!({
+            "state": "cached",
+            "output": s.object_dir(&r.output),
+            "record": serde_json::to_value(&**r).expect("a record is JSON"),
+        }),
+        (Freshness::Stale { reasons, .. }, _) => json!({ "state": "stale", "why": crate::ui::words(reasons) }),
+        (Freshness::Pending(waiting), _) => json!({ "state": "pending", "why": waiting.to_string() }),
+        (Freshness::Cached(_), None) => unreachable!("cached without a store"),
+    };
+    out.as_object_mut().expect("an object").extend(fields.as_object().expect("an object").clone());
+    out
+}
+
+fn print_record(label: &str, r: &ActionRecord, s: &Store) {
+    println!("{label}: cached");
+    println!("  output:  {}", s.object_dir(&r.output).display());
+    println!("  files:   {} ({:.1} MB)", r.files, r.bytes as f64 / 1e6);
+    println!("  key:     {}", r.key);
+    println!("  ran:     {} for {:.1}s", r.started, r.duration_s);
+    match &r.pulled {
+        None => println!("  origin:  computed here"),
+        Some(rlmflow_cache::PulledFrom { remote, signed_by: Some(key) }) => println!("  origin:  pulled from {remote}, signed by {key}"),
+        Some(rlmflow_cache::PulledFrom { remote, signed_by: None }) => {
+            println!("  origin:  pulled from {remote} UNVERIFIED (no trusted keys): its summary and metrics are the remote's word")
+        }
+    }
+    let unverified = if r.unverified_origin().is_some() { " (unverified)" } else { "" };
+    if !r.summary.is_empty() {
+        println!("  summary{unverified}: {}", r.summary);
+    }
+    if !r.metrics.is_null() {
+        println!("  metrics{unverified}: {}", canonical_json(&r.metrics));
+    }
+    // A record from before its operator kept one, or a damaged one, shows none.
+    if let Some(platform) = r.platform.clone().and_then(|p| serde_json::from_value::<rlmflow_stages::numerics::PlatformRecord>(p).ok()) {
+        platform.to_string().lines().for_each(|line| println!("  {line}"));
+    }
 }
