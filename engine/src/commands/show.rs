@@ -58,7 +58,7 @@ fn instance_json(plan: &Plan, i: usize, state: &Freshness, store: Option<&Store>
     let stage = &plan.pipeline.stages[inst.stage];
     let variants: serde_json::Map<String, Value> =
         inst.assignment.iter().filter(|(d, _)| *d != SEED_DIMENSION).map(|(d, v)| (d.clone(), json!(v))).collect();
-    let seed = inst.assignment.get(SEED_DIMENSION).and_then(|s| s.parse::<u64>().ok());
+    let seed = inst.assignment.get(SEED_DIMENSION).map(|s| s.parse::<u64>().expect("seeds are integers"));
     let mut out = json!({
         "label": inst.label,
         "stage": stage.name,
@@ -77,7 +77,9 @@ fn instance_json(plan: &Plan, i: usize, state: &Freshness, store: Option<&Store>
         (Freshness::Pending(waiting), _) => json!({ "state": "pending", "why": waiting.to_string() }),
         (Freshness::Cached(_), None) => unreachable!("cached without a store"),
     };
-    out.as_object_mut().expect("an object").extend(fields.as_object().expect("an object").clone());
+    if let (Value::Object(out), Value::Object(fields)) = (&mut out, fields) {
+        out.extend(fields);
+    }
     out
 }
 

@@ -47,8 +47,14 @@ class Artifact:
     type: str
     dir: Path
     record: dict
-    metrics: dict
-    summary: str
+
+    @property
+    def metrics(self):
+        return self.record.get("metrics") or {}
+
+    @property
+    def summary(self):
+        return self.record.get("summary", "")
 
     def read(self):
         """The reader of this artifact's type (`Scenes`, `Labels`, ... `Report`)."""
@@ -74,8 +80,6 @@ def _artifact(shown):
         type=shown["type"],
         dir=Path(shown["output"]),
         record=shown["record"],
-        metrics=shown["record"].get("metrics") or {},
-        summary=shown["record"].get("summary", ""),
     )
 
 
@@ -110,16 +114,22 @@ def _numpy():
     return numpy
 
 
-class Scenes:
+class _Reader:
+    """An artifact directory and the file that marks its type, read as `summary`."""
+
+    MARKER = ""
+
+    def __init__(self, dir):
+        self.dir = Path(dir)
+        self.summary = _json(self.dir / self.MARKER)
+
+
+class Scenes(_Reader):
     """`scenes.mcap` (a `foxglove.RawImage` channel per radar view, `/actors` as JSON) and
     `scenes.json`."""
 
     MARKER = "scenes.json"
     ACTORS = "/actors"
-
-    def __init__(self, dir):
-        self.dir = Path(dir)
-        self.summary = _json(self.dir / self.MARKER)
 
     @property
     def topics(self):
@@ -153,14 +163,13 @@ class Scenes:
         return np.stack(frames)
 
 
-class Labels:
+class Labels(_Reader):
     """`labels.jsonl` (per frame its identity, split, 48 counts and grid), `masks.npy`, `labels.json`."""
 
     MARKER = "labels.json"
 
     def __init__(self, dir):
-        self.dir = Path(dir)
-        self.summary = _json(self.dir / self.MARKER)
+        super().__init__(dir)
         self.frames = _lines(self.dir / "labels.jsonl")
 
     @property
@@ -181,25 +190,20 @@ class Labels:
         return _numpy().load(self.dir / "masks.npy")
 
 
-class Captions:
+class Captions(_Reader):
     """`captions.jsonl`: one `{frame, id, split, caption}` per caption."""
 
     MARKER = "captions.json"
 
     def __init__(self, dir):
-        self.dir = Path(dir)
-        self.summary = _json(self.dir / self.MARKER)
+        super().__init__(dir)
         self.captions = _lines(self.dir / "captions.jsonl")
 
 
-class Tokens:
+class Tokens(_Reader):
     """`tokens.npy` (a caption a row), `frames.npy` (each row's frame), `tokenizer.json`."""
 
     MARKER = "tokens.json"
-
-    def __init__(self, dir):
-        self.dir = Path(dir)
-        self.summary = _json(self.dir / self.MARKER)
 
     def ids(self):
         return _numpy().load(self.dir / "tokens.npy")
@@ -222,14 +226,13 @@ def _weights(path):
     return load_file(os.fspath(path))
 
 
-class Encoder:
+class Encoder(_Reader):
     """`model.safetensors` (open_clip's names), `config.json`, `train.jsonl`, `encoder.json`."""
 
     MARKER = "encoder.json"
 
     def __init__(self, dir):
-        self.dir = Path(dir)
-        self.summary = _json(self.dir / self.MARKER)
+        super().__init__(dir)
         self.config = _json(self.dir / "config.json")
         self.log = _lines(self.dir / "train.jsonl")
 
@@ -260,25 +263,23 @@ class Encoder:
         return model.eval()
 
 
-class ProbeReport:
+class ProbeReport(_Reader):
     """`probe.json` (scored rows, per bin and cell) and `predictions.jsonl` (each test frame's grid)."""
 
     MARKER = "probe.json"
 
     def __init__(self, dir):
-        self.dir = Path(dir)
-        self.summary = _json(self.dir / self.MARKER)
+        super().__init__(dir)
         self.predictions = _lines(self.dir / "predictions.jsonl")
 
 
-class SegReport:
+class SegReport(_Reader):
     """`segment.json`, `frames.jsonl` (each test frame's IoU and Dice), `samples.npy`."""
 
     MARKER = "segment.json"
 
     def __init__(self, dir):
-        self.dir = Path(dir)
-        self.summary = _json(self.dir / self.MARKER)
+        super().__init__(dir)
         self.frames = _lines(self.dir / "frames.jsonl")
 
     def samples(self):
@@ -288,15 +289,18 @@ class SegReport:
         return _weights(self.dir / "head.safetensors")
 
 
-class Report:
+class Report(_Reader):
     """`metrics.json` (every number of the tables), `report.md`, `report.html`, `report.rrd`."""
 
     MARKER = "metrics.json"
 
-    def __init__(self, dir):
-        self.dir = Path(dir)
-        self.metrics = _json(self.dir / self.MARKER)
-        self.html = self.dir / "report.html"
+    @property
+    def metrics(self):
+        return self.summary
+
+    @property
+    def html(self):
+        return self.dir / "report.html"
 
 
 READERS = {reader.__name__: reader for reader in (Scenes, Labels, Captions, Tokens, Encoder, ProbeReport, SegReport, Report)}
