@@ -217,7 +217,8 @@ pub fn flip(p: &Pipeline, registry: &Registry, store: &Store, claim: &str) -> an
             }
             let changes = match (record, &old.1) {
                 (Some(now), Some(then)) => {
-                    let own: Vec<_> = now.preimage.diff(&then.preimage).into_iter().filter(|c| !matches!(c, rlmflow_cache::Change::InputChanged { .. })).collect();
+                    let own: Vec<_> =
+                        now.preimage.diff(&then.preimage).into_iter().filter(|c| !matches!(c, rlmflow_cache::Change::InputChanged { .. })).collect();
                     if own.is_empty() {
                         continue;
                     }

@@ -322,7 +322,12 @@ impl Checker {
         let (seeds, seed_rule) = self.seeds(header);
         if seed_rule.is_some() && !root.contains_key("claims") {
             let help = "add [claims], or list the seeds: seeds = [1, 2, 3]".to_owned();
-            self.error(self.line("pipeline.seeds"), "pipeline.seeds", "adds seeds until the claims are decided, and the file has no [claims]".into(), Some(help));
+            self.error(
+                self.line("pipeline.seeds"),
+                "pipeline.seeds",
+                "adds seeds until the claims are decided, and the file has no [claims]".into(),
+                Some(help),
+            );
         }
         let max_instances = match header.get("max_instances") {
             None => MAX_INSTANCES,

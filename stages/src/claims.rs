@@ -24,7 +24,8 @@ use statrs::distribution::{ContinuousCDF, StudentsT};
 pub const DEFAULT_LEVEL: f64 = 0.05;
 
 /// What the rule is, in the words the report and `rlmflow claims` print.
-pub const METHOD: &str = "paired Student-t intervals, the level spent evenly over every look and comparison (Bonferroni): valid whatever look the run stops at";
+pub const METHOD: &str =
+    "paired Student-t intervals, the level spent evenly over every look and comparison (Bonferroni): valid whatever look the run stops at";
 
 /// A pipeline's claims and the looks they are decided at.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -185,12 +186,8 @@ fn mean_sd(d: &[f64]) -> (f64, f64) {
 /// The verdict of `claim` from each comparison's two sides, looked at at `looks`.
 pub fn decide(claim: &Claim, level: f64, looks: Looks, values: &[(Values, Values)]) -> Verdict {
     let look_level = level / (claim.comparisons.len().max(1) * looks.count()) as f64;
-    let comparisons: Vec<ComparisonVerdict> = claim
-        .comparisons
-        .iter()
-        .zip(values)
-        .map(|(c, (better, than))| decide_comparison(c, claim, look_level, looks, better, than))
-        .collect();
+    let comparisons: Vec<ComparisonVerdict> =
+        claim.comparisons.iter().zip(values).map(|(c, (better, than))| decide_comparison(c, claim, look_level, looks, better, than)).collect();
     let decision = if comparisons.iter().any(|c| c.decision == Decision::Fails) {
         Decision::Fails
     } else if !comparisons.is_empty() && comparisons.iter().all(|c| c.decision == Decision::Holds) {
@@ -229,8 +226,7 @@ fn decide_comparison(c: &Comparison, claim: &Claim, look_level: f64, looks: Look
         Direction::Higher => 1.0,
         Direction::Lower => -1.0,
     };
-    let differences: Vec<(u64, f64)> =
-        seeds.into_iter().filter_map(|s| Some((s, sign * (better.at(s)? - than.at(s)?)))).take(looks.last).collect();
+    let differences: Vec<(u64, f64)> = seeds.into_iter().filter_map(|s| Some((s, sign * (better.at(s)? - than.at(s)?)))).take(looks.last).collect();
     let mut interval: Option<(f64, f64)> = None;
     let mut decision = Decision::Undecided;
     let mut decided_at = None;
@@ -261,17 +257,7 @@ fn decide_comparison(c: &Comparison, claim: &Claim, look_level: f64, looks: Look
             (Some(m), Some(s))
         }
     };
-    ComparisonVerdict {
-        better: c.better.label(),
-        than: c.than.label(),
-        decision,
-        differences,
-        mean,
-        sd,
-        interval,
-        look_level,
-        decided_at,
-    }
+    ComparisonVerdict { better: c.better.label(), than: c.than.label(), decision, differences, mean, sd, interval, look_level, decided_at }
 }
 
 /// A difference with its sign, to three decimals: `+0.052`, `-0.004`.

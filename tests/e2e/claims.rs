@@ -136,10 +136,18 @@ fn a_bad_claim_names_its_line_and_the_nearest_valid_name() {
     // Without seeds no claim can be decided; adding seeds needs claims; the level is a rate.
     let unseeded = SCORES.replace("seeds = { min = 3, max = 8, until = \"claims\" }", "");
     let out = s.pipeline(&unseeded).cli(&["run", "p.toml"]);
-    assert!(text(&out.stderr).contains("cannot be decided: neither `good.score.value` nor `bad.score.value` varies by seed"), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stderr).contains("cannot be decided: neither `good.score.value` nor `bad.score.value` varies by seed"),
+        "{}",
+        text(&out.stderr)
+    );
     let claimless = &SCORES[..SCORES.find("[claims.").unwrap()];
     let out = s.pipeline(claimless).cli(&["run", "p.toml"]);
-    assert!(text(&out.stderr).contains("p.toml:4: pipeline.seeds: adds seeds until the claims are decided, and the file has no [claims]"), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stderr).contains("p.toml:4: pipeline.seeds: adds seeds until the claims are decided, and the file has no [claims]"),
+        "{}",
+        text(&out.stderr)
+    );
     let out = s.pipeline(&format!("{SCORES}\n[claims]\nlevel = 2.0\n")).cli(&["run", "p.toml"]);
     assert_eq!(out.status.code(), Some(2));
     assert!(text(&out.stderr).contains("claims.level: must be a number in (0, 0.5]"), "{}", text(&out.stderr));

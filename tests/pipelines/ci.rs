@@ -468,9 +468,14 @@ fn the_python_package_reads_every_artifact_type_as_rlmflow_shows_it() {
     let unrun = text.replacen("source = \"pixels\"", "source = \"pixels\"\nlambdas = [0.5, 5.0]", 1);
     let dir = beside_the_run("unrun", &unrun, true);
     const NOT_COMPUTED: &str = "import rlmflow\ntry:\n    rlmflow.load('ci.toml', 'pixels')\nexcept rlmflow.NotComputed as e:\n    print(e)";
-    let out = Command::new(&env.python).args(["-c", NOT_COMPUTED]).current_dir(&dir).env("RLMFLOW_BIN", env!("CARGO_BIN_EXE_rlmflow")).output().unwrap();
+    let out =
+        Command::new(&env.python).args(["-c", NOT_COMPUTED]).current_dir(&dir).env("RLMFLOW_BIN", env!("CARGO_BIN_EXE_rlmflow")).output().unwrap();
     let said = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success() && said.contains("pixels: not computed yet") && said.contains("lambdas"), "{said}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success() && said.contains("pixels: not computed yet") && said.contains("lambdas"),
+        "{said}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let (ok, again) = rlmflow(&dir, &["status", "ci.toml"]);
     assert!(ok && again.contains("pixels"), "{again}");
 }

@@ -19,7 +19,8 @@ fn a_true_claim_holds_in_few_seeds_a_rerun_reuses_every_seed_and_the_report_open
         .filter(|l| l.contains("\"stage_finished\"") && l.contains("\"status\":\"ran\"") && l.contains("\"stage\":\"pretrain[pretrain=counts,seed="))
         .count();
     assert_eq!(pretrained as u64, seeds, "one counts encoder per seed looked at: {out}");
-    let report = std::fs::read_to_string(rlmflow_test_support::cli::output_dir(&s.path().join(".rlmflow"), "claims-ci", "report").join("report.md")).unwrap();
+    let report =
+        std::fs::read_to_string(rlmflow_test_support::cli::output_dir(&s.path().join(".rlmflow"), "claims-ci", "report").join("report.md")).unwrap();
     let first = report.lines().find(|l| l.starts_with("## ")).unwrap();
     assert_eq!(first, "## Claims", "{report}");
     assert!(report.contains(&format!("| trained_beats_random (required) | holds (at {seeds} seeds) |")), "{report}");
@@ -77,7 +78,9 @@ fn the_report_opens_with_the_claims_and_shows_where_their_instances_differ() {
     let env = rlmflow_python::ensure(&mut |_| {}).unwrap();
     let out = Command::new(&env.python).arg("-c").arg(ENTITIES).arg(report.join("report.rrd")).output().unwrap();
     let entities = String::from_utf8_lossy(&out.stdout);
-    for entity in ["/claims/linear_trained/heatmap", "/claims/linear_trained/output0", "/claims/pup_beats_unet/truth", "/claims/pup_beats_unet/predicted1"] {
+    for entity in
+        ["/claims/linear_trained/heatmap", "/claims/linear_trained/output0", "/claims/pup_beats_unet/truth", "/claims/pup_beats_unet/predicted1"]
+    {
         assert!(entities.lines().any(|e| e == entity), "{entity} not in {entities}");
     }
 }

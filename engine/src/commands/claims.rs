@@ -32,7 +32,9 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
     let store = ran_store(&p, &store, "no claim has a value")?;
     let look = crate::claims::reached(&mut p, registry, Some(&store), device)?;
     match json {
-        true => println!("{}", serde_json::to_string(&Logged { event: Event::Claims { seeds: look.seeds, verdicts: look.verdicts.clone() }, t: 0.0 })?),
+        true => {
+            println!("{}", serde_json::to_string(&Logged { event: Event::Claims { seeds: look.seeds, verdicts: look.verdicts.clone() }, t: 0.0 })?)
+        }
         false => print!("{}", crate::ui::claims(&look, level)),
     }
     Ok(if look.required_fails().is_empty() { ExitCode::SUCCESS } else { ExitCode::FAILURE })

@@ -84,4 +84,3 @@ fn explain(registry: &Registry, file: &Path, set: &SetArg, stage: &str, arg: &St
 fn indent(text: &str) -> String {
     text.lines().map(|l| format!("    {l}")).collect::<Vec<_>>().join("\n")
 }
-

@@ -105,7 +105,11 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
             }
             // A look computed and still missing its instances would loop for ever.
             if computed.replace(look.seeds) == Some(look.seeds) {
-                anyhow::bail!("the claims' instances at {} seeds are still not in the store after computing them: {}", look.seeds, look.missing.join(", "));
+                anyhow::bail!(
+                    "the claims' instances at {} seeds are still not in the store after computing them: {}",
+                    look.seeds,
+                    look.missing.join(", ")
+                );
             }
             if !json {
                 println!("claims: computing their instances at {} seeds ({} missing)", look.seeds, look.missing.len());
@@ -120,7 +124,10 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
         let store = Store::open(&root)?;
         let look = crate::claims::reached(&mut p, registry, Some(&store), device)?;
         match json {
-            true => println!("{}", serde_json::to_string(&Logged { event: Event::Claims { seeds: look.seeds, verdicts: look.verdicts.clone() }, t: 0.0 })?),
+            true => println!(
+                "{}",
+                serde_json::to_string(&Logged { event: Event::Claims { seeds: look.seeds, verdicts: look.verdicts.clone() }, t: 0.0 })?
+            ),
             false => print!("{}", crate::ui::claims(&look, p.claims.as_ref().map_or(0.0, |s| s.level))),
         }
         for v in look.required_fails() {

@@ -27,7 +27,14 @@ struct Side {
 impl Checker {
     /// The `[claims]` table resolved against the validated `stages` (in order, with each one's
     /// variant dimensions `dims`), decided at `looks`; `None` without claims (or after errors).
-    pub(super) fn claims(&mut self, table: Option<&Value>, stages: &[Stage], dims: &[Vec<String>], looks: Option<Looks>, registry: &Registry) -> Option<Spec> {
+    pub(super) fn claims(
+        &mut self,
+        table: Option<&Value>,
+        stages: &[Stage],
+        dims: &[Vec<String>],
+        looks: Option<Looks>,
+        registry: &Registry,
+    ) -> Option<Spec> {
         let table = match table? {
             Value::Object(t) => t,
             _ => {
@@ -87,7 +94,12 @@ impl Checker {
             Some((_, Some("lower"))) => Direction::Lower,
             Some((v, _)) => {
                 let key = format!("{path}.direction");
-                self.error(self.line(&key), &key, format!("must be \"higher\" or \"lower\", not {v}"), Some("\"higher\": better's metric is the larger (F1); \"lower\": the smaller (a loss)".into()));
+                self.error(
+                    self.line(&key),
+                    &key,
+                    format!("must be \"higher\" or \"lower\", not {v}"),
+                    Some("\"higher\": better's metric is the larger (F1); \"lower\": the smaller (a loss)".into()),
+                );
                 Direction::Higher
             }
         };
@@ -125,7 +137,15 @@ impl Checker {
     }
 
     /// `better` or `than` of a claim: one reference or a list of them.
-    fn side(&mut self, claim: &str, key: &str, table: &Map<String, Value>, stages: &[Stage], dims: &[Vec<String>], registry: &Registry) -> Option<Vec<Side>> {
+    fn side(
+        &mut self,
+        claim: &str,
+        key: &str,
+        table: &Map<String, Value>,
+        stages: &[Stage],
+        dims: &[Vec<String>],
+        registry: &Registry,
+    ) -> Option<Vec<Side>> {
         let path = format!("{claim}.{key}");
         let texts: Vec<&str> = match table.get(key) {
             None => {
@@ -211,7 +231,15 @@ impl Checker {
 
     /// The variant a reference names, by dimension: `[alpha4]` where the stage fans out over one
     /// dimension, `[pretrain=alpha4,captions=llm]` in general; every dimension but the seed's.
-    fn variant(&mut self, path: &str, text: &str, stage: &Stage, dims: &[String], given: Option<&str>, stages: &[Stage]) -> Option<BTreeMap<String, String>> {
+    fn variant(
+        &mut self,
+        path: &str,
+        text: &str,
+        stage: &Stage,
+        dims: &[String],
+        given: Option<&str>,
+        stages: &[Stage],
+    ) -> Option<BTreeMap<String, String>> {
         let line = self.line(path);
         let dims: Vec<&str> = dims.iter().map(String::as_str).filter(|d| *d != SEED_DIMENSION).collect();
         let values = |d: &str| -> Vec<&str> {
@@ -224,7 +252,12 @@ impl Checker {
                 None if dims.len() == 1 => (dims[0], item),
                 None => {
                     let msg = format!("`{text}`: `{item}` names no dimension, and `{}` fans out over {}", stage.name, dims.join(", "));
-                    self.error(line, path, msg, Some(format!("name each: [{}]", dims.iter().map(|d| format!("{d}=...")).collect::<Vec<_>>().join(","))));
+                    self.error(
+                        line,
+                        path,
+                        msg,
+                        Some(format!("name each: [{}]", dims.iter().map(|d| format!("{d}=...")).collect::<Vec<_>>().join(","))),
+                    );
                     return None;
                 }
             };

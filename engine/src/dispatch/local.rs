@@ -156,7 +156,6 @@ mod tests {
 
     #[test]
     fn gpu_stages_run_one_at_a_time_only_where_a_gpu_can_be() {
-
         use crate::platform::cuda_device_nodes;
         let dev = std::env::temp_dir().join(format!("rlmflow-dev-{}", std::process::id()));
         std::fs::create_dir_all(&dev).unwrap();

@@ -227,7 +227,15 @@ fn footprint(s: &ClipSettings, inputs: &InputOutlines, target: Target) -> Option
 
 /// The operator as `rlmflow` registers it: validated and planned here, run by the worker.
 pub fn operator() -> InWorker<ClipSettings> {
-    InWorker { spec: spec(), worker: WORKER, resources, outline, footprint, metrics: |s| rlmflow_stages::encoder::metric_names(s.objective == Objective::Counts), run: None }
+    InWorker {
+        spec: spec(),
+        worker: WORKER,
+        resources,
+        outline,
+        footprint,
+        metrics: |s| rlmflow_stages::encoder::metric_names(s.objective == Objective::Counts),
+        run: None,
+    }
 }
 
 /// The model the settings name, for images of `image` pixels and the tokens stage's `context`,

@@ -138,7 +138,6 @@ fn contrast(measured: &[Measured], claim: &Claim) -> anyhow::Result<Option<Contr
     Ok(Some(Contrast { claim: claim.name.clone(), labels: [b.label.to_owned(), t.label.to_owned()], differences, segmenter_dirs }))
 }
 
-
 /// How many of each contrast's most different frames the report shows.
 pub const CONTRAST_FRAMES: usize = 3;
 
