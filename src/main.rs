@@ -20,9 +20,14 @@ fn registry() -> Registry {
     registry.add(rlmflow_pretrain::operator());
     registry.add(rlmflow_probe::linear());
     registry.add(rlmflow_probe::clipcap());
+    registry.add(rlmflow_probe::embed());
     registry.add(rlmflow_segment::pup());
     registry.add(rlmflow_segment::unet());
     registry.add(rlmflow_report::Paper);
+    // A user's program as a stage of each kind whose output rlmflow checks.
+    for script in rlmflow_script::operators() {
+        registry.add_for_kind(script);
+    }
     #[cfg(feature = "python")]
     registry.add(rlmflow_scenes::HighwayEnv);
     registry

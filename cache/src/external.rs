@@ -38,6 +38,52 @@ pub const RACY: Duration = Duration::from_secs(2);
 /// `/` or `/tmp` by mistake fails after this many rather than walking the disk.
 pub const MAX_FILES: usize = 1_000_000;
 
+/// What a tracked setting names: a file or a directory (a tree of one file, or every file below
+/// it), or chosen files below a directory (a script's sources), each by its path relative to
+/// `root`, in order and without repeats.
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Source {
+    Path(PathBuf),
+    Files { root: PathBuf, files: Vec<String> },
+}
+
+impl Source {
+    /// The directory the tree's paths are relative to, and the paths.
+    fn tree(&self) -> anyhow::Result<(PathBuf, Vec<String>)> {
+        let source = match self {
+            Source::Files { root, files } => return Ok((root.clone(), files.clone())),
+            Source::Path(path) => path,
+        };
+        let meta = fs::metadata(source).with_context(|| format!("reading {}", source.display()))?;
+        if meta.is_dir() {
+            Ok((source.to_path_buf(), list_files(source, MAX_FILES)?))
+        } else if meta.is_file() {
+            let name = source.file_name().and_then(|n| n.to_str()).with_context(|| format!("{}: the file name must be UTF-8", source.display()))?;
+            Ok((source.parent().unwrap_or(Path::new(".")).to_path_buf(), vec![name.to_owned()]))
+        } else {
+            bail!("{} is neither a file nor a directory", source.display());
+        }
+    }
+
+    /// Where the digests of its files are recorded: one record per source.
+    fn record_name(&self) -> String {
+        let described = match self {
+            Source::Path(path) => path.to_string_lossy().into_owned(),
+            Source::Files { root, files } => format!("{}\0{}", root.display(), files.join("\0")),
+        };
+        format!("{}.json", Digest::of(described.as_bytes()).hex())
+    }
+}
+
+impl std::fmt::Display for Source {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Source::Path(path) => write!(f, "{}", path.display()),
+            Source::Files { root, files } => write!(f, "{} files of {}", files.len(), root.display()),
+        }
+    }
+}
+
 /// What was recorded of one source's files the last time they were hashed.
 #[derive(Default, Serialize, Deserialize)]
 struct Recorded {
@@ -55,23 +101,14 @@ struct Seen {
     digest: Digest,
 }
 
-/// The content digest and manifest of `source` (a file or a directory), re-hashing only the
-/// files whose size or modification time changed since `store` last hashed them. Without a
-/// store (nothing has run yet) every file is hashed.
-pub fn fingerprint(store: Option<&Store>, source: &Path) -> anyhow::Result<TreeInfo> {
-    let meta = fs::metadata(source).with_context(|| format!("reading {}", source.display()))?;
-    let (root, files) = if meta.is_dir() {
-        (source.to_path_buf(), list_files(source, MAX_FILES)?)
-    } else if meta.is_file() {
-        let name = source.file_name().and_then(|n| n.to_str()).with_context(|| format!("{}: the file name must be UTF-8", source.display()))?;
-        (source.parent().unwrap_or(Path::new(".")).to_path_buf(), vec![name.to_owned()])
-    } else {
-        bail!("{} is neither a file nor a directory", source.display());
-    };
-    let record_path =
-        store.map(|s| s.root().join("external/sources").join(format!("{}.json", Digest::of(source.to_string_lossy().as_bytes()).hex())));
+/// The content digest and manifest of `source`, re-hashing only the files whose size or
+/// modification time changed since `store` last hashed them. Without a store (nothing has run
+/// yet) every file is hashed.
+pub fn fingerprint(store: Option<&Store>, source: &Source) -> anyhow::Result<TreeInfo> {
+    let (root, files) = source.tree()?;
+    let record_path = store.map(|s| s.root().join("external/sources").join(source.record_name()));
     let before: Recorded = record_path.as_ref().and_then(|p| fs::read(p).ok()).and_then(|b| serde_json::from_slice(&b).ok()).unwrap_or_default();
-    let mut now = Recorded { source: source.to_path_buf(), files: BTreeMap::new() };
+    let mut now = Recorded { source: root.clone(), files: BTreeMap::new() };
     let mut entries = Vec::with_capacity(files.len());
     for rel in files {
         let path = root.join(&rel);
@@ -106,17 +143,12 @@ pub fn fingerprint(store: Option<&Store>, source: &Path) -> anyhow::Result<TreeI
 
 /// Copies `source` into `store` as the object `digest` unless the store has it. Fails, naming
 /// the source, if its content is no longer that digest (it changed after it was fingerprinted).
-pub fn snapshot(store: &Store, source: &Path, digest: &Digest) -> anyhow::Result<()> {
+pub fn snapshot(store: &Store, source: &Source, digest: &Digest) -> anyhow::Result<()> {
     if store.has_object(digest) {
         return Ok(());
     }
     let dir = store.work_dir(digest)?;
-    let copied = if source.is_dir() {
-        copy_tree(source, &dir)
-    } else {
-        let name = source.file_name().context("a file source has a name")?;
-        fs::copy(source, dir.join(name)).map(drop).with_context(|| format!("copying {}", source.display()))
-    };
+    let copied = source.tree().and_then(|(root, files)| copy_files(&root, &files, &dir));
     if let Err(e) = copied {
         let _ = fs::remove_dir_all(&dir);
         return Err(e);
@@ -124,7 +156,7 @@ pub fn snapshot(store: &Store, source: &Path, digest: &Digest) -> anyhow::Result
     let info = store.commit_tree(&dir)?;
     if info.digest != *digest {
         let changed = manifest(store, digest).map(|before| differing_files(&info.manifest, &before)).unwrap_or_default();
-        bail!("{} changed while this run was reading it ({}); run again", source.display(), changed.join(", "));
+        bail!("{source} changed while this run was reading it ({}); run again", changed.join(", "));
     }
     Ok(())
 }
@@ -144,11 +176,11 @@ fn manifest_path(store: &Store, digest: &Digest) -> PathBuf {
     store.root().join("external/manifests").join(digest.hex())
 }
 
-fn copy_tree(from: &Path, to: &Path) -> anyhow::Result<()> {
-    for rel in list_files(from, MAX_FILES)? {
-        let target = to.join(&rel);
+fn copy_files(from: &Path, files: &[String], to: &Path) -> anyhow::Result<()> {
+    for rel in files {
+        let target = to.join(rel);
         fs::create_dir_all(target.parent().expect("a file below the root"))?;
-        fs::copy(from.join(&rel), &target).with_context(|| format!("copying {}", from.join(&rel).display()))?;
+        fs::copy(from.join(rel), &target).with_context(|| format!("copying {}", from.join(rel).display()))?;
     }
     Ok(())
 }
@@ -169,7 +201,8 @@ mod tests {
         fs::create_dir_all(data.join("sub")).unwrap();
         fs::write(data.join("a.npy"), b"one").unwrap();
         fs::write(data.join("sub/b.npy"), b"two").unwrap();
-        let first = fingerprint(Some(&store), &data).unwrap();
+        let source = Source::Path(data.clone());
+        let first = fingerprint(Some(&store), &source).unwrap();
         assert_eq!(first.digest, crate::hash_tree(&data).unwrap().digest, "the digest an artifact of these files would have");
         // Pretend the files were hashed long after they were written: their digests are kept.
         let record = store.root().join("external/sources").join(format!("{}.json", Digest::of(data.to_string_lossy().as_bytes()).hex()));
@@ -179,19 +212,19 @@ mod tests {
             seen.digest = Digest::of(b"kept");
         }
         fs::write(&record, serde_json::to_vec(&recorded).unwrap()).unwrap();
-        assert_ne!(fingerprint(Some(&store), &data).unwrap().digest, first.digest, "kept digests were used, nothing re-hashed");
+        assert_ne!(fingerprint(Some(&store), &source).unwrap().digest, first.digest, "kept digests were used, nothing re-hashed");
         // An edit changes size or time: that file is hashed again, the other kept.
         fs::write(data.join("a.npy"), b"uno!").unwrap();
-        let edited = fingerprint(Some(&store), &data).unwrap();
+        let edited = fingerprint(Some(&store), &source).unwrap();
         assert!(edited.manifest.contains(&format!("{} 4 - a.npy", Digest::of(b"uno!"))), "{}", edited.manifest);
         assert!(edited.manifest.contains(&format!("{} 3 - sub/b.npy", Digest::of(b"kept"))), "{}", edited.manifest);
         // Hashed afresh, the edit is named against the first tree.
         fs::remove_file(&record).unwrap();
-        let fresh = fingerprint(Some(&store), &data).unwrap();
+        let fresh = fingerprint(Some(&store), &source).unwrap();
         assert_eq!(changed_files(&store, &first.digest, &fresh.digest).unwrap(), ["a.npy"]);
-        snapshot(&store, &data, &fresh.digest).unwrap();
+        snapshot(&store, &source, &fresh.digest).unwrap();
         assert!(store.has_object(&fresh.digest));
-        assert!(snapshot(&store, &data, &first.digest).unwrap_err().to_string().contains("changed while this run was reading it (a.npy)"));
+        assert!(snapshot(&store, &source, &first.digest).unwrap_err().to_string().contains("changed while this run was reading it (a.npy)"));
     }
 
     #[test]
@@ -199,8 +232,30 @@ mod tests {
         let root = tempdir("external-file");
         fs::write(root.join("scenes.mcap"), b"mcap").unwrap();
         let store = Store::open(&root.join("store")).unwrap();
-        let info = fingerprint(Some(&store), &root.join("scenes.mcap")).unwrap();
-        snapshot(&store, &root.join("scenes.mcap"), &info.digest).unwrap();
+        let source = Source::Path(root.join("scenes.mcap"));
+        let info = fingerprint(Some(&store), &source).unwrap();
+        snapshot(&store, &source, &info.digest).unwrap();
         assert_eq!(fs::read(store.object_dir(&info.digest).join("scenes.mcap")).unwrap(), b"mcap");
+    }
+
+    #[test]
+    fn chosen_files_are_a_tree_of_those_files_alone() {
+        let root = tempdir("external-files");
+        fs::create_dir_all(root.join("probes")).unwrap();
+        fs::write(root.join("probes/knn.py"), b"print(1)").unwrap();
+        fs::write(root.join("probes/notes.txt"), b"not a source").unwrap();
+        fs::write(root.join("run.sh"), b"exit 0").unwrap();
+        let store = Store::open(&root.join("store")).unwrap();
+        let source = Source::Files { root: root.clone(), files: vec!["probes/knn.py".into(), "run.sh".into()] };
+        let info = fingerprint(Some(&store), &source).unwrap();
+        snapshot(&store, &source, &info.digest).unwrap();
+        let object = store.object_dir(&info.digest);
+        assert_eq!(list_files(&object, 10).unwrap(), ["probes/knn.py", "run.sh"]);
+        // A file outside the choice changes nothing; a chosen one changes the digest.
+        fs::write(root.join("probes/notes.txt"), b"edited").unwrap();
+        assert_eq!(fingerprint(Some(&store), &source).unwrap().digest, info.digest);
+        fs::write(root.join("probes/knn.py"), b"print(2)").unwrap();
+        let edited = fingerprint(Some(&store), &source).unwrap();
+        assert_eq!(changed_files(&store, &info.digest, &edited.digest).unwrap(), ["probes/knn.py"]);
     }
 }

@@ -120,7 +120,7 @@ pub struct Variant {
     pub shards: Vec<(Part, Value)>,
     /// The files or directories outside the store it reads, by setting (`Settings::TRACKED`),
     /// made absolute against the pipeline file.
-    pub tracked: Vec<(String, PathBuf)>,
+    pub tracked: Vec<(String, rlmflow_cache::external::Source)>,
 }
 
 /// The action that joins a sharded stage's parts: an operator gathering them, in order, into one

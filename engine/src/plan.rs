@@ -2,9 +2,9 @@
 //! whether each is cached, will run (and why), or waits for an upstream that will run.
 
 use std::collections::{BTreeMap, HashMap};
-use std::path::PathBuf;
 
 use anyhow::{Context as _, bail};
+use rlmflow_cache::external::Source;
 use rlmflow_cache::{ActionRecord, ActionRequest, Digest, InputDigest, Preimage, Store};
 use rlmflow_stages::{Arity, InstanceId, Part, Registry, SettingError};
 use serde_json::Value;
@@ -30,7 +30,7 @@ pub struct Instance {
     /// The items a shard computes (`None`: not a shard).
     pub shard: Option<Part>,
     /// Files or directories outside the store it reads: input slot -> path.
-    pub tracked: Vec<(String, PathBuf)>,
+    pub tracked: Vec<(String, Source)>,
 }
 
 #[derive(Clone, Debug)]
@@ -47,7 +47,7 @@ pub struct Plan<'p> {
     pub pipeline: &'p Pipeline,
     pub instances: Vec<Instance>,
     /// The content of every tracked path ([`Plan::fingerprint`]).
-    pub tracked: BTreeMap<PathBuf, Digest>,
+    pub tracked: BTreeMap<Source, Digest>,
     /// The machine's numeric platform, for the keys of actions whose bytes depend on it.
     pub platform: Platform,
 }
@@ -300,7 +300,7 @@ impl Plan<'_> {
     /// Digests every tracked path (`rlmflow_cache::external`: a stat per unchanged file).
     pub fn fingerprint(&mut self, store: Option<&Store>) -> anyhow::Result<()> {
         // Each source with the first instance and setting that name it, for the error.
-        let mut sources: BTreeMap<PathBuf, (usize, &str)> = BTreeMap::new();
+        let mut sources: BTreeMap<Source, (usize, &str)> = BTreeMap::new();
         for (i, inst) in self.instances.iter().enumerate() {
             for (key, source) in &inst.tracked {
                 sources.entry(source.clone()).or_insert((i, key));

@@ -25,15 +25,18 @@ use serde::{Deserialize, Serialize};
 
 /// The pinned packages, one `name==version` per line.
 pub const LOCK: &str = include_str!("../requirements.lock");
-/// The lock's `name==version` lines.
-fn pinned() -> impl Iterator<Item = &'static str> {
-    LOCK.lines().filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
+/// A lock's `name==version` lines.
+fn pinned(lock: &str) -> impl Iterator<Item = &str> {
+    lock.lines().filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
 }
 
 /// The `rlmflow` Python package (`python/package`: reads a store's artifacts), each file as
 /// `(path under site-packages, content)`: written into the environment after the lock, and part
 /// of the environment's name, so a changed package gets a new environment.
-pub const PACKAGE: &[(&str, &str)] = &[("rlmflow/__init__.py", include_str!("../package/rlmflow/__init__.py"))];
+pub const PACKAGE: &[(&str, &str)] = &[
+    ("rlmflow/__init__.py", include_str!("../package/rlmflow/__init__.py")),
+    ("rlmflow/stage.py", include_str!("../package/rlmflow/stage.py")),
+];
 
 /// Python older than this cannot install the lock (numpy 2.4 needs 3.11).
 pub const MIN_VERSION: (u32, u32) = (3, 11);
@@ -105,15 +108,32 @@ pub(crate) fn interpreter_version(python: &Path) -> anyhow::Result<String> {
     Ok(version)
 }
 
-/// Where the environment for this lock and interpreter lives, whether or not it exists.
-fn env_dir(version: &str) -> anyhow::Result<PathBuf> {
+/// The digest naming the environment of `lock` on an interpreter of `version`, with the package.
+fn env_digest(lock: &str, version: &str) -> String {
     let mut hasher = blake3::Hasher::new();
-    hasher.update(format!("{LOCK}\0{version}").as_bytes());
+    hasher.update(format!("{lock}\0{version}").as_bytes());
     for (path, content) in PACKAGE {
         hasher.update(format!("\0{path}\0{content}").as_bytes());
     }
-    let digest = hasher.finalize().to_hex();
-    Ok(data_dir()?.join("python").join(format!("env-{}", &digest[..16])))
+    hasher.finalize().to_hex()[..16].to_owned()
+}
+
+/// Where the environment for this lock and interpreter lives, whether or not it exists.
+fn env_dir(lock: &str, version: &str) -> anyhow::Result<PathBuf> {
+    Ok(data_dir()?.join("python").join(format!("env-{}", env_digest(lock, version))))
+}
+
+/// The `major.minor` of the interpreter this binary's environments are made from, where it is
+/// known when the binary is built (it embeds Python); else `python3`.
+pub const PYTHON: &str = match option_env!("RLMFLOW_BUILD_PYTHON_VERSION") {
+    Some(version) => version,
+    None => "python3",
+};
+
+/// What identifies rlmflow's own environment to a key, before it exists: the interpreter's
+/// `major.minor` ([`PYTHON`]) and the digest of the lock and the package.
+pub fn identity() -> String {
+    format!("{PYTHON} {}", env_digest(LOCK, PYTHON))
 }
 
 fn read_ready(root: &Path) -> anyhow::Result<Option<Environment>> {
@@ -127,35 +147,50 @@ fn read_ready(root: &Path) -> anyhow::Result<Option<Environment>> {
 /// The environment, created first if missing; `note` hears what is happening (creation takes
 /// a minute and downloads from PyPI).
 pub fn ensure(note: &mut dyn FnMut(&str)) -> anyhow::Result<Environment> {
+    ensure_lock(LOCK, "highway_env, mcap, tokenizers, rerun, hyperqueue, safetensors, rlmflow", note)
+}
+
+/// The environment of a user's `lock` (`name==version` lines, every dependency pinned: it is
+/// installed with `--no-deps`), with the `rlmflow` package, created first if missing; `imports`
+/// is what it must import once made.
+pub fn ensure_lock(lock: &str, imports: &str, note: &mut dyn FnMut(&str)) -> anyhow::Result<Environment> {
     let python = base_interpreter();
     let version = interpreter_version(&python)?;
-    let root = env_dir(&version)?;
+    let root = env_dir(lock, &version)?;
     if let Some(env) = read_ready(&root)? {
         return Ok(env);
     }
     let parent = root.parent().expect("env_dir has a parent");
     fs::create_dir_all(parent).with_context(|| format!("creating {}", parent.display()))?;
     // One creator at a time; the others wait and then find it ready.
-    let lock = File::create(parent.join(".lock"))?;
-    lock.lock()?;
+    let creating = File::create(parent.join(".lock"))?;
+    creating.lock()?;
     if let Some(env) = read_ready(&root)? {
         return Ok(env);
     }
     note(&format!("creating the Python environment at {} (once; about a minute)", root.display()));
     let scratch = parent.join(format!(".creating-{}", std::process::id()));
     let _ = fs::remove_dir_all(&scratch);
-    let result = create(&python, &scratch, &root, &version, note);
+    let result = create(&python, &scratch, &root, &version, lock, imports, note);
     if result.is_err() {
         let _ = fs::remove_dir_all(&scratch);
     }
     result
 }
 
-fn create(python: &Path, scratch: &Path, root: &Path, version: &str, note: &mut dyn FnMut(&str)) -> anyhow::Result<Environment> {
+fn create(
+    python: &Path,
+    scratch: &Path,
+    root: &Path,
+    version: &str,
+    lock: &str,
+    imports: &str,
+    note: &mut dyn FnMut(&str),
+) -> anyhow::Result<Environment> {
     run(Command::new(python).arg("-m").arg("venv").arg(scratch), "creating the venv")?;
     let lock_file = scratch.join("requirements.lock");
-    fs::write(&lock_file, LOCK)?;
-    note(&format!("installing {} pinned packages", pinned().count()));
+    fs::write(&lock_file, lock)?;
+    note(&format!("installing {} pinned packages", pinned(lock).count()));
     let venv_python = scratch.join("bin/python");
     run(
         Command::new(&venv_python)
@@ -171,7 +206,7 @@ fn create(python: &Path, scratch: &Path, root: &Path, version: &str, note: &mut 
         fs::write(&file, content).with_context(|| format!("writing {}", file.display()))?;
     }
     run(
-        Command::new(&venv_python).args(["-c", "import highway_env, mcap, tokenizers, rerun, hyperqueue, safetensors, rlmflow"]),
+        Command::new(&venv_python).args(["-c", &format!("import {imports}")]),
         "checking the packages import",
     )?;
     // The venv is moved into place: record paths as they will be.
@@ -199,7 +234,7 @@ mod tests {
 
     #[test]
     fn the_lock_pins_every_package() {
-        for line in pinned() {
+        for line in pinned(LOCK) {
             let (name, version) = line.split_once("==").unwrap_or_else(|| panic!("`{line}` is not name==version"));
             assert!(!name.is_empty() && version.chars().all(|c| c.is_ascii_digit() || c == '.'), "`{line}`");
         }

@@ -170,6 +170,11 @@ impl Context {
         }
     }
 
+    /// Every bound input slot with its artifacts, by slot name (tracked paths among them).
+    pub fn slots(&self) -> impl Iterator<Item = (&str, &[Input])> {
+        self.inputs.iter().map(|(slot, inputs)| (slot.as_str(), inputs.as_slice()))
+    }
+
     /// Every artifact gathered into `slot` (for slots of arity `All`), in a stable order.
     pub fn gathered(&self, slot: &str) -> &[Input] {
         self.inputs.get(slot).map(Vec::as_slice).unwrap_or(&[])

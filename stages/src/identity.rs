@@ -191,8 +191,8 @@ pub fn check_overlap(stage: &str, test: &FrameSet, learnt: &[Learnt], allow: boo
 }
 
 /// The overlap check of a probe or segmenter: its test frames against the frames its `encoder`
-/// input trained on and its tokenizer learnt from, and those its own `tokens` input (if any)
-/// learnt from. Refuses a non-zero overlap unless `allow`.
+/// input (or the encoder behind its `embeddings`) trained on and its tokenizer learnt from, and
+/// those its own `tokens` input (if any) learnt from. Refuses a non-zero overlap unless `allow`.
 pub fn check_inputs(ctx: &crate::Context, test: &FrameSet, allow: bool) -> anyhow::Result<Vec<Overlap>> {
     let mut learnt = Vec::new();
     let label = |slot: &'static str| ctx.input_label(slot).filter(|l| !l.is_empty()).unwrap_or(slot);
@@ -202,6 +202,15 @@ pub fn check_inputs(ctx: &crate::Context, test: &FrameSet, allow: bool) -> anyho
         let tokenizer = dir.join(crate::encoder::TOKENIZER_FRAMES);
         if tokenizer.exists() {
             learnt.push(Learnt { against: "encoder's tokenizer", slot: "encoder", label: label("encoder"), set: FrameSet::read(&tokenizer)? });
+        }
+    }
+    // Features of a frozen encoder carry its sets with them.
+    if let Some(dir) = ctx.optional_input("embeddings") {
+        let set = FrameSet::read(&dir.join(crate::encoder::TRAINED))?;
+        learnt.push(Learnt { against: "encoder training", slot: "embeddings", label: label("embeddings"), set });
+        let tokenizer = dir.join(crate::encoder::TOKENIZER_FRAMES);
+        if tokenizer.exists() {
+            learnt.push(Learnt { against: "encoder's tokenizer", slot: "embeddings", label: label("embeddings"), set: FrameSet::read(&tokenizer)? });
         }
     }
     if let Some(dir) = ctx.optional_input("tokens") {

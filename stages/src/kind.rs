@@ -16,6 +16,9 @@ pub enum Arity {
 pub enum Need {
     Required,
     Optional,
+    /// Bound only to the stages the stage's `inputs` names (a `files` stage reads what it is
+    /// given, not every artifact of the type).
+    Named,
 }
 
 /// One named input of a stage kind.
@@ -37,6 +40,14 @@ impl Slot {
     }
     pub const fn gather(name: &'static str, artifact: &'static str) -> Slot {
         Slot { name, artifact, need: Need::Optional, arity: Arity::All }
+    }
+    /// The one stage `inputs` names (fanning out over its variants), none unless it names one.
+    pub const fn named_one(name: &'static str, artifact: &'static str) -> Slot {
+        Slot { name, artifact, need: Need::Named, arity: Arity::One }
+    }
+    /// Every instance of the stages `inputs` names, none unless it names some.
+    pub const fn named(name: &'static str, artifact: &'static str) -> Slot {
+        Slot { name, artifact, need: Need::Named, arity: Arity::All }
     }
     /// Every instance of the providing stages, at least one of them.
     pub const fn gather_some(name: &'static str, artifact: &'static str) -> Slot {
@@ -107,7 +118,12 @@ const PAPER_MARKERS: &[(&str, &str)] = &[
     ("ProbeReport", crate::probe::SUMMARY),
     ("SegReport", crate::segment::SUMMARY),
     ("Report", "metrics.json"),
+    (EMBEDDINGS, crate::embeddings::SUMMARY),
 ];
+
+/// The artifact type of a `files` stage: whatever files its program wrote, read by no built-in
+/// stage.
+pub const FILES: &str = "Files";
 
 /// The paper's artifact types that measure: encoders, probe and segmentation reports.
 const PAPER_MEASURES: &[Measures] = &[
@@ -129,6 +145,7 @@ const LABELS: &str = "Labels";
 const CAPTIONS: &str = "Captions";
 const TOKENS: &str = "Tokens";
 const ENCODER: &str = "Encoder";
+const EMBEDDINGS: &str = "Embeddings";
 
 const PAPER_KINDS: &[StageKind] = &[
     StageKind { name: "scenes", produces: SCENES, inputs: &[], per_seed: false },
@@ -149,13 +166,32 @@ const PAPER_KINDS: &[StageKind] = &[
         name: "probe",
         produces: "ProbeReport",
         // Optional: a pixel baseline reads no encoder (`inputs = { encoder = [] }`).
-        inputs: &[Slot::optional("encoder", ENCODER), Slot::one("scenes", SCENES), Slot::one("labels", LABELS), Slot::one("tokens", TOKENS)],
+        inputs: &[
+            Slot::optional("encoder", ENCODER),
+            Slot::one("scenes", SCENES),
+            Slot::one("labels", LABELS),
+            Slot::one("tokens", TOKENS),
+            // A frozen encoder's features, for a probe that reads them rather than the encoder.
+            Slot::named_one("embeddings", EMBEDDINGS),
+        ],
         per_seed: true,
     },
     StageKind {
         name: "segment",
         produces: "SegReport",
-        inputs: &[Slot::optional("encoder", ENCODER), Slot::one("scenes", SCENES), Slot::one("labels", LABELS)],
+        inputs: &[
+            Slot::optional("encoder", ENCODER),
+            Slot::one("scenes", SCENES),
+            Slot::one("labels", LABELS),
+            Slot::named_one("embeddings", EMBEDDINGS),
+        ],
+        per_seed: true,
+    },
+    // A frozen encoder's features of every frame of its scenes, with the labels' split.
+    StageKind {
+        name: "embed",
+        produces: EMBEDDINGS,
+        inputs: &[Slot::one("encoder", ENCODER), Slot::one("scenes", SCENES), Slot::one("labels", LABELS)],
         per_seed: true,
     },
     StageKind {
@@ -168,6 +204,25 @@ const PAPER_KINDS: &[StageKind] = &[
             // The frames the samples are drawn from: the scenes and labels the probes read.
             Slot::optional("scenes", SCENES),
             Slot::optional("labels", LABELS),
+        ],
+        per_seed: false,
+    },
+    // A user's program whose output no built-in stage reads (a figure, a table, an export): it
+    // reads the artifacts its `inputs` names.
+    StageKind {
+        name: "files",
+        produces: FILES,
+        inputs: &[
+            Slot::named("scenes", SCENES),
+            Slot::named("labels", LABELS),
+            Slot::named("captions", CAPTIONS),
+            Slot::named("tokens", TOKENS),
+            Slot::named("encoder", ENCODER),
+            Slot::named("probe", "ProbeReport"),
+            Slot::named("segment", "SegReport"),
+            Slot::named("report", "Report"),
+            Slot::named("embeddings", EMBEDDINGS),
+            Slot::named("files", FILES),
         ],
         per_seed: false,
     },

@@ -9,7 +9,7 @@
 //!
 //! * [`grid`]: the paper's ego grid and its JSON; [`segment`]: the segmentation metrics;
 //!   [`identity`]: frame identities, the split rule and the train/test overlap check.
-//! * [`scenes`], [`labels`], [`captions`], [`tokens`], [`encoder`], [`probe`]: each artifact's directory layout, its
+//! * [`scenes`], [`labels`], [`captions`], [`tokens`], [`encoder`], [`embeddings`], [`probe`]: each artifact's directory layout, its
 //!   writer-side line formats and its reader; [`npy`] for their dense arrays.
 //! * [`claims`]: claims comparing two metrics paired by seed, and the rule deciding them as seeds
 //!   are added; [`measure`]: what an artifact measures (metrics, per-frame differences).
@@ -24,6 +24,7 @@
 pub mod captions;
 pub mod claims;
 pub mod context;
+pub mod embeddings;
 pub mod encoder;
 pub mod grid;
 pub mod identity;
@@ -46,7 +47,7 @@ pub use kind::{Arity, Catalog, Need, Slot, StageKind};
 pub use memory::Footprint;
 pub use numerics::{Kernels, Numerics};
 pub use operator::{
-    DynOperator, InWorker, InputOutlines, ItemCount, Items, ModelOutline, Operator, OperatorSpec, Outcome, Outline, Part, Registry, Resources,
+    DynOperator, FilePattern, InWorker, InputOutlines, ItemCount, Items, ModelOutline, Operator, OperatorSpec, Outcome, Outline, Part, Registry, Resources,
     SettingError, Settings, Sharding, Share,
 };
 pub use training::Training;

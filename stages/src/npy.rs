@@ -80,6 +80,12 @@ impl NpyWriter {
         self.write_bytes(row.len(), &bytes)
     }
 
+    pub fn write_f32(&mut self, row: &[f32]) -> anyhow::Result<()> {
+        assert_eq!(self.dtype, Dtype::F32, "{} holds {:?}", self.path.display(), self.dtype);
+        let bytes: Vec<u8> = row.iter().flat_map(|v| v.to_le_bytes()).collect();
+        self.write_bytes(row.len(), &bytes)
+    }
+
     fn write_bytes(&mut self, len: usize, bytes: &[u8]) -> anyhow::Result<()> {
         assert_eq!(len, self.row_len, "row of {len} elements for {}", self.path.display());
         self.written += 1;

@@ -42,6 +42,14 @@ pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'stat
         Ok(())
     }
 
+    /// The files tracked setting `key` names where it names chosen files rather than one path
+    /// (a script's `sources`): patterns relative to the pipeline file, which the engine resolves
+    /// inside the pipeline file's directory and tracks as one tree. `None`: the setting is one
+    /// path, a string.
+    fn tracked_files(&self, _key: &str) -> Option<Vec<FilePattern>> {
+        None
+    }
+
     /// The settings as an artifact may record them: those the key covers ([`result_settings`]).
     fn result_settings(&self) -> Value {
         result_settings(&serde_json::to_value(self).expect("settings serialise to JSON"), Self::NON_RESULT, Self::TRACKED)
@@ -64,6 +72,16 @@ pub fn result_settings(settings: &Value, non_result: &[&str], tracked: &[&str]) 
         }
     }
     value
+}
+
+/// Files a tracked setting names ([`Settings::tracked_files`]): a glob (`*`, `?`, `[..]` within
+/// a name, `**` across directories) or a plain path, relative to the pipeline file.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct FilePattern {
+    pub pattern: String,
+    /// It must match at least one file; else it counts where it names a file (a command's
+    /// argument that may or may not be one).
+    pub required: bool,
 }
 
 /// A setting that is invalid: its dotted key (relative to the stage table) and what is valid.
@@ -402,6 +420,8 @@ pub trait DynOperator: Send + Sync {
     fn tracked_keys(&self) -> &'static [&'static str];
     /// [`Settings::check_tracked`] of these settings.
     fn check_tracked(&self, settings: &Value, key: &str, path: &std::path::Path) -> Result<(), SettingError>;
+    /// [`Settings::tracked_files`] of these settings.
+    fn tracked_files(&self, settings: &Value, key: &str) -> Result<Option<Vec<FilePattern>>, SettingError>;
     /// What an action of these settings needs (threads, a GPU, its kernels); an error names the
     /// setting that does not parse (every planned instance's settings were normalised through
     /// [`DynOperator::settings`] first, so that would be a broken invariant, never hidden behind
@@ -450,6 +470,10 @@ impl<O: Operator> DynOperator for O {
 
     fn check_tracked(&self, settings: &Value, key: &str, path: &std::path::Path) -> Result<(), SettingError> {
         parse_settings::<O::Settings>(settings.clone())?.check_tracked(key, path)
+    }
+
+    fn tracked_files(&self, settings: &Value, key: &str) -> Result<Option<Vec<FilePattern>>, SettingError> {
+        Ok(parse_settings::<O::Settings>(settings.clone())?.tracked_files(key))
     }
 
     fn resources(&self, settings: &Value) -> Result<Resources, SettingError> {
@@ -607,11 +631,13 @@ fn number_expected(defaults: &Value, path: &str) -> bool {
     }
 }
 
-/// The stage kinds and operators an rlmflow binary knows.
+/// The stage kinds and operators an rlmflow binary knows. Each operator has an id, the name
+/// keys and plans hold: its name, or `NAME@KIND` for one of an operator serving several kinds
+/// (a `script`), each kind's its own definition.
 #[derive(Default)]
 pub struct Registry {
     pub catalog: Catalog,
-    operators: Vec<Box<dyn DynOperator>>,
+    operators: Vec<(String, Box<dyn DynOperator>)>,
     libraries: Vec<&'static str>,
 }
 
@@ -634,18 +660,42 @@ impl Registry {
     /// Adds an operator. Panics if its kind is unknown or its name taken: both are programming
     /// errors in the binary that builds the registry, caught by its first test.
     pub fn add(&mut self, op: impl DynOperator + 'static) -> &mut Self {
+        let id = op.spec().name.to_owned();
+        self.insert(id, Box::new(op))
+    }
+
+    /// Adds one definition of an operator that serves several kinds, as `NAME@KIND`: a stage
+    /// names it by its name alone, its kind choosing the definition.
+    pub fn add_for_kind(&mut self, op: impl DynOperator + 'static) -> &mut Self {
+        let spec = op.spec();
+        self.insert(format!("{}@{}", spec.name, spec.kind), Box::new(op))
+    }
+
+    fn insert(&mut self, id: String, op: Box<dyn DynOperator>) -> &mut Self {
         let spec = op.spec();
         let kind = self.catalog.get(spec.kind).unwrap_or_else(|| panic!("operator `{}` implements unknown stage kind `{}`", spec.name, spec.kind));
         for slot in spec.inputs.unwrap_or(&[]) {
             assert!(kind.slot(slot).is_some(), "operator `{}` reads unknown slot `{slot}`", spec.name);
         }
-        assert!(self.get(spec.name).is_none(), "operator `{}` registered twice", spec.name);
-        self.operators.push(Box::new(op));
+        assert!(self.find(spec.kind, spec.name).is_none() && self.get(&id).is_none(), "operator `{id}` registered twice");
+        self.operators.push((id, op));
         self
     }
 
-    pub fn get(&self, name: &str) -> Option<&dyn DynOperator> {
-        self.operators.iter().find(|o| o.spec().name == name).map(|o| o.as_ref())
+    /// The operator of id `id` (as plans and keys name it).
+    pub fn get(&self, id: &str) -> Option<&dyn DynOperator> {
+        self.operators.iter().find(|(i, _)| i == id).map(|(_, o)| o.as_ref())
+    }
+
+    /// The id and definition of the operator a stage of `kind` names `name`.
+    pub fn find(&self, kind: &str, name: &str) -> Option<(&str, &dyn DynOperator)> {
+        self.operators.iter().find(|(_, o)| o.spec().kind == kind && o.spec().name == name).map(|(i, o)| (i.as_str(), o.as_ref()))
+    }
+
+    /// The first operator named `name`, of whichever kind (for a message when a stage names an
+    /// operator of another kind).
+    pub fn named(&self, name: &str) -> Option<&dyn DynOperator> {
+        self.operators.iter().find(|(_, o)| o.spec().name == name).map(|(_, o)| o.as_ref())
     }
 
     pub fn kind(&self, name: &str) -> Option<&StageKind> {
@@ -654,11 +704,12 @@ impl Registry {
 
     /// Operators implementing a stage kind, in registration order.
     pub fn operators_of(&self, kind: &str) -> impl Iterator<Item = &dyn DynOperator> {
-        self.operators.iter().filter(move |o| o.spec().kind == kind).map(|o| o.as_ref())
+        self.operators.iter().filter(move |(_, o)| o.spec().kind == kind).map(|(_, o)| o.as_ref())
     }
 
-    pub fn operators(&self) -> impl Iterator<Item = &dyn DynOperator> {
-        self.operators.iter().map(|o| o.as_ref())
+    /// Every operator with its id, in registration order.
+    pub fn operators(&self) -> impl Iterator<Item = (&str, &dyn DynOperator)> {
+        self.operators.iter().map(|(i, o)| (i.as_str(), o.as_ref()))
     }
 }
 

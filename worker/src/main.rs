@@ -18,6 +18,7 @@ fn registry() -> Registry {
     registry.add(rlmflow_pretrain::operator().running(rlmflow_pretrain_torch::clip));
     registry.add(rlmflow_probe::linear().running(rlmflow_probe_torch::linear));
     registry.add(rlmflow_probe::clipcap().running(rlmflow_probe_torch::clipcap));
+    registry.add(rlmflow_probe::embed().running(rlmflow_probe_torch::embed));
     registry.add(rlmflow_segment::pup().running(rlmflow_segment_torch::pup));
     registry.add(rlmflow_segment::unet().running(rlmflow_segment_torch::unet));
     // tch 0.24's build accepts exactly this libtorch (python/libtorch.lock pins its wheel).

@@ -5,7 +5,8 @@ use std::collections::{BTreeMap, HashMap};
 use std::ops::Range;
 use std::path::Path;
 
-use rlmflow_stages::{Arity, DynOperator, InputOutlines, ItemCount, Need, Outline, Part, Registry, Share, StageKind};
+use rlmflow_cache::external::Source;
+use rlmflow_stages::{Arity, DynOperator, FilePattern, InputOutlines, ItemCount, Need, Outline, Part, Registry, Share, StageKind};
 use serde_json::{Map, Value};
 
 use super::checker::Checker;
@@ -93,11 +94,11 @@ impl Checker {
             }
             return None;
         };
-        let op = match registry.get(&op_name) {
-            Some(op) if op.spec().kind == kind.name => op,
-            found => {
+        let (op_id, op) = match registry.find(kind.name, &op_name) {
+            Some((id, op)) => (id.to_owned(), op),
+            None => {
                 let key = format!("{path}.operator");
-                let msg = match found {
+                let msg = match registry.named(&op_name) {
                     Some(op) => format!("operator `{op_name}` implements kind `{}`, not `{}`", op.spec().kind, kind.name),
                     None => format!("unknown operator `{op_name}` for stage kind `{}`", kind.name),
                 };
@@ -141,20 +142,17 @@ impl Checker {
                 Ok(settings) => {
                     let mut tracked = Vec::new();
                     for &key in op.tracked_keys() {
-                        let given = settings.get(key).and_then(Value::as_str).unwrap_or_default();
-                        if given.is_empty() {
-                            continue;
-                        }
-                        let source = std::path::absolute(dir.join(given)).unwrap_or_else(|_| dir.join(given));
-                        let checked = match tracked_source(given, &source) {
-                            Ok(()) => op.check_tracked(&settings, key, &source).map_err(|e| e.message),
-                            // Missing: the operator's word on what belongs there, where it has one.
-                            Err(missing) if !source.exists() => Err(op.check_tracked(&settings, key, &source).err().map_or(missing, |e| e.message)),
-                            Err(special) => Err(special),
+                        let checked = match op.tracked_files(&settings, key) {
+                            Ok(Some(patterns)) => chosen_files(dir, &patterns).map(|files| {
+                                let root = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
+                                (!files.is_empty()).then_some(Source::Files { root, files })
+                            }),
+                            Ok(None) => tracked_path(op, &settings, key, dir),
+                            Err(e) => Err(e.message),
                         };
                         let message = match checked {
-                            Ok(()) => {
-                                tracked.push((key.to_owned(), source));
+                            Ok(found) => {
+                                tracked.extend(found.map(|source| (key.to_owned(), source)));
                                 continue;
                             }
                             Err(message) => message,
@@ -199,7 +197,7 @@ impl Checker {
         match table.get("inputs") {
             None => {}
             Some(Value::Object(map)) => {
-                let readable = operator_slots(registry, &op_name, &kind);
+                let readable = operator_slots(registry, &op_id, &kind);
                 for (slot, value) in map {
                     let key = format!("{path}.inputs.{slot}");
                     if !readable.contains(&slot.as_str()) {
@@ -243,7 +241,7 @@ impl Checker {
             Some((key, split)) => Some(self.shard(&key, op, kind, &mut checked, split, registry)?),
             None => None,
         };
-        let stage = Stage { name: name.to_owned(), kind, operator: op_name, variants: checked, bindings: Vec::new(), per_seed, merge, bounds, line };
+        let stage = Stage { name: name.to_owned(), kind, operator: op_id, variants: checked, bindings: Vec::new(), per_seed, merge, bounds, line };
         Some((stage, inputs))
     }
 
@@ -294,7 +292,7 @@ impl Checker {
     ) -> Option<Merge> {
         let name = op.spec().name;
         let Some(merge) = op.merge() else {
-            let can: Vec<&str> = registry.operators().filter(|o| o.merge().is_some()).map(|o| o.spec().name).collect();
+            let can: Vec<&str> = registry.operators().filter(|(_, o)| o.merge().is_some()).map(|(_, o)| o.spec().name).collect();
             let help = format!("operators that can: {}", can.join(", "));
             self.error(self.line(key), key, format!("operator `{name}` cannot run as shards"), Some(help));
             return None;
@@ -385,6 +383,7 @@ impl Checker {
                         }
                         found
                     }
+                    None if slot.need == Need::Named => continue,
                     None => {
                         let candidates: Vec<usize> = producers.get(slot.artifact).into_iter().flatten().copied().filter(|&p| p != i).collect();
                         if slot.arity == Arity::One && candidates.len() > 1 {
@@ -420,6 +419,64 @@ impl Checker {
             }
         }
     }
+}
+
+/// The path tracked setting `key` names, absolute, once it is found to be something that can be
+/// tracked; `None` where the setting is empty.
+fn tracked_path(op: &dyn DynOperator, settings: &Value, key: &str, dir: &Path) -> Result<Option<Source>, String> {
+    let given = settings.get(key).and_then(Value::as_str).unwrap_or_default();
+    if given.is_empty() {
+        return Ok(None);
+    }
+    let source = std::path::absolute(dir.join(given)).unwrap_or_else(|_| dir.join(given));
+    match tracked_source(given, &source) {
+        Ok(()) => op.check_tracked(settings, key, &source).map_err(|e| e.message)?,
+        // Missing: the operator's word on what belongs there, where it has one.
+        Err(missing) if !source.exists() => return Err(op.check_tracked(settings, key, &source).err().map_or(missing, |e| e.message)),
+        Err(special) => return Err(special),
+    }
+    Ok(Some(Source::Path(source)))
+}
+
+/// The files `patterns` name below `dir`, relative to it, sorted: each must lie in `dir`'s tree
+/// (no `..`, no absolute path, no symbolic link leading out of it) and be a regular file.
+fn chosen_files(dir: &Path, patterns: &[FilePattern]) -> Result<Vec<String>, String> {
+    let dir = if dir.as_os_str().is_empty() { Path::new(".") } else { dir };
+    let tree = dir.canonicalize().map_err(|e| format!("{}: {e}", dir.display()))?;
+    let mut files = std::collections::BTreeSet::new();
+    for FilePattern { pattern, required } in patterns {
+        let path = Path::new(pattern);
+        let leaves = path.is_absolute() || path.components().any(|c| c == std::path::Component::ParentDir);
+        if leaves {
+            if *required || dir.join(path).is_file() {
+                return Err(format!("`{pattern}` leaves the pipeline's directory ({}): a source must lie below it", dir.display()));
+            }
+            continue;
+        }
+        let full = dir.join(path);
+        let matches = glob::glob(&full.to_string_lossy()).map_err(|e| format!("`{pattern}` is not a valid pattern: {e}"))?;
+        let mut matched = 0;
+        for found in matches {
+            let found = found.map_err(|e| format!("`{pattern}`: {e}"))?;
+            let real = found.canonicalize().map_err(|e| format!("`{pattern}`: {}: {e}", found.display()))?;
+            let Ok(rel) = real.strip_prefix(&tree) else {
+                return Err(format!("`{}` is a symbolic link out of the pipeline's directory (to {})", found.display(), real.display()));
+            };
+            if real.is_dir() {
+                continue;
+            }
+            tracked_source(pattern, &real)?;
+            // The path as the program names it, below the tree (a link within the tree is read
+            // through: its target's bytes are what the key covers).
+            let named = found.strip_prefix(dir).unwrap_or(rel);
+            files.insert(named.to_str().ok_or_else(|| format!("`{}`: a source's path must be UTF-8", found.display()))?.to_owned());
+            matched += 1;
+        }
+        if *required && matched == 0 {
+            return Err(format!("`{pattern}` matches no file below {}", dir.display()));
+        }
+    }
+    Ok(files.into_iter().collect())
 }
 
 /// `Ok` when a tracked setting's `source` is a regular file or a directory (a symbolic link to

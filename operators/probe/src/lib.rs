@@ -276,6 +276,51 @@ fn linear_metrics(s: &LinearSettings) -> Vec<String> {
     }
 }
 
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EmbedSettings {
+    /// Also write every patch token (`patches.npy`, frames x tokens x width x 4 bytes: the
+    /// largest array by far); off: the CLS embedding and the mean patch token only.
+    pub patches: bool,
+    /// CPU threads libtorch uses, 1..=256 (part of the result, as in pretraining).
+    pub threads: usize,
+    /// `portable` or `native` kernels (see `rlmflow_stages::numerics`).
+    pub numerics: Numerics,
+}
+
+impl Default for EmbedSettings {
+    fn default() -> Self {
+        EmbedSettings { patches: true, threads: 2, numerics: Numerics::Portable }
+    }
+}
+
+impl Settings for EmbedSettings {
+    fn check(&self) -> Result<(), SettingError> {
+        SettingError::check_range("threads", self.threads, 1..=256)
+    }
+}
+
+/// `frozen` (kind `embed`) as `rlmflow` registers it: the frozen encoder's features of every
+/// frame, as `.npy` arrays with the split, for a probe of the user's own (a script) that reads
+/// them with numpy. Run by the worker.
+pub fn embed() -> InWorker<EmbedSettings> {
+    InWorker {
+        spec: OperatorSpec {
+            name: "frozen",
+            kind: "embed",
+            version: 1,
+            inputs: None,
+            summary: "a frozen encoder's CLS embedding, mean patch token and patch tokens of every frame, as .npy arrays with the split",
+        },
+        worker: WORKER,
+        resources: |s| Resources { threads: s.threads, kernels: Some(Kernels { numerics: s.numerics, device: Device::Auto }), ..Resources::default() },
+        outline: Outline::pass_on,
+        footprint: |_, _, _| None,
+        metrics: |_| Vec::new(),
+        run: None,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use rlmflow_stages::DynOperator;

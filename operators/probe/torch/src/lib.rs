@@ -3,6 +3,7 @@
 
 mod caption_text;
 mod clipcap;
+mod embed;
 mod ridge;
 
 use std::path::Path;
@@ -19,6 +20,7 @@ use rlmflow_stages::{Context, Outcome, Settings};
 use serde_json::json;
 
 pub use clipcap::{clipcap, score_captions};
+pub use embed::embed;
 use ridge::RidgeProblem;
 
 /// `linear`'s training, attached by the worker to `rlmflow_probe::linear()`.
@@ -112,29 +114,35 @@ fn round(predictions: &[f64]) -> Vec<[u32; CELLS]> {
 }
 
 /// Every frame's projected CLS embedding, mean patch token and patch tokens in grid order (the
-/// spatial layout kept) from the frozen encoder.
+/// spatial layout kept) from the frozen encoder, each flat as the ridge reads it.
 fn encoder_features(dir: &Path, data: &Frames, all: &[usize], ctx: &Context) -> anyhow::Result<Vec<(&'static str, Vec<f64>, usize)>> {
+    let mut rows = Vec::new();
+    for (name, t) in frozen_features(dir, data, all, ctx)? {
+        let t = t.flatten(1, -1).to_kind(Kind::Double);
+        let width = t.size()[1] as usize;
+        rows.push((name, Vec::<f64>::try_from(t.flatten(0, -1))?, width));
+    }
+    Ok(rows)
+}
+
+/// The frozen encoder's features of frames `all` on the CPU in float32: `cls` (frames, embed),
+/// `mean-patch` (frames, width) and `patches` (frames, tokens, width), in grid order.
+fn frozen_features(dir: &Path, data: &Frames, all: &[usize], ctx: &Context) -> anyhow::Result<[(&'static str, Tensor); 3]> {
     let device = rlmflow_nn::train::resolve_device(ctx.device, rlmflow_stages::Device::Cpu)?;
     let (_vs, model) = clip::load(dir, device, data.side)?;
     let (mut cls, mut means, mut patches) = (Vec::new(), Vec::new(), Vec::new());
-    tch::no_grad(|| -> anyhow::Result<()> {
+    let progress = ctx.progress(all.len() as u64, "frames embedded");
+    tch::no_grad(|| {
         for frames in all.chunks(256) {
             let out = model.encode_image(&data.images(frames, device), false);
             let tokens = out.tokens.narrow(1, 1, out.tokens.size()[1] - 1);
             let mean = tokens.mean_dim([1].as_slice(), false, Kind::Float);
-            cls.push(out.embedding.to_kind(Kind::Double).to_device(tch::Device::Cpu));
-            means.push(mean.to_kind(Kind::Double).to_device(tch::Device::Cpu));
-            patches.push(tokens.flatten(1, -1).to_kind(Kind::Double).to_device(tch::Device::Cpu));
+            cls.push(out.embedding.to_kind(Kind::Float).to_device(tch::Device::Cpu));
+            means.push(mean.to_kind(Kind::Float).to_device(tch::Device::Cpu));
+            patches.push(tokens.to_kind(Kind::Float).to_device(tch::Device::Cpu));
+            progress.inc(frames.len() as u64);
         }
-        Ok(())
-    })?;
-    let flat = |parts: Vec<Tensor>| -> anyhow::Result<(Vec<f64>, usize)> {
-        let t = Tensor::cat(&parts, 0);
-        let width = t.size()[1] as usize;
-        Ok((Vec::<f64>::try_from(t.flatten(0, -1))?, width))
-    };
-    let (c, cw) = flat(cls)?;
-    let (m, mw) = flat(means)?;
-    let (p, pw) = flat(patches)?;
-    Ok(vec![("cls", c, cw), ("mean-patch", m, mw), ("patches", p, pw)])
+    });
+    progress.finish();
+    Ok([("cls", Tensor::cat(&cls, 0)), ("mean-patch", Tensor::cat(&means, 0)), ("patches", Tensor::cat(&patches, 0))])
 }
