@@ -4,7 +4,7 @@
 //! (`commands`), the plan drawn (`dag`), sharded real operators (`shards`), highway-env's
 //! determinism (`highway`), evaluation hygiene (`hygiene`), every setting's effect on the key
 //! (`settings`), the generated operator reference (`reference`), dataset imports (`import`,
-//! `datasets`) and mutated inputs (`fuzz`).
+//! `datasets`), a user's program as a stage (`script`) and mutated inputs (`fuzz`).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -33,6 +33,8 @@ mod hygiene;
 mod import;
 #[path = "pipelines/reference.rs"]
 mod reference;
+#[path = "pipelines/script.rs"]
+mod script;
 #[path = "pipelines/settings.rs"]
 mod settings;
 #[path = "pipelines/shards.rs"]

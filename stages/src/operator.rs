@@ -57,8 +57,8 @@ pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'stat
 }
 
 /// The settings an action's key covers, so an artifact that records them stays a function of its
-/// key: all but the `non_result` ones and the `tracked` ones that are set (their content is an
-/// input of the key instead).
+/// key: all but the `non_result` ones and the `tracked` ones that are set or list files (their
+/// content is an input of the key instead).
 pub fn result_settings(settings: &Value, non_result: &[&str], tracked: &[&str]) -> Value {
     let mut value = settings.clone();
     if let Value::Object(map) = &mut value {
@@ -66,7 +66,13 @@ pub fn result_settings(settings: &Value, non_result: &[&str], tracked: &[&str]) 
             map.remove(*key);
         }
         for key in tracked {
-            if map.get(*key).and_then(Value::as_str).is_some_and(|path| !path.is_empty()) {
+            let named = match map.get(*key) {
+                Some(Value::String(path)) => !path.is_empty(),
+                // Chosen files ([`Settings::tracked_files`]): their content is the input.
+                Some(Value::Array(_)) => true,
+                _ => false,
+            };
+            if named {
                 map.remove(*key);
             }
         }

@@ -204,18 +204,33 @@ pub fn metric_names(rows: &[&str]) -> Vec<String> {
     names
 }
 
-/// `predictions.jsonl`: each test frame's predicted counts, per row, in the file's order.
+/// `predictions.jsonl`: each test frame's predicted counts, per row, in the file's order. A line
+/// gives its grid in the paper's JSON (`grid`, as the probes write it) or as the 48 counts in
+/// the cells' order (`counts`, as a script may).
 pub fn read_predictions(dir: &std::path::Path) -> anyhow::Result<Vec<(u64, String, [u32; CELLS])>> {
     use anyhow::Context as _;
+    use serde_json::Value;
     let path = dir.join(PREDICTIONS);
     let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     let line = |(n, l): (usize, &str)| -> anyhow::Result<(u64, String, [u32; CELLS])> {
-        let bad = |what: &str| anyhow::anyhow!("{}:{}: {what}", path.display(), n + 1);
-        let v: serde_json::Value = serde_json::from_str(l).map_err(|e| bad(&format!("not JSON: {e}")))?;
-        let frame = v["frame"].as_u64().ok_or_else(|| bad("no `frame` count"))?;
-        let features = v["features"].as_str().ok_or_else(|| bad("no `features` string"))?.to_owned();
-        let grid = crate::grid::Grid::from_json(&v["grid"]).map_err(|e| bad(&format!("`grid`: {e}")))?;
-        Ok((frame, features, grid.counts))
+        let bad = |what: String| anyhow::anyhow!("{}:{}: {what}", path.display(), n + 1);
+        let v: Value = serde_json::from_str(l).map_err(|e| bad(format!("not JSON: {e}")))?;
+        let frame = v["frame"].as_u64().ok_or_else(|| bad("`frame` must be a frame's index (a whole number)".into()))?;
+        let features = v["features"].as_str().filter(|f| !f.is_empty()).ok_or_else(|| bad("`features` must name the row (a string)".into()))?;
+        let counts = match (&v["grid"], &v["counts"]) {
+            (Value::Null, Value::Array(items)) if items.len() == CELLS => {
+                let mut counts = [0u32; CELLS];
+                for (c, item) in items.iter().enumerate() {
+                    counts[c] = item.as_u64().and_then(|n| u32::try_from(n).ok()).ok_or_else(|| bad(format!("`counts.{c}` must be a count, not {item}")))?;
+                }
+                counts
+            }
+            (Value::Null, Value::Array(items)) => return Err(bad(format!("`counts` holds {} numbers; it holds the {CELLS} cells'", items.len()))),
+            (grid, Value::Null) if !grid.is_null() => crate::grid::Grid::from_json(grid).map_err(|e| bad(format!("`grid`: {e}")))?.counts,
+            (Value::Null, Value::Null) => return Err(bad("give the prediction as `grid` (the paper's JSON) or `counts` (48 counts)".into())),
+            _ => return Err(bad("give `grid` or `counts` (a list), not both".into())),
+        };
+        Ok((frame, features.to_owned(), counts))
     };
     text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()).map(line).collect()
 }

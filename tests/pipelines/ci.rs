@@ -48,7 +48,7 @@ pub(super) fn ci_run() -> &'static CiRun {
 
 /// The `stage_finished` events of `log` with `status`: each instance's label and output digest,
 /// sorted.
-fn finished(log: &str, status: &str) -> Vec<(String, String)> {
+pub(super) fn finished(log: &str, status: &str) -> Vec<(String, String)> {
     let mut found: Vec<(String, String)> = log
         .lines()
         .filter(|l| l.contains("\"stage_finished\"") && l.contains(&format!("\"status\":\"{status}\"")))
@@ -456,11 +456,19 @@ fn the_python_package_reads_every_artifact_type_as_rlmflow_shows_it() {
                 assert_eq!(fact["iou"], serde_json::json!(frames.iter().map(|f| f.iou).collect::<Vec<_>>()), "{label}");
             }
             "Encoder" => assert!(fact["tensors"].as_u64().unwrap() > 0, "{label}"),
+            "Embeddings" => {
+                let cls = rlmflow_stages::npy::Npy::open(&dir.join(rlmflow_stages::embeddings::CLS)).unwrap();
+                let sum: f64 = cls.all_f32().unwrap().iter().map(|&v| f64::from(v)).sum();
+                assert_eq!(fact["shape"], serde_json::json!(cls.shape), "{label}");
+                assert!((fact["sum"].as_f64().unwrap() - sum).abs() <= 1e-9 * sum.abs().max(1.0), "{label}: {} against {sum}", fact["sum"]);
+                let summary = rlmflow_stages::embeddings::read_summary(&dir).unwrap();
+                assert_eq!(fact["test"].as_u64(), Some(summary.test_frames), "{label}");
+            }
             "Report" => assert!(fact["sections"].as_array().is_some_and(|s| !s.is_empty()), "{label}"),
             other => panic!("{label}: an artifact type the test does not know: {other}"),
         }
     }
-    let all = ["Captions", "Encoder", "Labels", "ProbeReport", "Report", "Scenes", "SegReport", "Tokens"];
+    let all = ["Captions", "Embeddings", "Encoder", "Labels", "ProbeReport", "Report", "Scenes", "SegReport", "Tokens"];
     assert_eq!(types.iter().map(String::as_str).collect::<Vec<_>>(), all, "every artifact type the CI run ships");
     // A setting changed and not run (under the run's name: the reason is against its last run):
     // the package computes nothing and says why.
@@ -478,4 +486,59 @@ fn the_python_package_reads_every_artifact_type_as_rlmflow_shows_it() {
     );
     let (ok, again) = rlmflow(&dir, &["status", "ci.toml"]);
     assert!(ok && again.contains("pixels"), "{again}");
+}
+
+/// `examples/own-probe.toml` beside the CI run, sharing its store (its data and encoders are
+/// ci.toml's, at the same keys): `embed` writes each encoder's features, the Python k-NN probe
+/// reads them and rlmflow scores it, the report gathers its rows beside `linear`'s and the
+/// pixels', and the shell stage keeps the report's tables. A second run reuses everything;
+/// editing the script reruns it (the file named) and, its predictions unchanged, nothing after
+/// it; a file outside its `sources` reruns nothing.
+#[test]
+fn the_own_probe_example_runs_a_python_probe_through_the_report_beside_linear() {
+    let run = ci_run();
+    let dir = beside_the_run("own-probe", "", true);
+    std::fs::copy(root().join("examples/own-probe.toml"), dir.join("own-probe.toml")).unwrap();
+    std::fs::create_dir_all(dir.join("probes")).unwrap();
+    for file in ["knn.py", "tables.sh"] {
+        std::fs::copy(root().join("examples/probes").join(file), dir.join("probes").join(file)).unwrap();
+    }
+    std::fs::write(dir.join("probes/notes.md"), "not a source\n").unwrap();
+    let (ok, out) = rlmflow(&dir, &["run", "own-probe.toml", "--json"]);
+    assert!(ok, "{out}");
+    let ran: Vec<String> = finished(&out, "ran").into_iter().map(|(label, _)| label).collect();
+    assert_eq!(ran, ["knn[clip]", "knn[random]", "report", "tables"], "the rest (`embed` too) is ci.toml's: {out}");
+    let output = |label: &str| rlmflow_test_support::cli::output_dir(&run.store(), "own-probe", label);
+    let probe = rlmflow_stages::probe::read_summary(&output("knn[clip]")).unwrap();
+    assert_eq!(probe.rows.iter().map(|r| r.features.as_str()).collect::<Vec<_>>(), ["cls-knn", "mean-patch-knn"]);
+    assert!(
+        probe.hygiene.iter().any(|h| h.slot == "embeddings" && h.against == "encoder training" && h.overlap == 0 && h.frames > 0),
+        "the test frames checked against the encoder's, through its features: {:?}",
+        probe.hygiene
+    );
+    let report = std::fs::read_to_string(output("report").join("report.md")).unwrap();
+    for row in ["cls-knn", "mean-patch-knn", "pixels", "mean-patch"] {
+        assert!(report.contains(row), "the report's tables hold `{row}`");
+    }
+    let tables = std::fs::read_to_string(output("tables").join("tables.md")).unwrap();
+    assert!(tables.contains("cls-knn") && tables.lines().all(|l| l.starts_with('|') || l.starts_with('#')), "{tables}");
+    // The features read from Python as they are stored, with the split rlmflow made.
+    let env = rlmflow_python::ensure(&mut |_| {}).unwrap();
+    let check = "import rlmflow, sys\ne = rlmflow.load('own-probe.toml', 'embed[clip]').read()\nl = rlmflow.load('own-probe.toml', 'labels').read()\nassert e.cls().shape[0] == len(e.frames) == len(l.frames), e.cls().shape\nassert list(e.split) == list(l.split)\nprint(e.patches().shape)\n";
+    let py = Command::new(&env.python).args(["-c", check]).current_dir(&dir).env("RLMFLOW_BIN", env!("CARGO_BIN_EXE_rlmflow")).output().unwrap();
+    assert!(py.status.success(), "{}", String::from_utf8_lossy(&py.stderr));
+
+    let (ok, again) = rlmflow(&dir, &["run", "own-probe.toml", "--json"]);
+    assert!(ok && finished(&again, "ran").is_empty(), "{again}");
+    std::fs::write(dir.join("probes/notes.md"), "edited\n").unwrap();
+    let (ok, status) = rlmflow(&dir, &["status", "own-probe.toml"]);
+    assert!(ok && !status.contains("will run"), "{status}");
+    let script = std::fs::read_to_string(dir.join("probes/knn.py")).unwrap();
+    std::fs::write(dir.join("probes/knn.py"), script + "# an edit that changes no prediction\n").unwrap();
+    let (ok, status) = rlmflow(&dir, &["status", "own-probe.toml"]);
+    assert!(ok && status.lines().any(|l| l.contains("knn[clip]") && l.contains("probes/knn.py changed")), "{status}");
+    let (ok, edited) = rlmflow(&dir, &["run", "own-probe.toml", "--json"]);
+    assert!(ok, "{edited}");
+    let ran: Vec<String> = finished(&edited, "ran").into_iter().map(|(label, _)| label).collect();
+    assert_eq!(ran, ["knn[clip]", "knn[random]"], "the same predictions cut off the report: {edited}");
 }

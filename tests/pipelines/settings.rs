@@ -30,9 +30,27 @@ fn tiny_pipeline(operator: &str, setting: &str, value: &serde_json::Value, llm: 
              [stages.x]\nkind = \"captions\"\noperator = \"llm\"\nbase_url = \"{llm}\"\nmodel = \"fake\"\nn = 2\nregenerate = 0\non_mismatch = \"keep\"\n"
         ),
         "import" => format!("[stages.x]\nkind = \"scenes\"\noperator = \"import\"\npath = \"{}\"\nimage = 32\n", import::walk_recording().display()),
+        script if script.starts_with("script@") => format!("{SCRIPT_DATA}[stages.x]\n{}", script_stage(&script["script@".len()..])),
         other => panic!("no tiny pipeline for `{other}`, which declares settings outside its key: add one here"),
     };
     format!("[pipeline]\nname = \"walk\"\nseed = 3\n{stage}{setting} = {value}\n")
+}
+
+/// What a script stage of any kind reads: scenes, labels, captions, tokens.
+const SCRIPT_DATA: &str = "[stages.scenes]\noperator = \"procedural\"\nframes = 12\nradar = { image = 16 }\n[stages.labels]\noperator = \"ego-grid\"\n\
+     [stages.captions]\noperator = \"template\"\n[stages.tokens]\noperator = \"bpe\"\nvocab = 300\ncontext = 32\n";
+
+/// The body of a script stage of `kind` (its table's keys), a one-line program that predicts
+/// nothing for every test frame (a probe, a segmenter) or writes its settings (files).
+fn script_stage(kind: &str) -> String {
+    let code = match kind {
+        "probe" => "from rlmflow import stage; import json; c = stage.context(); l = c.read('labels'); open(c.output / 'predictions.jsonl', 'w').write(''.join(json.dumps({'frame': i, 'features': 'zero', 'counts': [0] * 48}) + '\\n' for i, s in enumerate(l.split) if s == 'test'))",
+        "segment" => "from rlmflow import stage; import numpy as np; c = stage.context(); l = c.read('labels'); m = l.masks(); np.save(c.output / 'predictions.npy', np.zeros((int((l.split == 'test').sum()),) + m.shape[1:], np.float32))",
+        "files" => "from rlmflow import stage; import json; c = stage.context(); open(c.output / 'settings.json', 'w').write(json.dumps(c.settings))",
+        other => panic!("no script stage of kind `{other}`"),
+    };
+    let inputs = if kind == "files" { "inputs = { scenes = \"scenes\" }\n" } else { "" };
+    format!("kind = \"{kind}\"\noperator = \"script\"\nrun = [\"python\", \"-c\", {}]\nsettings = {{ k = 1 }}\n{inputs}", serde_json::json!(code))
 }
 
 /// Another valid value for a setting that cannot change a result.
@@ -74,7 +92,16 @@ fn every_setting_of_every_operator_enters_the_key_or_leaves_the_bytes_alone() {
     let mut config_paths: std::collections::BTreeMap<String, Vec<(std::collections::BTreeSet<String>, serde_json::Value)>> = Default::default();
     let (ok, out) = rlmflow(&llm_dir, &["run", "p.toml"]);
     assert!(ok, "{out}");
-    for store in [ci::ci_run().store(), llm_dir.join(".rlmflow")] {
+    // A user's program as each kind it serves.
+    let script_dir = scratch("walk-script", &format!("[pipeline]\nname = \"walk-script\"\nseed = 3\n{}", SCRIPT_DATA));
+    let mut stages = String::new();
+    for kind in ["probe", "segment", "files"] {
+        stages += &format!("[stages.{kind}-script]\n{}", script_stage(kind));
+    }
+    std::fs::write(script_dir.join("p.toml"), std::fs::read_to_string(script_dir.join("p.toml")).unwrap() + &stages).unwrap();
+    let (ok, out) = rlmflow(&script_dir, &["run", "p.toml"]);
+    assert!(ok, "{out}");
+    for store in [ci::ci_run().store(), llm_dir.join(".rlmflow"), script_dir.join(".rlmflow")] {
         let store = rlmflow_cache::Store::open_existing(&store).unwrap().unwrap();
         for key in store.record_keys().unwrap() {
             let preimage = store.record(&key).unwrap().unwrap().preimage;
@@ -84,7 +111,7 @@ fn every_setting_of_every_operator_enters_the_key_or_leaves_the_bytes_alone() {
         }
     }
     for op in &operators {
-        let name = op["name"].as_str().unwrap();
+        let name = op["id"].as_str().unwrap();
         let non_result: Vec<&str> = op["non_result"].as_array().unwrap().iter().map(|k| k.as_str().unwrap()).collect();
         // A tracked path, when set, enters the key by its content (an input), not by its name;
         // left empty (an optional one, as `init` is by default) it stays in the key as "".
@@ -107,7 +134,7 @@ fn every_setting_of_every_operator_enters_the_key_or_leaves_the_bytes_alone() {
 
     // Each setting declared outside the result, at two values: the same bytes.
     for op in &operators {
-        let name = op["name"].as_str().unwrap();
+        let name = op["id"].as_str().unwrap();
         for setting in op["non_result"].as_array().unwrap().iter().map(|k| k.as_str().unwrap()) {
             let default = &op["defaults"][setting];
             let digests: Vec<rlmflow_cache::Digest> = [default.clone(), another(default)]

@@ -7,7 +7,8 @@ use rlmflow_stages::{ItemCount, Registry};
 
 #[derive(clap::Args)]
 pub(crate) struct Args {
-    /// One JSON object per line, per operator: name, kind, version, summary, inputs, produces,
+    /// One JSON object per line, per operator: id (as keys name it: the name, or `NAME@KIND`
+    /// for an operator serving several kinds), name, kind, version, summary, inputs, produces,
     /// merge (the operator joining its shards, or null), defaults, non_result, tracked, claims
     /// (the setting the engine fills from `[claims]`, or null).
     #[arg(long)]
@@ -28,8 +29,9 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
                     .filter(|slot| reads.contains(&slot.name))
                     .map(|slot| (slot.name.to_owned(), serde_json::json!(slot.artifact.to_string())))
                     .collect();
+                let id = registry.find(kind.name, spec.name).map(|(id, _)| id);
                 let line = serde_json::json!({
-                    "name": spec.name, "kind": spec.kind, "version": spec.version, "summary": spec.summary,
+                    "id": id, "name": spec.name, "kind": spec.kind, "version": spec.version, "summary": spec.summary,
                     "inputs": inputs, "produces": kind.produces.to_string(), "merge": op.merge(),
                     "defaults": defaults, "non_result": op.non_result_keys(), "tracked": op.tracked_keys(),
                     "claims": op.claims_key()

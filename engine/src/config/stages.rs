@@ -141,12 +141,14 @@ impl Checker {
             match op.settings(Value::Object(merged)) {
                 Ok(settings) => {
                     let mut tracked = Vec::new();
+                    let root = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
                     for &key in op.tracked_keys() {
-                        let checked = match op.tracked_files(&settings, key) {
-                            Ok(Some(patterns)) => chosen_files(dir, &patterns).map(|files| {
-                                let root = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
-                                (!files.is_empty()).then_some(Source::Files { root, files })
-                            }),
+                        let files = op.tracked_files(&settings, key);
+                        let what = if matches!(files, Ok(Some(_))) { "files or globs (`probes/*.py`)" } else { "a file or directory" };
+                        let checked = match files {
+                            Ok(Some(patterns)) => {
+                                chosen_files(dir, &patterns).map(|files| (!files.is_empty()).then(|| Source::Files { root: root.clone(), files }))
+                            }
                             Ok(None) => tracked_path(op, &settings, key, dir),
                             Err(e) => Err(e.message),
                         };
@@ -161,7 +163,7 @@ impl Checker {
                             Some((v, overrides)) if overrides.contains_key(key) => format!("{path}.variants.{v}.{key}"),
                             _ => format!("{path}.{key}"),
                         };
-                        let help = Some(format!("a file or directory, relative to the pipeline file's directory ({})", dir.display()));
+                        let help = Some(format!("{what}, relative to the pipeline file's directory ({})", root.display()));
                         if reported.insert((at.clone(), message.clone())) {
                             self.error(self.line(&at), &at, message, help);
                         }

@@ -54,7 +54,7 @@ pub fn check(kind: &str, s: &ScriptSettings, ctx: &Context, reported: Reported) 
             metrics = with_script(segment::metrics(&seg), metrics);
             if summary.is_empty() { line } else { format!("{line}; {summary}") }
         }
-        _ if summary.is_empty() => format!("{} files", files.len()),
+        _ if summary.is_empty() => format!("{} file{}", files.len(), if files.len() == 1 { "" } else { "s" }),
         _ => summary,
     };
     Ok(Outcome { metrics, summary })
@@ -110,13 +110,15 @@ fn score_probe(s: &ScriptSettings, ctx: &Context) -> anyhow::Result<probe::Summa
     if !file.is_file() {
         bail!("{}: a probe script writes `{}` (per test frame and row: {{\"frame\", \"features\", \"grid\"}}); the program wrote none", ctx.stage, probe::PREDICTIONS);
     }
-    let predictions = read_predictions(&file).map_err(|e| anyhow::anyhow!("{}: {e}", ctx.stage))?;
+    // Named as the program wrote it, not by the action's directory in the store.
+    let predictions =
+        probe::read_predictions(out).map_err(|e| anyhow::anyhow!("{}: {}", ctx.stage, format!("{e:#}").replace(&format!("{}/", out.display()), "")))?;
     let (labels, test) = test_split(ctx)?;
     let position: BTreeMap<u64, usize> = test.iter().enumerate().map(|(i, &f)| (f, i)).collect();
     // Each row's grids by test position, rows in the order they first appear.
     let mut rows: Vec<(String, Vec<Option<[u32; CELLS]>>)> = Vec::new();
     for (n, (frame, features, grid)) in predictions.into_iter().enumerate() {
-        let at = |what: String| anyhow::anyhow!("{}: {}:{}: {what}", ctx.stage, probe::PREDICTIONS, n + 1);
+        let at = |what: String| anyhow::anyhow!("{}: {}: prediction {}: {what}", ctx.stage, probe::PREDICTIONS, n + 1);
         let Some(&p) = position.get(&frame) else {
             return Err(at(format!("frame {frame} is not a test frame of the labels' split ({} test frames)", test.len())));
         };
@@ -174,33 +176,6 @@ fn score_probe(s: &ScriptSettings, ctx: &Context) -> anyhow::Result<probe::Summa
     std::fs::write(&file, canonical)?;
     std::fs::write(out.join(probe::SUMMARY), serde_json::to_vec_pretty(&summary)?)?;
     Ok(summary)
-}
-
-/// The program's `predictions.jsonl`: per line its frame, row and 48 counts.
-fn read_predictions(file: &Path) -> Result<Vec<(u64, String, [u32; CELLS])>, String> {
-    let text = std::fs::read_to_string(file).map_err(|e| format!("reading {}: {e}", file.display()))?;
-    let mut out = Vec::new();
-    for (n, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
-        let bad = |what: String| format!("{}:{}: {what}", probe::PREDICTIONS, n + 1);
-        let v: Value = serde_json::from_str(line).map_err(|e| bad(format!("not JSON: {e}")))?;
-        let frame = v["frame"].as_u64().ok_or_else(|| bad("`frame` must be a frame's index (a whole number)".into()))?;
-        let features = v["features"].as_str().filter(|f| !f.is_empty()).ok_or_else(|| bad("`features` must name the row (a string)".into()))?;
-        let counts = match (&v["grid"], &v["counts"]) {
-            (Value::Null, Value::Array(items)) if items.len() == CELLS => {
-                let mut counts = [0u32; CELLS];
-                for (c, item) in items.iter().enumerate() {
-                    counts[c] = item.as_u64().and_then(|n| u32::try_from(n).ok()).ok_or_else(|| bad(format!("`counts.{c}` must be a count, not {item}")))?;
-                }
-                counts
-            }
-            (Value::Null, Value::Array(items)) => return Err(bad(format!("`counts` holds {} numbers; it holds the {CELLS} cells'", items.len()))),
-            (grid, Value::Null) if !grid.is_null() => Grid::from_json(grid).map_err(|e| bad(format!("`grid`: {e}")))?.counts,
-            (Value::Null, Value::Null) => return Err(bad("give the prediction as `grid` (the paper's JSON) or `counts` (48 counts)".into())),
-            _ => return Err(bad("give `grid` or `counts`, not both (or `counts` as a list)".into())),
-        };
-        out.push((frame, features.to_owned(), counts));
-    }
-    Ok(out)
 }
 
 fn score_segmenter(s: &ScriptSettings, ctx: &Context) -> anyhow::Result<segment::Summary> {

@@ -263,6 +263,34 @@ class Encoder(_Reader):
         return model.eval()
 
 
+class Embeddings(_Reader):
+    """A frozen encoder's features: `cls.npy`, `mean_patch.npy`, `patches.npy` (float32, frames
+    first), `frames.jsonl` (each frame's identity and split) and the encoder's learnt sets."""
+
+    MARKER = "embed.json"
+
+    def __init__(self, dir):
+        super().__init__(dir)
+        self.frames = _lines(self.dir / "frames.jsonl")
+
+    @property
+    def split(self):
+        """Each frame's split (`train` or `test`), in frame order."""
+        return _numpy().array([f["split"] for f in self.frames])
+
+    def cls(self):
+        return _numpy().load(self.dir / "cls.npy")
+
+    def mean_patch(self):
+        return _numpy().load(self.dir / "mean_patch.npy")
+
+    def patches(self):
+        return _numpy().load(self.dir / "patches.npy")
+
+    def trained_frames(self):
+        return (self.dir / "trained_frames.txt").read_text().split()
+
+
 class ProbeReport(_Reader):
     """`probe.json` (scored rows, per bin and cell) and `predictions.jsonl` (each test frame's grid)."""
 
@@ -303,7 +331,7 @@ class Report(_Reader):
         return self.dir / "report.html"
 
 
-READERS = {reader.__name__: reader for reader in (Scenes, Labels, Captions, Tokens, Encoder, ProbeReport, SegReport, Report)}
+READERS = {reader.__name__: reader for reader in (Scenes, Labels, Captions, Tokens, Encoder, Embeddings, ProbeReport, SegReport, Report)}
 
 
 def open(dir, type=None):

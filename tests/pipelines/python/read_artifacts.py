@@ -43,6 +43,11 @@ for stage in stages:
             weights = reader.weights()
             assert any(n.startswith("visual.") for n in weights) and "text_projection" in weights, sorted(weights)[:5]
             fact.update(tensors=len(weights), trained=len(reader.trained_frames()))
+        elif artifact.type == "Embeddings":
+            cls, mean = reader.cls(), reader.mean_patch()
+            assert cls.shape[0] == mean.shape[0] == len(reader.frames) == reader.summary["frames"], artifact.label
+            assert [list(cls.shape), list(mean.shape)] == [reader.summary["arrays"]["cls.npy"], reader.summary["arrays"]["mean_patch.npy"]]
+            fact.update(shape=list(cls.shape), sum=float(cls.astype(np.float64).sum()), test=int((reader.split == "test").sum()))
         elif artifact.type == "ProbeReport":
             for row in reader.summary["rows"]:
                 assert row["scores"]["overall"]["f1"] == metrics[row["features"]]["f1"], (artifact.label, row["features"])
