@@ -33,10 +33,8 @@ fn pinned(lock: &str) -> impl Iterator<Item = &str> {
 /// The `rlmflow` Python package (`python/package`: reads a store's artifacts), each file as
 /// `(path under site-packages, content)`: written into the environment after the lock, and part
 /// of the environment's name, so a changed package gets a new environment.
-pub const PACKAGE: &[(&str, &str)] = &[
-    ("rlmflow/__init__.py", include_str!("../package/rlmflow/__init__.py")),
-    ("rlmflow/stage.py", include_str!("../package/rlmflow/stage.py")),
-];
+pub const PACKAGE: &[(&str, &str)] =
+    &[("rlmflow/__init__.py", include_str!("../package/rlmflow/__init__.py")), ("rlmflow/stage.py", include_str!("../package/rlmflow/stage.py"))];
 
 /// Python older than this cannot install the lock (numpy 2.4 needs 3.11).
 pub const MIN_VERSION: (u32, u32) = (3, 11);
@@ -206,10 +204,7 @@ fn create(
         fs::create_dir_all(file.parent().expect("a package file has a directory"))?;
         fs::write(&file, content).with_context(|| format!("writing {}", file.display()))?;
     }
-    run(
-        Command::new(&venv_python).args(["-c", &format!("import {imports}")]),
-        "checking the packages import",
-    )?;
+    run(Command::new(&venv_python).args(["-c", &format!("import {imports}")]), "checking the packages import")?;
     // The venv is moved into place: record paths as they will be.
     let relative = site_packages.strip_prefix(scratch).context("site-packages lies outside the venv")?.to_path_buf();
     let env = Environment { root: root.to_path_buf(), python: root.join("bin/python"), site_packages: root.join(relative), version: version.into() };

@@ -47,8 +47,8 @@ pub use kind::{Arity, Catalog, Need, Slot, StageKind};
 pub use memory::Footprint;
 pub use numerics::{Kernels, Numerics};
 pub use operator::{
-    DynOperator, FilePattern, InWorker, InputOutlines, ItemCount, Items, ModelOutline, Operator, OperatorSpec, Outcome, Outline, Part, Registry, Resources,
-    SettingError, Settings, Sharding, Share,
+    DynOperator, FilePattern, InWorker, InputOutlines, ItemCount, Items, ModelOutline, Operator, OperatorSpec, Outcome, Outline, Part, Registry,
+    Resources, SettingError, Settings, Sharding, Share,
 };
 pub use training::Training;
 

@@ -221,7 +221,8 @@ pub fn read_predictions(dir: &std::path::Path) -> anyhow::Result<Vec<(u64, Strin
             (Value::Null, Value::Array(items)) if items.len() == CELLS => {
                 let mut counts = [0u32; CELLS];
                 for (c, item) in items.iter().enumerate() {
-                    counts[c] = item.as_u64().and_then(|n| u32::try_from(n).ok()).ok_or_else(|| bad(format!("`counts.{c}` must be a count, not {item}")))?;
+                    counts[c] =
+                        item.as_u64().and_then(|n| u32::try_from(n).ok()).ok_or_else(|| bad(format!("`counts.{c}` must be a count, not {item}")))?;
                 }
                 counts
             }

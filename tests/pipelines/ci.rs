@@ -105,7 +105,8 @@ fn the_ci_pipeline_computes_the_shipped_digests_of_another_machine() {
     }
 }
 
-/// One probe setting changed: only that probe's instances and the report run again.
+/// One probe setting changed: only that probe's instances and what reads them (the report, the
+/// `f1` table) run again.
 #[test]
 fn a_changed_probe_setting_reruns_only_that_probe_and_the_report() {
     let text = std::fs::read_to_string(root().join("examples/ci.toml")).unwrap();
@@ -115,7 +116,7 @@ fn a_changed_probe_setting_reruns_only_that_probe_and_the_report() {
     let (ok, third) = rlmflow(&dir, &["run", "ci.toml", "--json"]);
     assert!(ok, "{third}");
     let ran: Vec<String> = finished(&third, "ran").into_iter().map(|(stage, _)| stage).collect();
-    assert_eq!(ran, ["pixels", "report"], "{third}");
+    assert_eq!(ran, ["f1", "pixels", "report"], "{third}");
 }
 
 /// `rlmflow push` of the CI pipeline's results to a directory remote; a fresh store in a folder of
@@ -465,10 +466,15 @@ fn the_python_package_reads_every_artifact_type_as_rlmflow_shows_it() {
                 assert_eq!(fact["test"].as_u64(), Some(summary.test_frames), "{label}");
             }
             "Report" => assert!(fact["sections"].as_array().is_some_and(|s| !s.is_empty()), "{label}"),
+            "Files" => {
+                let csv = std::fs::read_to_string(dir.join("f1.csv")).unwrap();
+                assert_eq!(fact["files"], serde_json::json!(["f1.csv"]), "{label}");
+                assert!(csv.starts_with("probe,features,f1\n") && csv.contains("pixels,pixels,"), "{label}: {csv}");
+            }
             other => panic!("{label}: an artifact type the test does not know: {other}"),
         }
     }
-    let all = ["Captions", "Embeddings", "Encoder", "Labels", "ProbeReport", "Report", "Scenes", "SegReport", "Tokens"];
+    let all = ["Captions", "Embeddings", "Encoder", "Files", "Labels", "ProbeReport", "Report", "Scenes", "SegReport", "Tokens"];
     assert_eq!(types.iter().map(String::as_str).collect::<Vec<_>>(), all, "every artifact type the CI run ships");
     // A setting changed and not run (under the run's name: the reason is against its last run):
     // the package computes nothing and says why.

@@ -120,7 +120,8 @@ fn a_probe_script_is_scored_by_rlmflow_reports_through_the_protocol_and_follows_
     let record = &shown["instances"][0]["record"];
     assert_eq!(record["metrics"]["script"]["train_frames"], summary["train_frames"], "{shown}");
     assert_eq!(record["metrics"]["mean"]["f1"].as_f64(), Some(f1), "{shown}");
-    let log = std::fs::read_dir(dir.path().join(".rlmflow/runs")).unwrap().flatten().map(|r| r.path().join("logs/mean.log")).find(|l| l.exists()).unwrap();
+    let log =
+        std::fs::read_dir(dir.path().join(".rlmflow/runs")).unwrap().flatten().map(|r| r.path().join("logs/mean.log")).find(|l| l.exists()).unwrap();
     assert!(std::fs::read_to_string(log).unwrap().contains("the program's own line"));
 
     // A file outside `sources` changes nothing; a comment in the script reruns it, with the

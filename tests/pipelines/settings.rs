@@ -44,8 +44,12 @@ const SCRIPT_DATA: &str = "[stages.scenes]\noperator = \"procedural\"\nframes = 
 /// nothing for every test frame (a probe, a segmenter) or writes its settings (files).
 fn script_stage(kind: &str) -> String {
     let code = match kind {
-        "probe" => "from rlmflow import stage; import json; c = stage.context(); l = c.read('labels'); open(c.output / 'predictions.jsonl', 'w').write(''.join(json.dumps({'frame': i, 'features': 'zero', 'counts': [0] * 48}) + '\\n' for i, s in enumerate(l.split) if s == 'test'))",
-        "segment" => "from rlmflow import stage; import numpy as np; c = stage.context(); l = c.read('labels'); m = l.masks(); np.save(c.output / 'predictions.npy', np.zeros((int((l.split == 'test').sum()),) + m.shape[1:], np.float32))",
+        "probe" => {
+            "from rlmflow import stage; import json; c = stage.context(); l = c.read('labels'); open(c.output / 'predictions.jsonl', 'w').write(''.join(json.dumps({'frame': i, 'features': 'zero', 'counts': [0] * 48}) + '\\n' for i, s in enumerate(l.split) if s == 'test'))"
+        }
+        "segment" => {
+            "from rlmflow import stage; import numpy as np; c = stage.context(); l = c.read('labels'); m = l.masks(); np.save(c.output / 'predictions.npy', np.zeros((int((l.split == 'test').sum()),) + m.shape[1:], np.float32))"
+        }
         "files" => "from rlmflow import stage; import json; c = stage.context(); open(c.output / 'settings.json', 'w').write(json.dumps(c.settings))",
         other => panic!("no script stage of kind `{other}`"),
     };

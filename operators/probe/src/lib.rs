@@ -218,7 +218,7 @@ fn clipcap_spec() -> OperatorSpec {
         name: "clipcap",
         kind: "probe",
         version: 8,
-        inputs: None,
+        inputs: Some(&["encoder", "scenes", "labels", "tokens"]),
         summary: "ClipCap caption probe: mapper and GPT decoder on the frozen CLS embedding, captions parsed and scored per cell",
     }
 }
@@ -313,7 +313,11 @@ pub fn embed() -> InWorker<EmbedSettings> {
             summary: "a frozen encoder's CLS embedding, mean patch token and patch tokens of every frame, as .npy arrays with the split",
         },
         worker: WORKER,
-        resources: |s| Resources { threads: s.threads, kernels: Some(Kernels { numerics: s.numerics, device: Device::Auto }), ..Resources::default() },
+        resources: |s| Resources {
+            threads: s.threads,
+            kernels: Some(Kernels { numerics: s.numerics, device: Device::Auto }),
+            ..Resources::default()
+        },
         outline: Outline::pass_on,
         footprint: |_, _, _| None,
         metrics: |_| Vec::new(),

@@ -141,11 +141,10 @@ mod tests {
         let s = ScriptSettings { run: vec!["python".into(), "probes/knn.py".into()], sources: vec!["probes/*.py".into()], ..Default::default() };
         assert_eq!(s.check(), Ok(()));
         let patterns = s.tracked_files("sources").unwrap();
-        assert_eq!(patterns.iter().map(|p| (p.pattern.as_str(), p.required)).collect::<Vec<_>>(), [
-            ("python", false),
-            ("probes/knn.py", false),
-            ("probes/*.py", true)
-        ]);
+        assert_eq!(
+            patterns.iter().map(|p| (p.pattern.as_str(), p.required)).collect::<Vec<_>>(),
+            [("python", false), ("probes/knn.py", false), ("probes/*.py", true)]
+        );
         assert_eq!(s.tracked_files("environment"), None, "the lock is one path");
         assert_eq!(ScriptSettings::default().check().unwrap_err().key, "run");
         let set = ScriptSettings { python: "3.99 0000".into(), ..s.clone() };

@@ -108,11 +108,15 @@ fn score_probe(s: &ScriptSettings, ctx: &Context) -> anyhow::Result<probe::Summa
     let out = &ctx.output_dir;
     let file = out.join(probe::PREDICTIONS);
     if !file.is_file() {
-        bail!("{}: a probe script writes `{}` (per test frame and row: {{\"frame\", \"features\", \"grid\"}}); the program wrote none", ctx.stage, probe::PREDICTIONS);
+        bail!(
+            "{}: a probe script writes `{}` (per test frame and row: {{\"frame\", \"features\", \"grid\"}}); the program wrote none",
+            ctx.stage,
+            probe::PREDICTIONS
+        );
     }
     // Named as the program wrote it, not by the action's directory in the store.
-    let predictions =
-        probe::read_predictions(out).map_err(|e| anyhow::anyhow!("{}: {}", ctx.stage, format!("{e:#}").replace(&format!("{}/", out.display()), "")))?;
+    let predictions = probe::read_predictions(out)
+        .map_err(|e| anyhow::anyhow!("{}: {}", ctx.stage, format!("{e:#}").replace(&format!("{}/", out.display()), "")))?;
     let (labels, test) = test_split(ctx)?;
     let position: BTreeMap<u64, usize> = test.iter().enumerate().map(|(i, &f)| (f, i)).collect();
     // Each row's grids by test position, rows in the order they first appear.
@@ -191,7 +195,12 @@ fn score_segmenter(s: &ScriptSettings, ctx: &Context) -> anyhow::Result<segment:
     let side = labels.summary.mask.size;
     let npy = Npy::open(&file).map_err(|e| anyhow::anyhow!("{}: {e:#}", ctx.stage))?;
     if npy.shape != [test.len(), side, side] {
-        bail!("{}: {PREDICTIONS_NPY} has shape {:?}; it must be [{}, {side}, {side}] (the test frames, in the split's order, at the masks' size)", ctx.stage, npy.shape, test.len());
+        bail!(
+            "{}: {PREDICTIONS_NPY} has shape {:?}; it must be [{}, {side}, {side}] (the test frames, in the split's order, at the masks' size)",
+            ctx.stage,
+            npy.shape,
+            test.len()
+        );
     }
     let scale = if npy.dtype == Dtype::U8 { 1.0 / 255.0 } else { 1.0 };
     let all = npy.all_f32().map_err(|e| anyhow::anyhow!("{}: {e:#}", ctx.stage))?;

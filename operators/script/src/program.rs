@@ -84,6 +84,7 @@ pub fn run(s: &ScriptSettings, ctx: &mut Context) -> anyhow::Result<Reported> {
             Ok(Message::Event { name, data }) => ctx.event(&name, data),
             Ok(Message::Metrics(metrics)) => reported.metrics.extend(metrics),
             Ok(Message::Summary(summary)) => reported.summary = summary,
+            Ok(Message::Live(dir)) => ctx.live(&ctx.checkpoint_dir.join(dir)),
             Err(why) => {
                 bad_line = Some(format!("{stage}: line {} of `{shown}`'s output is a malformed protocol message: {why}\n  the line: {line}", n + 1));
                 let _ = child.kill();
@@ -106,7 +107,11 @@ pub fn run(s: &ScriptSettings, ctx: &mut Context) -> anyhow::Result<Reported> {
             None => format!("was stopped by a signal ({status})"),
         };
         let tail: Vec<String> = tail.into_iter().collect();
-        let tail = if tail.is_empty() { "  (it wrote nothing to stderr)".to_owned() } else { tail.iter().map(|l| format!("  | {l}")).collect::<Vec<_>>().join("\n") };
+        let tail = if tail.is_empty() {
+            "  (it wrote nothing to stderr)".to_owned()
+        } else {
+            tail.iter().map(|l| format!("  | {l}")).collect::<Vec<_>>().join("\n")
+        };
         bail!("{stage}: `{shown}` {how}; the end of its stderr (the stage's log holds it all):\n{tail}");
     }
     let after = inputs_state(ctx)?;
@@ -142,7 +147,10 @@ fn resolve(s: &ScriptSettings, ctx: &Context, sources: Option<&Path>) -> anyhow:
         return Ok(file);
     }
     if program.contains('/') {
-        bail!("{}: `{program}` is not a file below the pipeline's directory (a program there must be named by its path from the pipeline file)", ctx.stage);
+        bail!(
+            "{}: `{program}` is not a file below the pipeline's directory (a program there must be named by its path from the pipeline file)",
+            ctx.stage
+        );
     }
     let path = std::env::var_os("PATH").unwrap_or_default();
     std::env::split_paths(&path)

@@ -115,7 +115,7 @@ fn pup_spec() -> OperatorSpec {
         name: "pup",
         kind: "segment",
         version: 9,
-        inputs: None,
+        inputs: Some(&["encoder", "scenes", "labels"]),
         summary: "progressive-upsampling decoder on the frozen encoder's patch tokens, with its attention rollout (libtorch, in rlmflow-torch)",
     }
 }

@@ -331,6 +331,19 @@ class Report(_Reader):
         return self.dir / "report.html"
 
 
+class Files:
+    """A `files` stage's output (a script's): whatever its program wrote, marked by no file, so
+    only read as this type when the type is named (`Artifact.read`, `open(dir, "Files")`)."""
+
+    def __init__(self, dir):
+        self.dir = Path(dir)
+
+    @property
+    def files(self):
+        """Every file, by its path below the artifact, sorted."""
+        return sorted(str(p.relative_to(self.dir)) for p in self.dir.rglob("*") if p.is_file())
+
+
 READERS = {reader.__name__: reader for reader in (Scenes, Labels, Captions, Tokens, Encoder, Embeddings, ProbeReport, SegReport, Report)}
 
 
@@ -342,8 +355,10 @@ def open(dir, type=None):
         if len(marked) != 1:
             raise ValueError(f"{dir}: not an artifact this package reads (it marks {marked or 'no type'}); types: {', '.join(READERS)}")
         type = marked[0]
+    if type == "Files":
+        return Files(dir)
     if type not in READERS:
-        raise ValueError(f"{dir}: no reader for `{type}`; types: {', '.join(READERS)}")
+        raise ValueError(f"{dir}: no reader for `{type}`; types: {', '.join(READERS)}, Files")
     if not (dir / READERS[type].MARKER).is_file():
         raise ValueError(f"{dir}: holds no `{READERS[type].MARKER}`: it is not a {type} artifact")
     return READERS[type](dir)

@@ -20,7 +20,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["Context", "context", "progress", "event", "metrics", "summary"]
+__all__ = ["Context", "context", "progress", "event", "metrics", "summary", "live"]
 
 
 @dataclass(frozen=True)
@@ -92,3 +92,9 @@ def metrics(**values):
 
 def summary(text):
     _send({"summary": str(text)})
+
+
+def live(dir):
+    """Says that `dir` (below the checkpoint directory) shows the work as it goes, TensorBoard
+    event files say: `results/` links the stage there until its output is committed."""
+    _send({"live": str(dir)})
