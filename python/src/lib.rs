@@ -116,6 +116,13 @@ fn env_digest(lock: &str, version: &str) -> String {
     hasher.finalize().to_hex()[..16].to_owned()
 }
 
+/// The interpreter's `major.minor.micro`, asked without its site packages; `None` where it does
+/// not answer (`interpreter_version` then says why).
+fn quick_version(python: &Path) -> Option<String> {
+    let out = Command::new(python).args(["-S", "-c", "import sys; print('%d.%d.%d' % sys.version_info[:3])"]).stderr(Stdio::null()).output().ok()?;
+    out.status.success().then(|| String::from_utf8_lossy(&out.stdout).trim().to_string())
+}
+
 /// Where the environment for this lock and interpreter lives, whether or not it exists.
 fn env_dir(lock: &str, version: &str) -> anyhow::Result<PathBuf> {
     Ok(data_dir()?.join("python").join(format!("env-{}", env_digest(lock, version))))
@@ -154,6 +161,13 @@ pub fn ensure(note: &mut dyn FnMut(&str)) -> anyhow::Result<Environment> {
 /// is what it must import once made.
 pub fn ensure_lock(lock: &str, imports: &str, note: &mut dyn FnMut(&str)) -> anyhow::Result<Environment> {
     let python = base_interpreter();
+    // An environment that exists is found by the interpreter's version alone (a few ms); one
+    // to be made needs the full check (venv and pip present, new enough).
+    if let Some(version) = quick_version(&python)
+        && let Some(env) = read_ready(&env_dir(lock, &version)?)?
+    {
+        return Ok(env);
+    }
     let version = interpreter_version(&python)?;
     let root = env_dir(lock, &version)?;
     if let Some(env) = read_ready(&root)? {
