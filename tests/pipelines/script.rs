@@ -289,3 +289,23 @@ fn a_probe_scripts_predictions_must_cover_the_test_split_once_per_row() {
         assert!(!ok && out.contains("FAILED   mean") && out.contains(says), "{body}: {out}");
     }
 }
+
+/// A segment script's masks are scored as every segmenter's: the true masks themselves score
+/// IoU and AP 1, and masks of the wrong shape are refused, naming the shape it must have.
+#[test]
+fn a_segment_scripts_masks_are_scored_as_every_segmenters() {
+    let truth = "import numpy as np\nfrom rlmflow import stage\nctx = stage.context()\nl = ctx.read('labels')\nm = l.masks()[l.split == 'test']\nnp.save(ctx.output / 'predictions.npy', (m / 255.0 >= 0.3).astype(np.float32){})\n";
+    let stage = "[stages.masks]\nkind = \"segment\"\noperator = \"script\"\nrun = [\"python\", \"masks.py\"]\n";
+    let dir = pipeline("script-segment", stage, &[("masks.py", &truth.replace("{}", ""))]);
+    let (ok, out) = rlmflow(dir.path(), &["run", "p.toml"]);
+    assert!(ok, "{out}");
+    let output = rlmflow_test_support::cli::output_dir(&dir.path().join(".rlmflow"), "p", "masks");
+    let summary = rlmflow_stages::segment::read_summary(&output).unwrap();
+    assert_eq!((summary.operator.as_str(), summary.metrics.iou, summary.metrics.ap), ("script", 1.0, 1.0), "{summary:?}");
+    let frames = rlmflow_stages::segment::read_frames(&output).unwrap();
+    assert_eq!(frames.len() as u64, summary.test_frames);
+    assert!(frames.iter().all(|f| f.iou == 1.0 && f.truth_pixels == f.predicted_pixels));
+    dir.write("masks.py", &truth.replace("{}", "[:, :-1]"));
+    let (ok, out) = rlmflow(dir.path(), &["run", "p.toml"]);
+    assert!(!ok && out.contains("predictions.npy has shape") && out.contains("it must be ["), "{out}");
+}
