@@ -309,3 +309,31 @@ fn a_segment_scripts_masks_are_scored_as_every_segmenters() {
     let (ok, out) = rlmflow(dir.path(), &["run", "p.toml"]);
     assert!(!ok && out.contains("predictions.npy has shape") && out.contains("it must be ["), "{out}");
 }
+
+/// On a HyperQueue cluster whose workers have stores of their own, a script's sources travel
+/// with its action through the remote cache, as any input does: the worker runs the program the
+/// key names and the run ends with a local run's keys and bytes.
+#[test]
+fn a_scripts_sources_travel_to_a_hyperqueue_worker_with_its_action() {
+    let stage = "[stages.x]\nkind = \"files\"\noperator = \"script\"\nrun = [\"python\", \"tools/count.py\"]\nsources = [\"tools/*.py\"]\ninputs = { labels = \"labels\" }\n";
+    let count = "from rlmflow import stage\nfrom helper import line\nctx = stage.context()\n(ctx.output / 'count.txt').write_text(line(len(ctx.read('labels').frames)))\n";
+    let files = [("tools/count.py", count), ("tools/helper.py", "def line(n):\n    return f'{n} frames\\n'\n")];
+    let local = pipeline("script-hq-local", stage, &files);
+    let (ok, out) = rlmflow(local.path(), &["run", "p.toml"]);
+    assert!(ok, "{out}");
+    let remote = std::env::temp_dir().join(format!("rlmflow-script-hq-remote-{}", std::process::id()));
+    let cluster = format!(
+        "remote = \"file://{}\"\nremote_push = true\nexecutor = \"hyperqueue\"\n\n[pipeline.hyperqueue]\nworkers = 1\ncores = 2\nworker_store = \"temporary\"\n",
+        remote.display()
+    );
+    let hq = pipeline("script-hq", stage, &files);
+    let text = std::fs::read_to_string(hq.path().join("p.toml")).unwrap().replacen("seed = 1\n", &format!("seed = 1\n{cluster}"), 1);
+    std::fs::write(hq.path().join("p.toml"), text).unwrap();
+    let (ok, out) = rlmflow(hq.path(), &["run", "p.toml"]);
+    let _ = std::fs::remove_dir_all(&remote);
+    assert!(ok, "{out}");
+    assert!(out.contains("hyperqueue"), "{out}");
+    assert_eq!(output_digest(hq.path(), "p", "x"), output_digest(local.path(), "p", "x"));
+    let output = rlmflow_test_support::cli::output_dir(&hq.path().join(".rlmflow"), "p", "x");
+    assert_eq!(std::fs::read_to_string(output.join("count.txt")).unwrap(), "24 frames\n");
+}
