@@ -50,6 +50,9 @@ impl Reporter for StdoutReporter {
     fn event(&self, name: &str, data: Value) {
         send(&Message::Event { name: name.to_owned(), data });
     }
+    fn live(&self, dir: &std::path::Path) {
+        send(&Message::Live { dir: dir.to_path_buf() });
+    }
 }
 
 /// The binary that runs `op`'s actions: this one, or the worker it names, beside this one.

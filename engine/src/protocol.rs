@@ -30,6 +30,11 @@ pub enum Message {
         name: String,
         data: Value,
     },
+    /// The action's work in progress shows in `dir` (a training's curves in its checkpoint):
+    /// the engine links its results entry there until the output is committed.
+    Live {
+        dir: std::path::PathBuf,
+    },
     CorruptInput {
         digest: Digest,
         files: Vec<String>,

@@ -13,8 +13,7 @@ use anyhow::Context as _;
 use indicatif::ProgressBar;
 use rlmflow_cache::{ActionRecord, Digest, GitState, Links, PlanEntry, Preimage, RunPlan, Store, file_safe, now_rfc3339, run_id};
 use rlmflow_remote::{Pulled, Remote, RemoteError};
-use rlmflow_stages::{Device, LIVE_EVENT, Registry};
-use serde_json::Value;
+use rlmflow_stages::{Device, Registry};
 
 use crate::config::{Executor as ExecutorKind, RemoteSettings};
 use crate::dispatch::{Dispatch, Exit, Launch, Local, Report};
@@ -273,10 +272,8 @@ impl Executor<'_> {
                     bar.set_position(position);
                     bar.set_message(message);
                 }
+                Report::Message(Message::Live { dir }) => self.link_live(i, &dir),
                 Report::Message(Message::Event { name, data }) => {
-                    if name == LIVE_EVENT {
-                        self.link_live(i, &data);
-                    }
                     self.events.write(Event::OperatorEvent { stage: self.plan.instances[i].label.clone(), name, data })?;
                 }
                 Report::Message(Message::Waiting) => bars[&i].set_message("waiting for another run computing it"),
@@ -405,11 +402,13 @@ impl Executor<'_> {
         self.link(i, |links, entry| links.point(entry, &output));
     }
 
-    /// A running instance's work in progress is in `data["dir"]`: its results entry points there
-    /// until its output is committed. A directory this machine cannot see (a cluster task's own
-    /// store) is not linked.
-    fn link_live(&mut self, i: usize, data: &Value) {
-        let Some(dir) = data["dir"].as_str().map(Path::new).filter(|d| d.is_dir()) else { return };
+    /// A running instance's work in progress is in `dir`: its results entry points there until
+    /// its output is committed. A directory this machine cannot see (a cluster task's own store)
+    /// is not linked.
+    fn link_live(&mut self, i: usize, dir: &Path) {
+        if !dir.is_dir() {
+            return;
+        }
         if self.link(i, |links, entry| links.point_at(entry, dir)) {
             self.instances[i].live_linked = true;
         }

@@ -27,21 +27,32 @@
 //!
 //! A remote is read-only unless made with `push`: pull requests and laptops read, trusted CI
 //! writes.
+//!
+//! Here: the client, its requests bounded by the timeout, and what each call found. Beside it,
+//! one job a module: `config` (the URL and `AWS_*` checks, opening a client), `pull` (record
+//! and artifact into the store, verified), `push` (artifact, then record, signed), `archive`
+//! (the tar an artifact travels as, unpacked within its record's bounds), `transcript` (a cluster
+//! task's output handed back), `signing` (record signatures, trusted keys) and `link` (the HTTP
+//! client whose bodies report their bytes).
 
+mod archive;
+mod config;
 mod link;
+mod pull;
+mod push;
 pub mod signing;
+mod transcript;
 
-use std::path::Path;
+pub use config::{BadRemote, check_url};
+
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use anyhow::{Context as _, bail};
-use link::{Watch, WatchedConnector};
-use object_store::aws::{AmazonS3Builder, AmazonS3ConfigKey};
+use link::Watch;
 use object_store::path::Path as Key;
-use object_store::{ClientOptions, ObjectStore, ObjectStoreExt, PutPayload, RetryConfig};
-use rlmflow_cache::{ActionRecord, Digest, PulledFrom, SIGNED_FORMAT, Store, hash_tree};
+use object_store::{ObjectStore, ObjectStoreExt};
+use rlmflow_cache::{ActionRecord, Digest};
 use signing::{SigningKey, Trust, TrustedKeys};
 
 /// A remote cache at one URL. Shared by threads: pulls run beside the stages that compute.
@@ -143,161 +154,7 @@ pub enum Pulled {
     },
 }
 
-/// `Ok` for a remote URL this client can use, else what is wrong with it and what is valid:
-/// checked before any client is built (a malformed endpoint would otherwise panic inside the S3
-/// client), for `[pipeline] remote` at validation and for `--remote` before a run.
-pub fn check_url(url: &str) -> Result<(), BadRemote> {
-    const VALID: &str = "valid: s3://bucket/prefix, https://host/path (WebDAV), file:///path";
-    let bad = |problem: String| Err(BadRemote { variable: None, problem });
-    if let Some(rest) = url.strip_prefix("s3://") {
-        if rest.split('/').next().is_none_or(str::is_empty) {
-            return bad(format!("`{url}` names no bucket; {VALID}"));
-        }
-        // Every variable the S3 client reads, and the endpoint it names.
-        s3_from_env()?;
-        for var in ["AWS_ENDPOINT_URL", "AWS_ENDPOINT"] {
-            if let Ok(endpoint) = std::env::var(var) {
-                let in_variable = |problem| BadRemote { variable: Some(var.to_owned()), problem };
-                check_endpoint(&format!("the environment variable {var}"), &aws_value(var, &endpoint)?).map_err(in_variable)?;
-            }
-        }
-        Ok(())
-    } else if url.starts_with("http://") || url.starts_with("https://") {
-        check_endpoint("the remote", url).or_else(bad)
-    } else if let Some(path) = url.strip_prefix("file://") {
-        match path {
-            "" => bad(format!("`{url}` names no directory; {VALID}")),
-            p if !Path::new(p).is_absolute() => bad(format!("`{url}` is not an absolute path; {VALID}")),
-            _ => Ok(()),
-        }
-    } else {
-        bad(format!("`{url}`: unknown scheme; {VALID}"))
-    }
-}
-
-/// A remote URL, or an `AWS_*` variable the S3 client reads, that this client cannot use:
-/// [`check_url`]'s answer, before any client is built.
-#[derive(Clone, Debug, PartialEq)]
-pub struct BadRemote {
-    /// The environment variable at fault; `None`: the URL.
-    pub variable: Option<String>,
-    /// What is wrong, and what would be valid (it names the variable, never its value).
-    pub problem: String,
-}
-
-impl std::fmt::Display for BadRemote {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.problem)
-    }
-}
-
-impl std::error::Error for BadRemote {}
-
-/// The S3 client's settings from the standard `AWS_*` variables, read as
-/// `AmazonS3Builder::from_env` reads them, but each value without surrounding whitespace (a value
-/// from a secrets file ends with a newline more often than not) and a control character inside a
-/// value refused by the variable's name: the client panics on either.
-fn s3_from_env() -> Result<AmazonS3Builder, BadRemote> {
-    let mut builder = AmazonS3Builder::new();
-    for (name, value) in std::env::vars_os().filter_map(|(k, v)| Some((k.into_string().ok()?, v.into_string().ok()?))) {
-        if let Some(key) = name.starts_with("AWS_").then(|| name.to_ascii_lowercase().parse::<AmazonS3ConfigKey>().ok()).flatten() {
-            builder = builder.with_config(key, aws_value(&name, &value)?);
-        }
-    }
-    Ok(builder)
-}
-
-/// The value of the environment variable `name` without surrounding whitespace; an error naming
-/// the variable (never its value: it may be a secret) for a control character inside it.
-fn aws_value(name: &str, value: &str) -> Result<String, BadRemote> {
-    let trimmed = value.trim();
-    match trimmed.char_indices().find(|(_, c)| c.is_control()) {
-        Some((at, c)) => Err(BadRemote {
-            variable: Some(name.to_owned()),
-            problem: format!(
-                "the environment variable {name} holds the control character {c:?} at byte {at} of its value; valid: a value without control characters (surrounding whitespace is dropped)"
-            ),
-        }),
-        None => Ok(trimmed.to_owned()),
-    }
-}
-
-/// `Ok` for an http(s) URL with a host (and a valid port).
-fn check_endpoint(what: &str, endpoint: &str) -> Result<(), String> {
-    let valid = "valid: http(s)://host[:port][/path]";
-    let url = reqwest::Url::parse(endpoint).map_err(|e| format!("{what} `{endpoint}` is not a URL ({e}); {valid}"))?;
-    if !matches!(url.scheme(), "http" | "https") || url.host_str().is_none_or(str::is_empty) {
-        return Err(format!("{what} `{endpoint}` is not an http(s) URL with a host; {valid}"));
-    }
-    Ok(())
-}
-
 impl Remote {
-    /// `s3://bucket/prefix` (endpoint and credentials from the standard `AWS_*` variables,
-    /// `AWS_ENDPOINT_URL` for a non-AWS server), `http(s)://host/path` (WebDAV, a Bazel-style
-    /// HTTP cache) or `file:///path`. A bad URL or endpoint is an error ([`check_url`]).
-    pub fn open(url: &str, push: bool, timeout: Duration) -> anyhow::Result<Remote> {
-        check_url(url).map_err(|problem| anyhow::anyhow!("remote {problem}"))?;
-        // TLS on ring; an error only says a provider is installed already.
-        let _ = rustls::crypto::ring::default_provider().install_default();
-        // No whole-request timeout: it would cut off a large transfer that is still moving. The
-        // link's client bounds the wait to connect; `call` bounds the wait for the next bytes
-        // either way.
-        let client = ClientOptions::new().with_timeout_disabled().with_allow_http(true);
-        let retry = RetryConfig { max_retries: 1, retry_timeout: timeout, ..RetryConfig::default() };
-        let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
-        let objects: Arc<dyn ObjectStore> = if let Some(rest) = url.strip_prefix("s3://") {
-            let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
-            let store = s3_from_env()
-                .map_err(|problem| anyhow::anyhow!("remote {problem}"))?
-                .with_bucket_name(bucket)
-                .with_client_options(client)
-                .with_http_connector(WatchedConnector { timeout })
-                .with_retry(retry)
-                .build()
-                .with_context(|| format!("remote `{url}`"))?;
-            // A bucket that does not exist would read as an empty cache: asked once here. A
-            // server that does not answer is not an error yet (the first request marks it down).
-            let listed = runtime.block_on(link::bounded(&Watch::new(), timeout, store.list_with_delimiter(None), &mut |_| {}));
-            if let Some(Err(e)) = listed
-                && (matches!(e, object_store::Error::NotFound { .. }) || e.to_string().contains("NoSuchBucket"))
-            {
-                let endpoint = std::env::var("AWS_ENDPOINT_URL")
-                    .or_else(|_| std::env::var("AWS_ENDPOINT"))
-                    .map_or_else(|_| "AWS".into(), |e| e.trim().to_owned());
-                bail!("remote `{url}`: bucket `{bucket}` does not exist at {endpoint}");
-            }
-            Arc::new(object_store::prefix::PrefixStore::new(store, prefix))
-        } else if url.starts_with("http://") || url.starts_with("https://") {
-            Arc::new(
-                object_store::http::HttpBuilder::new()
-                    .with_url(url)
-                    .with_client_options(client)
-                    .with_http_connector(WatchedConnector { timeout })
-                    .with_retry(retry)
-                    .build()
-                    .with_context(|| format!("remote `{url}`"))?,
-            )
-        } else if let Some(path) = url.strip_prefix("file://") {
-            std::fs::create_dir_all(path).with_context(|| format!("remote `{url}`: creating {path}"))?;
-            Arc::new(object_store::local::LocalFileSystem::new_with_prefix(path).with_context(|| format!("remote `{url}`"))?)
-        } else {
-            bail!("remote `{url}`: unknown scheme; valid: s3://bucket/prefix, https://host/path (WebDAV), file:///path");
-        };
-        Ok(Remote {
-            url: url.to_owned(),
-            objects,
-            runtime,
-            timeout,
-            push,
-            down: Mutex::new(None),
-            told: Default::default(),
-            trusted: TrustedKeys::default(),
-            signer: None,
-            parts: !url.starts_with("http"),
-        })
-    }
-
     /// This client with trusted keys (a record is used only if one of them signed it) and the
     /// key it signs its uploads with.
     pub fn with_trust(mut self, trusted: TrustedKeys, signer: Option<SigningKey>) -> Remote {
@@ -440,303 +297,12 @@ impl Remote {
     fn object_key(digest: &Digest) -> Key {
         Key::from(format!("cas/{}.tar", digest.hex()))
     }
-
-    /// Whether the remote holds `key`'s record and the object it names (a miss when it is down).
-    pub fn holds(&self, key: &Digest) -> bool {
-        let Some(Ok(record)) = self.record(key) else { return false };
-        self.trusts(&record).is_ok() && matches!(self.call("checking an object", self.objects.head(&Self::object_key(&record.output))), Ok(Some(_)))
-    }
-
-    /// Fetches `key`'s record and artifact into `store`, verified, the artifact also by
-    /// `accept` (its type, before it is committed); a miss when the remote lacks either or is
-    /// down. `progress` hears the artifact's bytes as they arrive.
-    pub fn pull(
-        &self,
-        store: &Store,
-        key: &Digest,
-        accept: &dyn Fn(&Path) -> Result<(), String>,
-        progress: &mut dyn FnMut(u64, u64),
-    ) -> anyhow::Result<Pulled> {
-        let clock = Instant::now();
-        let mut record = match self.record(key) {
-            None => return Ok(self.down().map_or(Pulled::Miss, Pulled::Unreachable)),
-            Some(Ok(r)) if r.key == *key && r.preimage.key() == *key => r,
-            Some(Ok(_)) => return Ok(Pulled::Corrupt { why: format!("the record of {} is not that key's", key.short()) }),
-            Some(Err(why)) => return Ok(Pulled::Corrupt { why }),
-        };
-        let signed_by = match self.trusts(&record) {
-            Ok(signed_by) => signed_by,
-            Err(why) => return Ok(Pulled::Untrusted { why }),
-        };
-        record.pulled = Some(PulledFrom { remote: self.url.clone(), signed_by });
-        let bytes = match self.fetch_accepted(store, &record.output, Some((record.files, record.bytes)), accept, progress)? {
-            Fetched::Present => 0,
-            Fetched::Downloaded(bytes) => bytes,
-            Fetched::Missing => return Ok(Pulled::Miss),
-            Fetched::Unreachable(e) => return Ok(Pulled::Unreachable(e)),
-            Fetched::Corrupt(why) => return Ok(Pulled::Corrupt { why }),
-        };
-        store.write_record(&record)?;
-        Ok(Pulled::Hit { record: Box::new(record), bytes, seconds: clock.elapsed().as_secs_f64() })
-    }
-
-    /// Fetches the artifact `digest` into `store`, verified, unless the store has it: what a
-    /// cluster task does for each input it lacks.
-    pub fn fetch_object(&self, store: &Store, digest: &Digest, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Fetched> {
-        self.fetch_accepted(store, digest, None, &|_| Ok(()), progress)
-    }
-
-    /// [`Remote::fetch_object`], the unpacked artifact also checked by `accept` before it is
-    /// committed. With `expected` (its record's files and bytes), the object is refused when its
-    /// size could not be such a tar's, and its entries when they declare more.
-    fn fetch_accepted(
-        &self,
-        store: &Store,
-        digest: &Digest,
-        expected: Option<(u64, u64)>,
-        accept: &dyn Fn(&Path) -> Result<(), String>,
-        progress: &mut dyn FnMut(u64, u64),
-    ) -> anyhow::Result<Fetched> {
-        if store.has_object(digest) {
-            return Ok(match accept(&store.object_dir(digest)) {
-                Ok(()) => Fetched::Present,
-                Err(why) => Fetched::Corrupt(why),
-            });
-        }
-        // Streamed to a file in one work directory, then unpacked into another; the digest's lock
-        // keeps another process's sweep of `tmp/` off both meanwhile.
-        let _held = store.lock_action(digest)?;
-        let scratch = store.work_dir(digest)?;
-        let dir = store.work_dir(digest)?;
-        let tar_path = scratch.join("artifact.tar");
-        let mut file = std::io::BufWriter::new(std::fs::File::create(&tar_path).with_context(|| format!("creating {}", tar_path.display()))?);
-        let limit = expected.map_or(u64::MAX, |(files, bytes)| largest_tar(files, bytes));
-        let received =
-            self.stream("reading an object", &Self::object_key(digest), limit, &mut |chunk| std::io::Write::write_all(&mut file, chunk), progress);
-        let received = received.and_then(|r| std::io::Write::flush(&mut file).map(|()| r));
-        drop(file);
-        let tar_bytes = match received.with_context(|| format!("writing {}", tar_path.display()))? {
-            Some(Streamed::Whole(bytes)) => bytes,
-            outcome => {
-                remove_dir(&scratch);
-                remove_dir(&dir);
-                return Ok(match outcome {
-                    Some(Streamed::TooLarge(size)) => {
-                        Fetched::Corrupt(format!("its artifact's tar has {size} bytes, more than its record's files could take ({limit})"))
-                    }
-                    _ => self.down().map_or(Fetched::Missing, Fetched::Unreachable),
-                });
-            }
-        };
-        let (files, bytes) = expected.unwrap_or((u64::MAX, tar_bytes));
-        let unpacked = unpack_bounded(&tar_path, &dir, files, bytes);
-        remove_dir(&scratch);
-        match unpacked.and_then(|()| Ok(hash_tree(&dir)?.digest)) {
-            Ok(found)
-                if found == *digest
-                    && let Err(why) = accept(&dir) =>
-            {
-                remove_dir(&dir);
-                Ok(Fetched::Corrupt(why))
-            }
-            Ok(found) if found == *digest => {
-                store.commit_tree(&dir)?;
-                Ok(Fetched::Downloaded(tar_bytes))
-            }
-            other => {
-                remove_dir(&dir);
-                Ok(Fetched::Corrupt(match other {
-                    Ok(found) => format!("its artifact hashes to {}, not {}", found.short(), digest.short()),
-                    Err(e) => format!("its artifact does not unpack ({e:#})"),
-                }))
-            }
-        }
-    }
-
-    /// Uploads `record` and its artifact from `store`: the object unless the remote has it (or
-    /// `replace`: it is known corrupt or untrusted), then the record unless the remote has one.
-    /// A record already there that names another output is reported, not overwritten; one that
-    /// agrees but lacks this client's signature gets it. The inner error when the remote is down
-    /// or this client does not push. `progress` hears the artifact's bytes as they leave.
-    pub fn push(
-        &self,
-        store: &Store,
-        record: &ActionRecord,
-        replace: bool,
-        progress: &mut dyn FnMut(u64, u64),
-    ) -> anyhow::Result<Result<Pushed, RemoteError>> {
-        // Where this store got it is this store's business, not the remote's readers'.
-        let record = &ActionRecord { pulled: None, ..record.clone() };
-        let signed = self.signer.as_ref().map(|key| key.sign(record));
-        let body = serde_json::to_vec_pretty(signed.as_ref().unwrap_or(record))?;
-        if body.len() as u64 > MAX_RECORD_BYTES {
-            let why = format!("its record has {} bytes; readers take records of at most {MAX_RECORD_BYTES}, so it is not pushed", body.len());
-            return Ok(Ok(Pushed { bytes: 0, disagrees: None, refused: Some(why) }));
-        }
-        let mut bytes = match self.push_object(store, &record.output, replace, progress)? {
-            Ok(bytes) => bytes,
-            Err(e) => return Ok(Err(e)),
-        };
-        let key = Self::record_key(&record.key);
-        let present = match self.call("checking a record", self.objects.head(&key)) {
-            Ok(present) => present,
-            Err(e) => return Ok(Err(e)),
-        };
-        let mut write = present.is_none() || replace;
-        let mut disagrees = None;
-        if !write {
-            let theirs = self.record(&record.key).and_then(Result::ok);
-            match theirs {
-                Some(theirs) if theirs.output != record.output => {
-                    let signers = signing::signers(&theirs);
-                    disagrees = Some(format!(
-                        "the remote's record of {} names output {} ({signers}), but this run computed {}; the remote's is left as it was",
-                        record.key.short(),
-                        theirs.output.short(),
-                        record.output.short()
-                    ));
-                }
-                Some(theirs) => {
-                    write = self.signer.as_ref().is_some_and(|s| !theirs.signatures.iter().any(|t| t.key == s.name() && t.format == SIGNED_FORMAT))
-                }
-                None => {}
-            }
-        }
-        if write {
-            bytes += body.len() as u64;
-            if let Err(e) = self.call("uploading a record", self.objects.put(&key, PutPayload::from(body))) {
-                return Ok(Err(e));
-            }
-        }
-        Ok(Ok(Pushed { bytes, disagrees, refused: None }))
-    }
-
-    /// Uploads the artifact `digest` from `store` unless the remote has it (or `replace`): what
-    /// the engine does for a cluster task's inputs. Returns the bytes uploaded, or the inner
-    /// error when the remote is down or this client does not push. `progress` hears the bytes as
-    /// they leave.
-    pub fn push_object(
-        &self,
-        store: &Store,
-        digest: &Digest,
-        replace: bool,
-        progress: &mut dyn FnMut(u64, u64),
-    ) -> anyhow::Result<Result<u64, RemoteError>> {
-        if !self.push {
-            return Ok(Err(RemoteError::ReadOnly));
-        }
-        let object = Self::object_key(digest);
-        match self.call("checking an object", self.objects.head(&object)) {
-            Ok(Some(_)) if !replace => return Ok(Ok(0)),
-            Err(e) => return Ok(Err(e)),
-            Ok(_) => {}
-        }
-        // Packed into a file in a work directory of the store's `tmp/`, then sent from it; the
-        // digest's lock keeps another process's sweep of `tmp/` off it meanwhile.
-        let _held = store.lock_action(digest)?;
-        let work = store.work_dir(digest)?;
-        let tar_path = work.join("artifact.tar");
-        let sent = pack(&store.object_dir(digest), &tar_path).and_then(|size| Ok((size, self.upload(&object, &tar_path, size, progress)?)));
-        remove_dir(&work);
-        let (size, uploaded) = sent?;
-        Ok(uploaded.map(|()| size))
-    }
-
-    /// Sends the file at `path` (`size` bytes) as `key`: in parts of [`PART`] where the remote
-    /// takes parts (S3, a directory) and the file is larger than one, so neither memory nor one
-    /// request holds all of it. The timeout bounds the wait for the link to take the next bytes;
-    /// `progress` hears the bytes sent. The inner error when the remote went down.
-    fn upload(&self, key: &Key, path: &Path, size: u64, progress: &mut dyn FnMut(u64, u64)) -> anyhow::Result<Result<(), RemoteError>> {
-        use std::io::Read as _;
-        let mut file = std::fs::File::open(path).with_context(|| format!("reading {}", path.display()))?;
-        let watch = Watch::new();
-        // Over HTTP the link counts the bytes the connection took; a directory takes a part whole.
-        if !self.parts || size <= PART as u64 {
-            let mut body = Vec::with_capacity(size as usize);
-            file.read_to_end(&mut body)?;
-            let put = self.objects.put(key, PutPayload::from(body));
-            let sent = self.watched("uploading an object", &watch, put, &mut |w| progress(w.sent().min(size), size)).map(|_| ());
-            if sent.is_ok() {
-                progress(size, size);
-            }
-            return Ok(sent);
-        }
-        let mut upload = match self.call("starting an upload", self.objects.put_multipart(key)) {
-            Ok(Some(upload)) => upload,
-            Ok(None) => return Ok(Err(RemoteError::Failed { doing: "starting an upload".into(), message: "the remote answered: not found".into() })),
-            Err(e) => return Ok(Err(e)),
-        };
-        let mut part = vec![0u8; PART];
-        let mut parts_done = 0u64;
-        loop {
-            let mut filled = 0;
-            while filled < PART {
-                match file.read(&mut part[filled..])? {
-                    0 => break,
-                    n => filled += n,
-                }
-            }
-            if filled == 0 {
-                break;
-            }
-            let put = upload.put_part(PutPayload::from(part[..filled].to_vec()));
-            if let Err(e) = self.watched("uploading a part", &watch, put, &mut |w| progress(parts_done.max(w.sent()).min(size), size)) {
-                let _ = self.runtime.block_on(link::bounded(&Watch::new(), self.timeout, upload.abort(), &mut |_| {}));
-                return Ok(Err(e));
-            }
-            parts_done += filled as u64;
-            progress(parts_done, size);
-        }
-        Ok(self.call("finishing an upload", upload.complete()).map(|_| ()))
-    }
-
-    /// Writes a cluster task's transcript (its protocol lines and other output) under
-    /// `runs/<name>`, where the engine that submitted it reads it back. `false` when the remote
-    /// is down or this client does not push.
-    pub fn put_transcript(&self, name: &str, text: String) -> bool {
-        self.push && self.call("uploading a transcript", self.objects.put(&Self::transcript_key(name), PutPayload::from(text))).is_ok()
-    }
-
-    /// A transcript [`Remote::put_transcript`] wrote, if the remote has it.
-    pub fn transcript(&self, name: &str) -> Option<String> {
-        let bytes = self.get("reading a transcript", &Self::transcript_key(name), MAX_TRANSCRIPT_BYTES)?.ok()?;
-        Some(String::from_utf8_lossy(&bytes).into_owned())
-    }
-
-    /// Removes a transcript its engine has read (and kept in the stage's log).
-    pub fn remove_transcript(&self, name: &str) {
-        let _ = self.call("removing a transcript", self.objects.delete(&Self::transcript_key(name)));
-    }
-
-    fn transcript_key(name: &str) -> Key {
-        Key::from(format!("runs/{name}"))
-    }
-}
-
-/// The largest piece of an artifact one upload request carries (S3 takes parts of 5 MiB and
-/// more, up to 10,000 of them).
-const PART: usize = 8 << 20;
-
-/// An artifact directory as a tar file at `to` (its files with their modes, in sorted order);
-/// returns its size.
-fn pack(dir: &Path, to: &Path) -> anyhow::Result<u64> {
-    let file = std::io::BufWriter::new(std::fs::File::create(to).with_context(|| format!("creating {}", to.display()))?);
-    let mut builder = tar::Builder::new(file);
-    builder.mode(tar::HeaderMode::Deterministic);
-    builder.follow_symlinks(false);
-    builder.append_dir_all(".", dir).with_context(|| format!("packing {}", dir.display()))?;
-    let mut file = builder.into_inner()?;
-    std::io::Write::flush(&mut file)?;
-    Ok(std::fs::metadata(to)?.len())
 }
 
 /// The most bytes an action record may have on the remote, checked before it is read: the
 /// shipped pipelines' largest is under 4 kB, and a report gathering a thousand inputs stays
 /// under 200 kB.
 pub const MAX_RECORD_BYTES: u64 = 256 << 10;
-
-/// The most bytes a cluster task's transcript (its protocol lines and output) may have.
-const MAX_TRANSCRIPT_BYTES: u64 = 64 << 20;
 
 /// How a body with a size limit was read.
 enum Streamed {
@@ -746,48 +312,10 @@ enum Streamed {
     TooLarge(u64),
 }
 
-/// The largest tar [`pack`] makes of `files` files holding `bytes` bytes: each file's data
-/// padded to 512-byte blocks with a header block, and as many again for its folders and long
-/// names, plus the end of the archive and the writer's padding.
-fn largest_tar(files: u64, bytes: u64) -> u64 {
-    bytes.saturating_add(files.saturating_mul(4 * 512)).saturating_add(64 << 10)
-}
-
-/// Unpacks the tar at `path` into `dir`, entry by entry, each checked before any of its bytes
-/// are written: only regular files and folders (no links, devices or sparse files), within
-/// `dir`, at most `files` files declaring at most `bytes` bytes in all. Memory stays bounded
-/// whatever the tar declares.
-fn unpack_bounded(path: &Path, dir: &Path, files: u64, bytes: u64) -> anyhow::Result<()> {
-    let mut archive = tar::Archive::new(std::io::BufReader::new(std::fs::File::open(path)?));
-    let (mut seen_files, mut seen_bytes) = (0u64, 0u64);
-    for entry in archive.entries()? {
-        let mut entry = entry?;
-        let name = entry.path()?.display().to_string();
-        match entry.header().entry_type() {
-            tar::EntryType::Directory => {}
-            tar::EntryType::Regular => {
-                seen_files += 1;
-                seen_bytes = seen_bytes.saturating_add(entry.header().size()?);
-                if seen_files > files || seen_bytes > bytes {
-                    bail!("`{name}` takes it past its record's {files} files and {bytes} bytes");
-                }
-            }
-            other => bail!("`{name}` is a {other:?} entry; an artifact holds regular files and folders only"),
-        }
-        if !entry.unpack_in(dir)? {
-            bail!("`{name}` would land outside the artifact");
-        }
-    }
-    Ok(())
-}
-
-fn remove_dir(dir: &Path) {
-    let _ = std::fs::remove_dir_all(dir);
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rlmflow_cache::Store;
 
     /// A download reports its bytes as they arrive, chunk by chunk, up to the whole.
     #[test]

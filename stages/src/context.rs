@@ -66,6 +66,8 @@ impl fmt::Display for Device {
 pub trait Reporter: Send + Sync {
     fn progress(&self, position: u64, length: u64, message: &str);
     fn event(&self, name: &str, data: Value);
+    /// `dir` shows the action's work as it goes ([`Context::live`]).
+    fn live(&self, dir: &Path);
 }
 
 /// A reporter that drops everything (unit tests of operators).
@@ -73,6 +75,7 @@ pub struct Silent;
 impl Reporter for Silent {
     fn progress(&self, _: u64, _: u64, _: &str) {}
     fn event(&self, _: &str, _: Value) {}
+    fn live(&self, _: &Path) {}
 }
 
 /// One upstream artifact: the producing instance, by label (e.g. `pretrain[alpha4]`, for
@@ -193,13 +196,10 @@ impl Context {
     /// Says that `dir` shows this action's work as it goes (a training's curves in its
     /// checkpoint directory): the engine links the stage's results entry there until the
     /// output is committed.
-    pub fn live(&self, dir: &std::path::Path) {
-        self.reporter.event(LIVE_EVENT, serde_json::json!({ "dir": dir }));
+    pub fn live(&self, dir: &Path) {
+        self.reporter.live(dir);
     }
 }
-
-/// The event [`Context::live`] sends.
-pub const LIVE_EVENT: &str = "live";
 
 /// Reports the position of one piece of long work, at most ten times a second.
 pub struct Progress {
@@ -264,6 +264,7 @@ mod tests {
             self.0.lock().unwrap().push((position, message.to_owned()));
         }
         fn event(&self, _: &str, _: Value) {}
+        fn live(&self, _: &Path) {}
     }
 
     #[test]

@@ -1,5 +1,6 @@
 //! Stage kinds: what a stage consumes and produces, independent of how (the operator).
 
+use crate::artifact::*;
 use crate::measure::Measures;
 
 /// How many upstream artifacts an input slot takes.
@@ -115,37 +116,26 @@ const PAPER_MARKERS: &[(&str, &str)] = &[
     (CAPTIONS, crate::captions::SUMMARY),
     (TOKENS, crate::tokens::SUMMARY),
     (ENCODER, crate::encoder::SUMMARY),
-    ("ProbeReport", crate::probe::SUMMARY),
-    ("SegReport", crate::segment::SUMMARY),
-    ("Report", "metrics.json"),
+    (PROBE_REPORT, crate::probe::SUMMARY),
+    (SEG_REPORT, crate::segment::SUMMARY),
+    (REPORT, "metrics.json"),
     (EMBEDDINGS, crate::embeddings::SUMMARY),
 ];
 
-/// The artifact type of a `files` stage: whatever files its program wrote, read by no built-in
-/// stage.
-pub const FILES: &str = "Files";
-
 /// The paper's artifact types that measure: encoders, probe and segmentation reports.
 const PAPER_MEASURES: &[Measures] = &[
-    Measures { artifact: "Encoder", metrics: |dir| Ok(crate::encoder::metrics(&crate::encoder::Encoder::open(dir)?.summary)), frames: None },
+    Measures { artifact: ENCODER, metrics: |dir| Ok(crate::encoder::metrics(&crate::encoder::Encoder::open(dir)?.summary)), frames: None },
     Measures {
-        artifact: "ProbeReport",
+        artifact: PROBE_REPORT,
         metrics: |dir| Ok(crate::probe::metrics(&crate::probe::read_summary(dir)?)),
         frames: Some(crate::probe::frame_differences),
     },
     Measures {
-        artifact: "SegReport",
+        artifact: SEG_REPORT,
         metrics: |dir| Ok(crate::segment::metrics(&crate::segment::read_summary(dir)?)),
         frames: Some(crate::segment::frame_differences),
     },
 ];
-
-const SCENES: &str = "Scenes";
-const LABELS: &str = "Labels";
-const CAPTIONS: &str = "Captions";
-const TOKENS: &str = "Tokens";
-const ENCODER: &str = "Encoder";
-const EMBEDDINGS: &str = "Embeddings";
 
 const PAPER_KINDS: &[StageKind] = &[
     StageKind { name: "scenes", produces: SCENES, inputs: &[], per_seed: false },
@@ -164,7 +154,7 @@ const PAPER_KINDS: &[StageKind] = &[
     },
     StageKind {
         name: "probe",
-        produces: "ProbeReport",
+        produces: PROBE_REPORT,
         // Optional: a pixel baseline reads no encoder (`inputs = { encoder = [] }`).
         inputs: &[
             Slot::optional("encoder", ENCODER),
@@ -178,7 +168,7 @@ const PAPER_KINDS: &[StageKind] = &[
     },
     StageKind {
         name: "segment",
-        produces: "SegReport",
+        produces: SEG_REPORT,
         inputs: &[
             Slot::optional("encoder", ENCODER),
             Slot::one("scenes", SCENES),
@@ -196,10 +186,10 @@ const PAPER_KINDS: &[StageKind] = &[
     },
     StageKind {
         name: "report",
-        produces: "Report",
+        produces: REPORT,
         inputs: &[
-            Slot::gather("probe", "ProbeReport"),
-            Slot::gather("segment", "SegReport"),
+            Slot::gather("probe", PROBE_REPORT),
+            Slot::gather("segment", SEG_REPORT),
             Slot::gather("encoder", ENCODER),
             // The frames the samples are drawn from: the scenes and labels the probes read.
             Slot::optional("scenes", SCENES),
@@ -218,9 +208,9 @@ const PAPER_KINDS: &[StageKind] = &[
             Slot::named("captions", CAPTIONS),
             Slot::named("tokens", TOKENS),
             Slot::named("encoder", ENCODER),
-            Slot::named("probe", "ProbeReport"),
-            Slot::named("segment", "SegReport"),
-            Slot::named("report", "Report"),
+            Slot::named("probe", PROBE_REPORT),
+            Slot::named("segment", SEG_REPORT),
+            Slot::named("report", REPORT),
             Slot::named("embeddings", EMBEDDINGS),
             Slot::named("files", FILES),
         ],

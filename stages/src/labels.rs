@@ -144,7 +144,7 @@ pub struct Labels {
 
 impl Labels {
     pub fn open(dir: &Path) -> anyhow::Result<Labels> {
-        let summary: Summary = crate::read_summary(dir, SUMMARY, "Labels", "labels", FORMAT)?;
+        let summary: Summary = crate::read_summary(dir, SUMMARY, crate::artifact::LABELS, "labels", FORMAT)?;
         let path = dir.join(LINES);
         let frames = crate::read_lines(&path, FrameLabel::from_line)?;
         if frames.len() as u64 != summary.frames || frames.iter().enumerate().any(|(i, f)| f.frame != i as u64) {

@@ -1,7 +1,7 @@
 //! The contracts between rlmflow's engine and its operators.
 //!
 //! * [`kind`]: stage kinds and the artifact types they consume and produce, as data. The paper's
-//!   pipeline is one [`Catalog`]; tests add their own kinds.
+//!   pipeline is one [`Catalog`]; tests add their own kinds. [`artifact`] names the types once.
 //! * [`operator`]: the [`Operator`] trait (one implementation of a stage kind), its typed
 //!   [`Settings`], and the type-erased [`DynOperator`] the engine stores in its registry.
 //! * [`context`]: what an operator is given when it runs: input paths, an output directory, a
@@ -21,6 +21,7 @@
 //! Nothing here knows about scheduling, caching or processes, and nothing links a tensor
 //! library: model shapes and training settings are plain data here, computed on elsewhere.
 
+pub mod artifact;
 pub mod captions;
 pub mod claims;
 pub mod context;
@@ -42,7 +43,7 @@ pub mod tokens;
 pub mod training;
 pub mod weights;
 
-pub use context::{Context, Device, Input, InstanceId, LIVE_EVENT, Progress, Reporter};
+pub use context::{Context, Device, Input, InstanceId, Progress, Reporter};
 pub use kind::{Arity, Catalog, Need, Slot, StageKind};
 pub use memory::Footprint;
 pub use numerics::{Kernels, Numerics};

@@ -451,7 +451,7 @@ impl OwnTask {
 /// else (progress, events, other output).
 fn outcome_of(line: &str) -> Option<bool> {
     match line.strip_prefix(crate::protocol::PREFIX).map(serde_json::from_str::<Message>)? {
-        Ok(Message::Progress { .. } | Message::Event { .. } | Message::Waiting) | Err(_) => None,
+        Ok(Message::Progress { .. } | Message::Event { .. } | Message::Live { .. } | Message::Waiting) | Err(_) => None,
         Ok(message) => Some(matches!(message, Message::Done { .. } | Message::Reused)),
     }
 }

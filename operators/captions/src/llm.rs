@@ -18,12 +18,10 @@
 //!   asked for again up to `regenerate` times, then dropped or kept (`on_mismatch`). The
 //!   first-answer fidelity rate, regenerations, drops and token counts are reported.
 
-use std::path::{Path, PathBuf};
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
-use std::time::Duration;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
-use anyhow::{Context as _, anyhow, bail};
+use anyhow::bail;
 use rand::seq::SliceRandom;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -36,6 +34,10 @@ use serde::{Deserialize, Serialize};
 use serde_json::{Value, json};
 
 use crate::write_captions;
+use client::Client;
+
+mod client;
+mod responses;
 
 pub struct Llm;
 
@@ -485,245 +487,13 @@ fn request_body(s: &LlmSettings, prompt: &str, n: usize) -> String {
     .to_string()
 }
 
-/// Request counters, shared by the workers.
-#[derive(Default)]
-struct Stats {
-    sent: AtomicU64,
-    cached: AtomicU64,
-    retries: AtomicU64,
-    /// Stored answers found damaged, set aside and asked for again.
-    repaired: AtomicU64,
-    prompt_tokens: AtomicU64,
-    completion_tokens: AtomicU64,
-}
-
-impl Stats {
-    fn line(&self) -> String {
-        let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
-        format!(
-            "{} requests ({} from cache, {} retries), {} prompt + {} completion tokens",
-            get(&self.sent) + get(&self.cached),
-            get(&self.cached),
-            get(&self.retries),
-            get(&self.prompt_tokens),
-            get(&self.completion_tokens)
-        )
-    }
-
-    fn json(&self) -> Value {
-        let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
-        json!({"sent": get(&self.sent), "from_cache": get(&self.cached), "retries": get(&self.retries), "repaired": get(&self.repaired), "prompt_tokens": get(&self.prompt_tokens), "completion_tokens": get(&self.completion_tokens)})
-    }
-}
-
-/// A chat-completions endpoint behind the response cache.
-struct Client {
-    agent: ureq::Agent,
-    url: String,
-    auth: Option<String>,
-    cache: PathBuf,
-    /// What, besides the body, identifies an answer: endpoint and model.
-    identity: String,
-    retries: u32,
-    backoff: Duration,
-    stats: Stats,
-}
-
-/// Answers that are worth asking again.
-enum Failure {
-    Retry(String, Option<Duration>),
-    Fatal(anyhow::Error),
-}
-
-impl Client {
-    fn new(s: &LlmSettings, ctx: &Context) -> anyhow::Result<Client> {
-        let stage = &ctx.stage;
-        let auth = if s.api_key_env.is_empty() {
-            None
-        } else {
-            let key = std::env::var(&s.api_key_env).map_err(|_| {
-                anyhow!(
-                    "the API key is read from the environment variable {} (stages.{stage}.api_key_env), which is not set; set it, or set api_key_env = \"\" for an endpoint without keys",
-                    s.api_key_env
-                )
-            })?;
-            Some(format!("Bearer {key}"))
-        };
-        let cache = match (&ctx.responses, s.response_cache.is_empty()) {
-            (_, false) => PathBuf::from(&s.response_cache),
-            (Some(store), true) => store.clone(),
-            (None, true) => bail!("stage {stage} runs outside a store, which would keep its answers: set `response_cache`"),
-        };
-        std::fs::create_dir_all(&cache).with_context(|| format!("creating the response cache {}", cache.display()))?;
-        let config = ureq::Agent::config_builder().timeout_global(Some(Duration::from_secs_f64(s.timeout_s))).http_status_as_error(false).build();
-        Ok(Client {
-            agent: config.into(),
-            url: format!("{}/chat/completions", s.base_url.trim_end_matches('/')),
-            auth,
-            cache,
-            identity: format!("{}\n{}", s.base_url.trim_end_matches('/'), s.model),
-            retries: s.request_retries,
-            backoff: Duration::from_secs_f64(s.backoff_s),
-            stats: Stats::default(),
-        })
-    }
-
-    /// The answer to `body` (the `attempt`-th time this body is asked).
-    fn complete(&self, body: &str, attempt: u32) -> anyhow::Result<Answer> {
-        let digest = blake3::hash(format!("{}\n{attempt}\n{body}", self.identity).as_bytes()).to_hex();
-        let path = self.cache.join(format!("{digest}.json"));
-        if let Ok(text) = std::fs::read_to_string(&path) {
-            match Answer::parse(&text) {
-                Ok(answer) => {
-                    self.stats.cached.fetch_add(1, Ordering::Relaxed);
-                    return Ok(answer);
-                }
-                // Damaged (a disk fault, a hand edit): set aside once and asked again, so the
-                // next run reads the new answer rather than asking forever.
-                Err(_) => {
-                    quarantine(&path)?;
-                    self.stats.repaired.fetch_add(1, Ordering::Relaxed);
-                }
-            }
-        }
-        let mut tries = 0;
-        loop {
-            let failure = match self.post(body) {
-                Ok(text) => match Answer::parse(&text) {
-                    Ok(answer) => {
-                        self.stats.sent.fetch_add(1, Ordering::Relaxed);
-                        self.stats.prompt_tokens.fetch_add(answer.prompt_tokens, Ordering::Relaxed);
-                        self.stats.completion_tokens.fetch_add(answer.completion_tokens, Ordering::Relaxed);
-                        return store(&path, &text, answer);
-                    }
-                    Err(e) => Failure::Retry(format!("malformed answer: {e}"), None),
-                },
-                Err(f) => f,
-            };
-            match failure {
-                Failure::Fatal(e) => return Err(e),
-                Failure::Retry(why, _) if tries >= self.retries => bail!("{}: gave up after {} tries: {why}", self.url, tries + 1),
-                Failure::Retry(_, wait) => {
-                    let backoff = self.backoff.saturating_mul(1 << tries.min(16)).min(MAX_WAIT);
-                    std::thread::sleep(wait.unwrap_or(backoff));
-                    tries += 1;
-                    self.stats.retries.fetch_add(1, Ordering::Relaxed);
-                }
-            }
-        }
-    }
-
-    fn post(&self, body: &str) -> Result<String, Failure> {
-        let mut request = self.agent.post(&self.url).header("Content-Type", "application/json");
-        if let Some(auth) = &self.auth {
-            request = request.header("Authorization", auth);
-        }
-        let mut response = match request.send(body) {
-            Ok(r) => r,
-            Err(
-                e @ (ureq::Error::Timeout(_)
-                | ureq::Error::Io(_)
-                | ureq::Error::ConnectionFailed
-                | ureq::Error::Protocol(_)
-                | ureq::Error::BodyStalled),
-            ) => {
-                return Err(Failure::Retry(e.to_string(), None));
-            }
-            Err(e) => return Err(Failure::Fatal(anyhow!("{}: {e}", self.url))),
-        };
-        let status = response.status().as_u16();
-        let retry_after = response.headers().get("retry-after").and_then(|v| retry_after(v.to_str().ok()?));
-        let text = response.body_mut().read_to_string().map_err(|e| Failure::Retry(format!("reading the answer: {e}"), None))?;
-        match status {
-            200..=299 => Ok(text),
-            429 | 500..=599 => Err(Failure::Retry(format!("{status}: {}", server_message(&text)), retry_after)),
-            _ => {
-                let hint = match status {
-                    401 | 403 => "; check the API key",
-                    404 => "; check base_url and model",
-                    _ => "",
-                };
-                Err(Failure::Fatal(anyhow!("{} answered {status}: {}{hint}", self.url, server_message(&text))))
-            }
-        }
-    }
-}
-
-/// The longest a retry waits, whatever the backoff or a server's `Retry-After` asks for.
-const MAX_WAIT: Duration = Duration::from_secs(60);
-
-/// A `Retry-After` header's seconds, at most [`MAX_WAIT`]; `None` for anything but a finite,
-/// non-negative number (an HTTP date, a negative or NaN value), so the backoff applies.
-fn retry_after(header: &str) -> Option<Duration> {
-    let seconds = header.trim().parse::<f64>().ok().filter(|s| s.is_finite() && *s >= 0.0)?;
-    Some(Duration::from_secs_f64(seconds.min(MAX_WAIT.as_secs_f64())))
-}
-
-/// Sets a damaged stored answer aside (`<digest>.damaged`, kept for a look) so its request can
-/// be answered again.
-fn quarantine(path: &Path) -> anyhow::Result<()> {
-    std::fs::rename(path, path.with_extension("damaged")).with_context(|| format!("setting the damaged stored answer {} aside", path.display()))
-}
-
-/// Stores an answer under `path` unless a whole one is there already, and returns the stored
-/// one: when two frames send the same request at once, both get the answer that a rerun will
-/// read. The answer is written to a file of its own and linked into place, so a reader never
-/// sees half of it; a damaged answer in the way is set aside and replaced.
-fn store(path: &Path, text: &str, answer: Answer) -> anyhow::Result<Answer> {
-    static WRITES: AtomicU64 = AtomicU64::new(0);
-    let tmp = path.with_extension(format!("tmp-{}-{}", std::process::id(), WRITES.fetch_add(1, Ordering::Relaxed)));
-    let stored = match std::fs::write(&tmp, text).and_then(|()| std::fs::hard_link(&tmp, path)) {
-        Ok(()) => Ok(answer),
-        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-            let before = std::fs::read_to_string(path).with_context(|| format!("reading the stored answer {}", path.display()));
-            match before.map(|text| Answer::parse(&text)) {
-                Ok(Ok(kept)) => Ok(kept),
-                Ok(Err(_)) => quarantine(path)
-                    .and_then(|()| std::fs::rename(&tmp, path).with_context(|| format!("storing the answer in {}", path.display())))
-                    .map(|()| answer),
-                Err(e) => Err(e),
-            }
-        }
-        Err(e) => Err(e).with_context(|| format!("storing the answer in {}", path.display())),
-    };
-    let _ = std::fs::remove_file(&tmp);
-    stored
-}
-
-/// A chat-completions answer: its captions (whitespace collapsed), each with whether it was cut
-/// off at `max_tokens`, and the tokens it cost.
-struct Answer {
-    captions: Vec<(String, bool)>,
-    prompt_tokens: u64,
-    completion_tokens: u64,
-}
-
-impl Answer {
-    fn parse(text: &str) -> anyhow::Result<Answer> {
-        let value: Value = serde_json::from_str(text).context("not JSON")?;
-        let choices = value["choices"].as_array().context("no `choices`")?;
-        let captions = choices
-            .iter()
-            .map(|c| {
-                let text = c["message"]["content"].as_str().context("a choice without `message.content`")?;
-                Ok((text.split_whitespace().collect::<Vec<_>>().join(" "), c["finish_reason"] == "length"))
-            })
-            .collect::<anyhow::Result<_>>()?;
-        let usage = |key: &str| value["usage"][key].as_u64().unwrap_or(0);
-        Ok(Answer { captions, prompt_tokens: usage("prompt_tokens"), completion_tokens: usage("completion_tokens") })
-    }
-}
-
-/// The `error.message` of an OpenAI-style error body, else the body itself (shortened).
-fn server_message(text: &str) -> String {
-    serde_json::from_str::<Value>(text)
-        .ok()
-        .and_then(|v| v["error"]["message"].as_str().map(str::to_owned))
-        .unwrap_or_else(|| text.chars().take(300).collect())
-}
-
 #[cfg(test)]
 mod tests {
+    use std::path::{Path, PathBuf};
+    use std::time::Duration;
+
+    use super::client::{MAX_WAIT, retry_after};
+    use super::responses::{Answer, store};
     use std::collections::HashMap;
     use std::sync::Arc;
 

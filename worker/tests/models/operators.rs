@@ -15,7 +15,7 @@ fn the_worker_registers_the_operators_rlmflow_plans_with_the_same_spec_and_setti
     let worker = operators(std::path::Path::new(env!("CARGO_BIN_EXE_rlmflow-torch")));
     let planner = operators(&rlmflow_exe());
     let names: Vec<&str> = worker.iter().filter_map(|op| op["name"].as_str()).collect();
-    assert_eq!(names, ["clip", "linear", "clipcap", "pup", "unet"]);
+    assert_eq!(names, ["clip", "linear", "clipcap", "pup", "unet", "frozen"]);
     for op in &worker {
         let planned = planner.iter().find(|p| p["name"] == op["name"]).unwrap_or_else(|| panic!("rlmflow lacks {}", op["name"]));
         assert_eq!(op, planned, "one definition: name, kind, version, defaults, non-result and tracked keys");
