@@ -19,15 +19,15 @@ mod stages;
 pub use checker::ConfigError;
 pub use diagnostic::Diagnostic;
 pub use graph::dimensions;
+use header::Header;
 pub use header::{Executor, RemoteSettings, SIGNING_KEY_VARIABLE, SeedRule, resolve_remote};
 pub use hyperqueue::{HyperQueueSettings, WorkerStore};
 
 use checker::{Checker, line_starts, to_json_table};
 use diagnostic::{MAX_DEPTH, too_deep};
-use header::PIPELINE_KEYS;
 pub use overrides::Override;
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 use rlmflow_stages::{Arity, Part, Registry, StageKind};
@@ -291,115 +291,25 @@ fn parse_overridden(file: &Path, text: &str, overrides: &[Override], registry: &
 }
 
 impl Checker {
+    /// The checks in order, each a step of its own that reports its errors; a step whose
+    /// output the next needs stops the walk when it fails.
     fn check(&mut self, file: &Path, root: &Map<String, Value>, registry: &Registry) -> Option<Pipeline> {
         for key in root.keys() {
             if !["pipeline", "stages", "claims"].contains(&key.as_str()) {
                 self.unknown_key(key, key, &["pipeline", "stages", "claims"]);
             }
         }
-        let header = match root.get("pipeline") {
-            None => &Map::new(),
-            Some(Value::Object(t)) => t,
-            Some(_) => {
-                self.error(self.line("pipeline"), "pipeline", "must be a table".into(), None);
-                &Map::new()
-            }
-        };
-        for key in header.keys().filter(|k| !PIPELINE_KEYS.contains(&k.as_str())) {
-            self.unknown_key(&format!("pipeline.{key}"), key, PIPELINE_KEYS);
-        }
-        let stem = file.file_stem().map_or("pipeline".into(), |s| s.to_string_lossy().into_owned());
-        let name = self.string(header, "pipeline", "name").unwrap_or(stem);
-        self.name("pipeline.name", &name);
-        let seed = match header.get("seed") {
-            None => 0,
-            Some(v) => v.as_u64().unwrap_or_else(|| {
-                let msg = format!("must be a non-negative integer, not {v}");
-                self.error(self.line("pipeline.seed"), "pipeline.seed", msg, None);
-                0
-            }),
-        };
-        let (seeds, seed_rule) = self.seeds(header);
-        if seed_rule.is_some() && !root.contains_key("claims") {
-            let help = "add [claims], or list the seeds: seeds = [1, 2, 3]".to_owned();
-            self.error(
-                self.line("pipeline.seeds"),
-                "pipeline.seeds",
-                "adds seeds until the claims are decided, and the file has no [claims]".into(),
-                Some(help),
-            );
-        }
-        let max_instances = match header.get("max_instances") {
-            None => MAX_INSTANCES,
-            Some(v) => v.as_u64().filter(|n| (1..=INSTANCES_CEILING).contains(n)).unwrap_or_else(|| {
-                let msg = format!("must be a positive integer up to {INSTANCES_CEILING}, not {v}");
-                self.error(self.line("pipeline.max_instances"), "pipeline.max_instances", msg, None);
-                MAX_INSTANCES
-            }),
-        };
-        let cache = self.string(header, "pipeline", "cache").unwrap_or_else(|| ".rlmflow".into());
-        let cache = file.parent().unwrap_or(Path::new(".")).join(cache);
-        let cache = std::path::absolute(&cache).unwrap_or(cache);
-        let results = self.results_dir(file, header, &cache);
-        let executor = match self.string(header, "pipeline", "executor") {
-            None => Executor::Local,
-            Some(name) => Executor::parse(&name).unwrap_or_else(|| {
-                let help = format!("valid executors: {}{}", Executor::NAMES.join(", "), suggest(&name, Executor::NAMES));
-                self.error(self.line("pipeline.executor"), "pipeline.executor", format!("unknown executor `{name}`"), Some(help));
-                Executor::Local
-            }),
-        };
-        let hyperqueue = self.hyperqueue(file, header.get("hyperqueue"));
-        let remote = self.remote(file, header);
-
-        let mut stages_table = match root.get("stages") {
-            Some(Value::Object(t)) if !t.is_empty() => t.clone(),
-            Some(Value::Object(_)) | None => {
-                let help = "add one, e.g. [stages.scenes] with operator = \"procedural\"".to_owned();
-                self.error(self.line("stages"), "stages", "the pipeline has no stages".into(), Some(help));
-                return None;
-            }
-            Some(_) => {
-                self.error(self.line("stages"), "stages", "must be a table of stage tables".into(), None);
-                return None;
-            }
-        };
-        if stages_table.len() as u64 > max_instances {
-            let msg =
-                format!("{} stages, and each makes at least one instance; at most {max_instances} (`[pipeline] max_instances`)", stages_table.len());
-            self.error(self.line("stages"), "stages", msg, Some("raise `[pipeline] max_instances` if a plan this large is meant".into()));
-            return None;
-        }
+        let header = self.header(file, root);
+        let mut stages_table = self.stages_table(root, header.max_instances)?;
         self.claims_not_set_by_stages(&mut stages_table, registry);
-        let mut stages = Vec::new();
-        let mut explicit_inputs = Vec::new();
-        for (name, table) in &stages_table {
-            let path = format!("stages.{name}");
-            self.name(&path, name);
-            let Value::Object(table) = table else {
-                self.error(self.line(&path), &path, "must be a table".into(), None);
-                continue;
-            };
-            if let Some((stage, inputs)) = self.stage(name, table, registry, file.parent().unwrap_or(Path::new("."))) {
-                stages.push(stage);
-                explicit_inputs.push(inputs);
-            }
-        }
-        if stages.len() != stages_table.len() {
-            return None;
-        }
+        let (mut stages, explicit_inputs) = self.stages(&stages_table, registry, file.parent().unwrap_or(Path::new(".")))?;
         self.bind(&mut stages, &explicit_inputs, registry);
         if !self.errors.is_empty() {
             return None;
         }
-        if !seeds.is_empty() && stages.iter().any(|s| s.name == SEED_DIMENSION) {
-            let path = format!("stages.{SEED_DIMENSION}");
-            let msg = "a stage may not be named `seed` when [pipeline] seeds is set: seeds fan out on a dimension of that name".into();
-            self.error(self.line(&path), &path, msg, None);
-            return None;
-        }
+        self.no_stage_named_seed(&stages, &header.seeds)?;
         let mut stages = self.topological(stages)?;
-        self.bounded(&stages, seed_rule.map_or(seeds.len(), |r| r.max), max_instances);
+        self.bounded(&stages, header.seed_rule.map_or(header.seeds.len(), |r| r.max), header.max_instances);
         if !self.errors.is_empty() {
             return None;
         }
@@ -407,12 +317,12 @@ impl Checker {
         if !self.errors.is_empty() {
             return None;
         }
-        let looks = match seed_rule {
+        let looks = match header.seed_rule {
             Some(rule) => Some(rlmflow_stages::claims::Looks { first: rule.min, last: rule.max }),
-            None if seeds.is_empty() => None,
-            None => Some(rlmflow_stages::claims::Looks { first: seeds.len(), last: seeds.len() }),
+            None if header.seeds.is_empty() => None,
+            None => Some(rlmflow_stages::claims::Looks { first: header.seeds.len(), last: header.seeds.len() }),
         };
-        let dims = dimensions(&stages, !seeds.is_empty());
+        let dims = dimensions(&stages, !header.seeds.is_empty());
         let claims = self.claims(root.get("claims"), &stages, &dims, looks, registry);
         if let Some(spec) = &claims {
             self.hand_claims(spec, &mut stages, registry);
@@ -420,6 +330,7 @@ impl Checker {
         if !self.errors.is_empty() {
             return None;
         }
+        let Header { name, seed, seeds, seed_rule, cache, results, executor, hyperqueue, remote, .. } = header;
         Some(Pipeline {
             file: file.to_path_buf(),
             name,
@@ -437,7 +348,62 @@ impl Checker {
             overrides: Vec::new(),
         })
     }
+
+    /// `[stages]`: a non-empty table, of at most `max_instances` stages.
+    fn stages_table(&mut self, root: &Map<String, Value>, max_instances: u64) -> Option<Map<String, Value>> {
+        let table = match root.get("stages") {
+            Some(Value::Object(t)) if !t.is_empty() => t.clone(),
+            Some(Value::Object(_)) | None => {
+                let help = "add one, e.g. [stages.scenes] with operator = \"procedural\"".to_owned();
+                self.error(self.line("stages"), "stages", "the pipeline has no stages".into(), Some(help));
+                return None;
+            }
+            Some(_) => {
+                self.error(self.line("stages"), "stages", "must be a table of stage tables".into(), None);
+                return None;
+            }
+        };
+        if table.len() as u64 > max_instances {
+            let msg = format!("{} stages, and each makes at least one instance; at most {max_instances} (`[pipeline] max_instances`)", table.len());
+            self.error(self.line("stages"), "stages", msg, Some("raise `[pipeline] max_instances` if a plan this large is meant".into()));
+            return None;
+        }
+        Some(table)
+    }
+
+    /// Every stage table checked ([`Checker::stage`]), with its explicit inputs; `None` when one
+    /// does not check.
+    fn stages(&mut self, table: &Map<String, Value>, registry: &Registry, dir: &Path) -> Option<StagesWithInputs> {
+        let (mut stages, mut explicit_inputs) = (Vec::new(), Vec::new());
+        for (name, table) in table {
+            let path = format!("stages.{name}");
+            self.name(&path, name);
+            let Value::Object(table) = table else {
+                self.error(self.line(&path), &path, "must be a table".into(), None);
+                continue;
+            };
+            if let Some((stage, inputs)) = self.stage(name, table, registry, dir) {
+                stages.push(stage);
+                explicit_inputs.push(inputs);
+            }
+        }
+        (stages.len() == table.len()).then_some((stages, explicit_inputs))
+    }
+
+    /// Seeds fan out on a dimension named `seed`, so no stage may take that name beside them.
+    fn no_stage_named_seed(&mut self, stages: &[Stage], seeds: &[u64]) -> Option<()> {
+        if !seeds.is_empty() && stages.iter().any(|s| s.name == SEED_DIMENSION) {
+            let path = format!("stages.{SEED_DIMENSION}");
+            let msg = "a stage may not be named `seed` when [pipeline] seeds is set: seeds fan out on a dimension of that name".into();
+            self.error(self.line(&path), &path, msg, None);
+            return None;
+        }
+        Some(())
+    }
 }
+
+/// The checked stages and, for each, the stages its `inputs` names by slot.
+type StagesWithInputs = (Vec<Stage>, Vec<BTreeMap<String, Vec<String>>>);
 
 /// ", did you mean `x`?" for the nearest candidate, if one is close.
 pub fn suggest(word: &str, candidates: &[&str]) -> String {

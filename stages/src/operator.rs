@@ -7,8 +7,8 @@ use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
-use crate::kind::{Catalog, StageKind};
 use crate::context::Context;
+use crate::kind::{Catalog, StageKind};
 use crate::memory::Footprint;
 use crate::numerics::Target;
 

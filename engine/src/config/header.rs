@@ -6,6 +6,22 @@ use anyhow::Context as _;
 use serde_json::{Map, Value};
 
 use super::checker::Checker;
+use super::hyperqueue::HyperQueueSettings;
+use super::{INSTANCES_CEILING, MAX_INSTANCES, suggest};
+
+/// `[pipeline]`, checked.
+pub(super) struct Header {
+    pub name: String,
+    pub seed: u64,
+    pub seeds: Vec<u64>,
+    pub seed_rule: Option<SeedRule>,
+    pub max_instances: u64,
+    pub cache: PathBuf,
+    pub results: Option<PathBuf>,
+    pub executor: Executor,
+    pub hyperqueue: HyperQueueSettings,
+    pub remote: RemoteSettings,
+}
 
 /// Where results are shared between machines (`rlmflow_remote`); `--remote` and `--push`
 /// override the file.
@@ -252,5 +268,63 @@ impl SeedRule {
     /// The first `n` seeds.
     pub fn seeds(&self, n: usize) -> Vec<u64> {
         (0..n as u64).map(|i| self.first + i).collect()
+    }
+}
+
+impl Checker {
+    /// `[pipeline]`: its keys, the name (the file's stem by default), seeds, the instance bound,
+    /// the store, results links, executor and remote.
+    pub(super) fn header(&mut self, file: &Path, root: &Map<String, Value>) -> Header {
+        let header = match root.get("pipeline") {
+            None => &Map::new(),
+            Some(Value::Object(t)) => t,
+            Some(_) => {
+                self.error(self.line("pipeline"), "pipeline", "must be a table".into(), None);
+                &Map::new()
+            }
+        };
+        for key in header.keys().filter(|k| !PIPELINE_KEYS.contains(&k.as_str())) {
+            self.unknown_key(&format!("pipeline.{key}"), key, PIPELINE_KEYS);
+        }
+        let stem = file.file_stem().map_or("pipeline".into(), |s| s.to_string_lossy().into_owned());
+        let name = self.string(header, "pipeline", "name").unwrap_or(stem);
+        self.name("pipeline.name", &name);
+        let seed = match header.get("seed") {
+            None => 0,
+            Some(v) => v.as_u64().unwrap_or_else(|| {
+                let msg = format!("must be a non-negative integer, not {v}");
+                self.error(self.line("pipeline.seed"), "pipeline.seed", msg, None);
+                0
+            }),
+        };
+        let (seeds, seed_rule) = self.seeds(header);
+        if seed_rule.is_some() && !root.contains_key("claims") {
+            let help = "add [claims], or list the seeds: seeds = [1, 2, 3]".to_owned();
+            let msg = "adds seeds until the claims are decided, and the file has no [claims]".into();
+            self.error(self.line("pipeline.seeds"), "pipeline.seeds", msg, Some(help));
+        }
+        let max_instances = match header.get("max_instances") {
+            None => MAX_INSTANCES,
+            Some(v) => v.as_u64().filter(|n| (1..=INSTANCES_CEILING).contains(n)).unwrap_or_else(|| {
+                let msg = format!("must be a positive integer up to {INSTANCES_CEILING}, not {v}");
+                self.error(self.line("pipeline.max_instances"), "pipeline.max_instances", msg, None);
+                MAX_INSTANCES
+            }),
+        };
+        let cache = self.string(header, "pipeline", "cache").unwrap_or_else(|| ".rlmflow".into());
+        let cache = file.parent().unwrap_or(Path::new(".")).join(cache);
+        let cache = std::path::absolute(&cache).unwrap_or(cache);
+        let results = self.results_dir(file, header, &cache);
+        let executor = match self.string(header, "pipeline", "executor") {
+            None => Executor::Local,
+            Some(name) => Executor::parse(&name).unwrap_or_else(|| {
+                let help = format!("valid executors: {}{}", Executor::NAMES.join(", "), suggest(&name, Executor::NAMES));
+                self.error(self.line("pipeline.executor"), "pipeline.executor", format!("unknown executor `{name}`"), Some(help));
+                Executor::Local
+            }),
+        };
+        let hyperqueue = self.hyperqueue(file, header.get("hyperqueue"));
+        let remote = self.remote(file, header);
+        Header { name, seed, seeds, seed_rule, max_instances, cache, results, executor, hyperqueue, remote }
     }
 }

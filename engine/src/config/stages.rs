@@ -1,7 +1,7 @@
 //! `[stages.*]`: each stage's kind, operator, settings, variants and shards, its inputs bound to
 //! the stages that provide them, and its settings checked against what its inputs will be.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::ops::Range;
 use std::path::Path;
 
@@ -11,6 +11,9 @@ use serde_json::{Map, Value};
 
 use super::checker::Checker;
 use super::{Binding, Bounds, Merge, Stage, Variant, suggest};
+
+/// A variant's name and the settings it overrides; `None` for a stage without variants.
+type Named = Option<(String, Map<String, Value>)>;
 
 /// `shards = N` (N equal parts) or `shard_size = K` (parts of K items: growing the stage keeps
 /// the parts it had).
@@ -63,7 +66,8 @@ impl Checker {
         }
     }
 
-    /// Checks one stage table; returns it with its explicit `inputs` (slot -> stage names).
+    /// Checks one stage table; returns it with its explicit `inputs` (slot -> stage names). Each
+    /// step below owns its errors; the stage is returned when every variant's settings check.
     pub(super) fn stage(
         &mut self,
         name: &str,
@@ -73,6 +77,31 @@ impl Checker {
     ) -> Option<(Stage, BTreeMap<String, Vec<String>>)> {
         let path = format!("stages.{name}");
         let line = self.line(&path);
+        let (kind, op_name, op_id) = self.kind_and_operator(name, table, registry)?;
+        let op = registry.get(&op_id).expect("found by its kind and name");
+        // A bad setting the variants inherit is one error, not one per variant.
+        let mut reported = BTreeSet::new();
+        let mut checked: Vec<Variant> = (self.variant_tables(table, &path).into_iter())
+            .filter_map(|(variant, merged)| self.variant_settings(op, &path, variant, merged, dir, &mut reported))
+            .collect();
+        let inputs = self.explicit_inputs(table, &path, &operator_slots(registry, &op_id, &kind), &op_name);
+        let per_seed = self.per_seed(table, &path, &kind);
+        let bounds = self.bounds(table, &path);
+        let split = self.split(table, &path);
+        if checked.is_empty() {
+            return None;
+        }
+        let merge = match split {
+            Some((key, split)) => Some(self.shard(&key, op, kind, &mut checked, split, registry)?),
+            None => None,
+        };
+        let stage = Stage { name: name.to_owned(), kind, operator: op_id, variants: checked, bindings: Vec::new(), per_seed, merge, bounds, line };
+        Some((stage, inputs))
+    }
+
+    /// The stage's kind (`kind`, else its name) and operator: its name and its registry id.
+    fn kind_and_operator(&mut self, name: &str, table: &Map<String, Value>, registry: &Registry) -> Option<(StageKind, String, String)> {
+        let path = format!("stages.{name}");
         let kind_name = self.string(table, &path, "kind").unwrap_or_else(|| name.to_owned());
         let kinds: Vec<&str> = registry.catalog.kinds.iter().map(|k| k.name).collect();
         let Some(kind) = registry.kind(&kind_name).copied() else {
@@ -90,31 +119,34 @@ impl Checker {
         let Some(op_name) = self.string(table, &path, "operator") else {
             if !table.contains_key("operator") {
                 let help = format!("operators of kind `{}`: {}", kind.name, operators.join(", "));
-                self.error(line, &path, "missing `operator`".into(), Some(help));
+                self.error(self.line(&path), &path, "missing `operator`".into(), Some(help));
             }
             return None;
         };
-        let (op_id, op) = match registry.find(kind.name, &op_name) {
-            Some((id, op)) => (id.to_owned(), op),
-            None => {
-                let key = format!("{path}.operator");
-                let msg = match registry.named(&op_name) {
-                    Some(op) => format!("operator `{op_name}` implements kind `{}`, not `{}`", op.spec().kind, kind.name),
-                    None => format!("unknown operator `{op_name}` for stage kind `{}`", kind.name),
-                };
-                let help = format!("valid: {}{}", operators.join(", "), suggest(&op_name, &operators));
-                self.error(self.line(&key), &key, msg, Some(help));
-                return None;
-            }
+        let Some((id, _)) = registry.find(kind.name, &op_name) else {
+            let key = format!("{path}.operator");
+            let msg = match registry.named(&op_name) {
+                Some(op) => format!("operator `{op_name}` implements kind `{}`, not `{}`", op.spec().kind, kind.name),
+                None => format!("unknown operator `{op_name}` for stage kind `{}`", kind.name),
+            };
+            let help = format!("valid: {}{}", operators.join(", "), suggest(&op_name, &operators));
+            self.error(self.line(&key), &key, msg, Some(help));
+            return None;
         };
+        let id = id.to_owned();
+        Some((kind, op_name, id))
+    }
 
+    /// Each variant's settings table (the stage's keys with the variant's merged over them), with
+    /// the variant's name and overrides; one unnamed table without `variants`.
+    fn variant_tables(&mut self, table: &Map<String, Value>, path: &str) -> Vec<(Named, Map<String, Value>)> {
         let mut base = table.clone();
         for key in STAGE_KEYS {
             base.remove(*key);
         }
         let mut variants = Vec::new();
         match table.get("variants") {
-            None => variants.push((None, base.clone())),
+            None => variants.push((None, base)),
             Some(Value::Object(named)) if !named.is_empty() => {
                 for (variant, overrides) in named {
                     let vpath = format!("{path}.variants.{variant}");
@@ -134,76 +166,104 @@ impl Checker {
                 self.error(self.line(&key), &key, msg, None);
             }
         }
-        let mut checked = Vec::new();
-        // A bad setting the variants inherit is one error, not one per variant.
-        let mut reported = std::collections::BTreeSet::new();
-        for (variant, merged) in variants {
-            match op.settings(Value::Object(merged)) {
-                Ok(settings) => {
-                    let mut tracked = Vec::new();
-                    let root = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
-                    for &key in op.tracked_keys() {
-                        let files = op.tracked_files(&settings, key);
-                        let what = if matches!(files, Ok(Some(_))) { "files or globs (`probes/*.py`)" } else { "a file or directory" };
-                        let checked = match files {
-                            Ok(Some(patterns)) => {
-                                chosen_files(dir, &patterns).map(|files| (!files.is_empty()).then(|| Source::Files { root: root.clone(), files }))
-                            }
-                            Ok(None) => tracked_path(op, &settings, key, dir),
-                            Err(e) => Err(e.message),
-                        };
-                        let message = match checked {
-                            Ok(found) => {
-                                tracked.extend(found.map(|source| (key.to_owned(), source)));
-                                continue;
-                            }
-                            Err(message) => message,
-                        };
-                        let at = match &variant {
-                            Some((v, overrides)) if overrides.contains_key(key) => format!("{path}.variants.{v}.{key}"),
-                            _ => format!("{path}.{key}"),
-                        };
-                        let help = Some(format!("{what}, relative to the pipeline file's directory ({})", root.display()));
-                        if reported.insert((at.clone(), message.clone())) {
-                            self.error(self.line(&at), &at, message, help);
-                        }
+        variants
+    }
+
+    /// One variant's settings, checked by its operator, with the paths they track; `None` (its
+    /// error reported, once across variants: `reported`) when they do not check.
+    fn variant_settings(
+        &mut self,
+        op: &dyn DynOperator,
+        path: &str,
+        variant: Named,
+        merged: Map<String, Value>,
+        dir: &Path,
+        reported: &mut BTreeSet<(String, String)>,
+    ) -> Option<Variant> {
+        match op.settings(Value::Object(merged)) {
+            Ok(settings) => {
+                let tracked = self.tracked(op, &settings, path, &variant, dir, reported);
+                Some(Variant { name: variant.map(|v| v.0), settings, shards: Vec::new(), tracked })
+            }
+            Err(e) => {
+                // Point at the variant's line when the variant set the key.
+                let top = e.key.split('.').next().unwrap_or_default();
+                let key = match &variant {
+                    Some((v, overrides)) if overrides.contains_key(top) => format!("{path}.variants.{v}.{}", e.key),
+                    _ if e.key.is_empty() => path.to_owned(),
+                    _ => format!("{path}.{}", e.key),
+                };
+                let help = if e.valid.is_empty() {
+                    None
+                } else {
+                    let leaf = e.key.rsplit('.').next().unwrap_or_default();
+                    let mut valid: Vec<&str> = e.valid.iter().map(String::as_str).collect();
+                    if !e.key.contains('.') {
+                        valid.extend(STAGE_KEYS);
                     }
-                    checked.push(Variant { name: variant.map(|v| v.0), settings, shards: Vec::new(), tracked });
+                    Some(format!("valid keys: {}{}", valid.join(", "), suggest(leaf, &valid)))
+                };
+                if reported.insert((key.clone(), e.message.clone())) {
+                    self.error(self.line(&key), &key, e.message, help);
                 }
-                Err(e) => {
-                    // Point at the variant's line when the variant set the key.
-                    let top = e.key.split('.').next().unwrap_or_default();
-                    let key = match &variant {
-                        Some((v, overrides)) if overrides.contains_key(top) => format!("{path}.variants.{v}.{}", e.key),
-                        _ if e.key.is_empty() => path.clone(),
-                        _ => format!("{path}.{}", e.key),
-                    };
-                    let help = if e.valid.is_empty() {
-                        None
-                    } else {
-                        let leaf = e.key.rsplit('.').next().unwrap_or_default();
-                        let mut valid: Vec<&str> = e.valid.iter().map(String::as_str).collect();
-                        if !e.key.contains('.') {
-                            valid.extend(STAGE_KEYS);
-                        }
-                        Some(format!("valid keys: {}{}", valid.join(", "), suggest(leaf, &valid)))
-                    };
-                    if reported.insert((key.clone(), e.message.clone())) {
-                        self.error(self.line(&key), &key, e.message, help);
-                    }
-                }
+                None
             }
         }
+    }
 
+    /// What a variant's tracked settings name, made absolute and checked: a path each, or the
+    /// chosen files of a setting that lists them ([`DynOperator::tracked_files`]).
+    fn tracked(
+        &mut self,
+        op: &dyn DynOperator,
+        settings: &Value,
+        path: &str,
+        variant: &Named,
+        dir: &Path,
+        reported: &mut BTreeSet<(String, String)>,
+    ) -> Vec<(String, Source)> {
+        let mut tracked = Vec::new();
+        let root = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
+        for &key in op.tracked_keys() {
+            let files = op.tracked_files(settings, key);
+            let what = if matches!(files, Ok(Some(_))) { "files or globs (`probes/*.py`)" } else { "a file or directory" };
+            let checked = match files {
+                Ok(Some(patterns)) => {
+                    chosen_files(dir, &patterns).map(|files| (!files.is_empty()).then(|| Source::Files { root: root.clone(), files }))
+                }
+                Ok(None) => tracked_path(op, settings, key, dir),
+                Err(e) => Err(e.message),
+            };
+            let message = match checked {
+                Ok(found) => {
+                    tracked.extend(found.map(|source| (key.to_owned(), source)));
+                    continue;
+                }
+                Err(message) => message,
+            };
+            let at = match variant {
+                Some((v, overrides)) if overrides.contains_key(key) => format!("{path}.variants.{v}.{key}"),
+                _ => format!("{path}.{key}"),
+            };
+            let help = Some(format!("{what}, relative to the pipeline file's directory ({})", root.display()));
+            if reported.insert((at.clone(), message.clone())) {
+                self.error(self.line(&at), &at, message, help);
+            }
+        }
+        tracked
+    }
+
+    /// The stage's `inputs` table: for each slot the operator reads (`readable`), the stage names
+    /// given.
+    fn explicit_inputs(&mut self, table: &Map<String, Value>, path: &str, readable: &[&str], op_name: &str) -> BTreeMap<String, Vec<String>> {
         let mut inputs = BTreeMap::new();
         match table.get("inputs") {
             None => {}
             Some(Value::Object(map)) => {
-                let readable = operator_slots(registry, &op_id, &kind);
                 for (slot, value) in map {
                     let key = format!("{path}.inputs.{slot}");
                     if !readable.contains(&slot.as_str()) {
-                        let help = format!("`{op_name}` reads: {}{}", readable.join(", "), suggest(slot, &readable));
+                        let help = format!("`{op_name}` reads: {}{}", readable.join(", "), suggest(slot, readable));
                         self.error(self.line(&key), &key, format!("unknown input slot `{slot}`"), Some(help));
                         continue;
                     }
@@ -225,7 +285,12 @@ impl Checker {
                 self.error(self.line(&key), &key, msg, None);
             }
         }
-        let per_seed = match table.get("per_seed") {
+        inputs
+    }
+
+    /// Whether the stage runs once per seed: its `per_seed`, else its kind's.
+    fn per_seed(&mut self, table: &Map<String, Value>, path: &str, kind: &StageKind) -> bool {
+        match table.get("per_seed") {
             None => kind.per_seed,
             Some(Value::Bool(b)) => *b,
             Some(other) => {
@@ -233,18 +298,7 @@ impl Checker {
                 self.error(self.line(&key), &key, format!("must be true or false, not {other}"), None);
                 kind.per_seed
             }
-        };
-        let bounds = self.bounds(table, &path);
-        let split = self.split(table, &path);
-        if checked.is_empty() {
-            return None;
         }
-        let merge = match split {
-            Some((key, split)) => Some(self.shard(&key, op, kind, &mut checked, split, registry)?),
-            None => None,
-        };
-        let stage = Stage { name: name.to_owned(), kind, operator: op_id, variants: checked, bindings: Vec::new(), per_seed, merge, bounds, line };
-        Some((stage, inputs))
     }
 
     /// A stage's `timeout` (seconds) and `retries`.
