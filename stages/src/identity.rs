@@ -196,21 +196,14 @@ pub fn check_overlap(stage: &str, test: &FrameSet, learnt: &[Learnt], allow: boo
 pub fn check_inputs(ctx: &crate::Context, test: &FrameSet, allow: bool) -> anyhow::Result<Vec<Overlap>> {
     let mut learnt = Vec::new();
     let label = |slot: &'static str| ctx.input_label(slot).filter(|l| !l.is_empty()).unwrap_or(slot);
-    if let Some(dir) = ctx.optional_input("encoder") {
+    // An encoder, and the features of a frozen one, which carry its sets with them.
+    for slot in ["encoder", "embeddings"] {
+        let Some(dir) = ctx.optional_input(slot) else { continue };
         let set = FrameSet::read(&dir.join(crate::encoder::TRAINED))?;
-        learnt.push(Learnt { against: "encoder training", slot: "encoder", label: label("encoder"), set });
+        learnt.push(Learnt { against: "encoder training", slot, label: label(slot), set });
         let tokenizer = dir.join(crate::encoder::TOKENIZER_FRAMES);
         if tokenizer.exists() {
-            learnt.push(Learnt { against: "encoder's tokenizer", slot: "encoder", label: label("encoder"), set: FrameSet::read(&tokenizer)? });
-        }
-    }
-    // Features of a frozen encoder carry its sets with them.
-    if let Some(dir) = ctx.optional_input("embeddings") {
-        let set = FrameSet::read(&dir.join(crate::encoder::TRAINED))?;
-        learnt.push(Learnt { against: "encoder training", slot: "embeddings", label: label("embeddings"), set });
-        let tokenizer = dir.join(crate::encoder::TOKENIZER_FRAMES);
-        if tokenizer.exists() {
-            learnt.push(Learnt { against: "encoder's tokenizer", slot: "embeddings", label: label("embeddings"), set: FrameSet::read(&tokenizer)? });
+            learnt.push(Learnt { against: "encoder's tokenizer", slot, label: label(slot), set: FrameSet::read(&tokenizer)? });
         }
     }
     if let Some(dir) = ctx.optional_input("tokens") {
