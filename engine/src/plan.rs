@@ -296,8 +296,8 @@ impl Plan<'_> {
             .collect()
     }
 
-    /// The preimage of instance `i`, once every input's output digest is known.
-    /// Digests every tracked path (`rlmflow_cache::external`: a stat per unchanged file).
+    /// Digests every tracked path (`rlmflow_cache::external`: a stat per unchanged file), the
+    /// inputs of the preimages that name them.
     pub fn fingerprint(&mut self, store: Option<&Store>) -> anyhow::Result<()> {
         // Each source with the first instance and setting that name it, for the error.
         let mut sources: BTreeMap<Source, (usize, &str)> = BTreeMap::new();
