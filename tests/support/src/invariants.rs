@@ -1,11 +1,12 @@
 //! ARCHITECTURE.md's invariants name the tests that enforce them: each invariant (a bullet of
-//! its `## Invariants`, or a paragraph opening `Invariant:` in a layer's section) names at least
-//! one, and every test it names exists.
+//! its `## Invariants`, or a bullet or paragraph opening `Invariant:` in a crate's section)
+//! names at least one, and every test it names exists.
 
 use std::path::Path;
 
 /// Each invariant of `architecture`, its lines joined: the bullets of `## Invariants`, and every
-/// paragraph elsewhere that opens `Invariant:` (up to the next invariant, blank line or heading).
+/// bullet or paragraph elsewhere that opens `Invariant:` (up to the next invariant, blank line or
+/// heading).
 pub fn invariants(architecture: &str) -> Vec<String> {
     let mut found: Vec<String> = Vec::new();
     let mut open = false;
@@ -16,7 +17,7 @@ pub fn invariants(architecture: &str) -> Vec<String> {
             open = false;
             continue;
         }
-        let start = if in_section { line.strip_prefix("- ") } else { line.strip_prefix("Invariant: ") };
+        let start = if in_section { line.strip_prefix("- ") } else { line.strip_prefix("- Invariant: ").or_else(|| line.strip_prefix("Invariant: ")) };
         match start {
             Some(start) => {
                 found.push(start.to_owned());
