@@ -207,15 +207,15 @@ fn score_segmenter(s: &ScriptSettings, ctx: &Context) -> anyhow::Result<segment:
     if let Some(i) = all.iter().position(|v| !v.is_finite() || *v * scale < 0.0 || *v * scale > 1.0) {
         bail!("{}: {PREDICTIONS_NPY}: value {} at index {i} (test frame {}) is not in [0, 1]", ctx.stage, all[i], test[i / (side * side)]);
     }
+    // Scaled to [0, 1] once; each test frame's mask is one chunk of it.
+    let all: Vec<f32> = all.into_iter().map(|v| v * scale).collect();
+    let maps: Vec<&[f32]> = all.chunks_exact(side * side).collect();
     let mut counts = segment::PixelCounts::new();
     let mut frames = String::new();
-    let mut maps = Vec::with_capacity(test.len());
-    for (k, &frame) in test.iter().enumerate() {
-        let predicted: Vec<f32> = all[k * side * side..(k + 1) * side * side].iter().map(|v| v * scale).collect();
+    for (&predicted, &frame) in maps.iter().zip(&test) {
         let mask = labels.mask(frame)?;
-        counts.add(&predicted, &mask);
-        frames.push_str(&(serde_json::to_string(&segment::FrameScore::of(frame, &predicted, &mask))? + "\n"));
-        maps.push(predicted);
+        counts.add(predicted, &mask);
+        frames.push_str(&(serde_json::to_string(&segment::FrameScore::of(frame, predicted, &mask))? + "\n"));
     }
     std::fs::write(out.join(segment::FRAMES), frames)?;
     let n = SAMPLES.min(test.len());

@@ -17,7 +17,8 @@ pub fn invariants(architecture: &str) -> Vec<String> {
             open = false;
             continue;
         }
-        let start = if in_section { line.strip_prefix("- ") } else { line.strip_prefix("- Invariant: ").or_else(|| line.strip_prefix("Invariant: ")) };
+        let start =
+            if in_section { line.strip_prefix("- ") } else { line.strip_prefix("- Invariant: ").or_else(|| line.strip_prefix("Invariant: ")) };
         match start {
             Some(start) => {
                 found.push(start.to_owned());
