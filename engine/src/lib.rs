@@ -1,7 +1,7 @@
 //! The rlmflow engine: pipeline files ([`config`]), plans ([`plan`]), why an instance runs
 //! ([`reason`]), what a run establishes before it starts ([`preflight`], with the memory check,
-//! [`footprint`]), the executor ([`run`]) and its use of the remote cache (`pulls`), the links
-//! to each instance's current output ([`results`]), the numeric
+//! [`footprint`]), the scheduler ([`run`], with its budget, remote exchange, results links and
+//! provenance), the numeric
 //! platform class a model action's key carries ([`platform`]), how it starts actions
 //! ([`dispatch`]: child processes or HyperQueue tasks) and talks to them ([`protocol`]), the
 //! child-process entry point ([`exec`]) and the cluster task with a store of its own ([`task`]),
@@ -29,9 +29,7 @@ pub mod plan;
 pub mod platform;
 pub mod preflight;
 pub mod protocol;
-mod pulls;
 pub mod reason;
-pub mod results;
 pub mod run;
 pub mod task;
 mod ui;

@@ -21,7 +21,6 @@
 use std::fs::File;
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
-use std::sync::mpsc::Sender;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -33,7 +32,7 @@ use pyo3::conversion::FromPyObjectOwned;
 use pyo3::prelude::*;
 use pyo3::types::PyTuple;
 
-use super::{Dispatch, Exit, Launch, Report, forward_line};
+use super::{Dispatch, Exit, Launch, Report, Reports, forward_line};
 use crate::config::{HyperQueueSettings, RemoteSettings, WorkerStore};
 use crate::protocol::Message;
 
@@ -198,13 +197,13 @@ struct Task {
 }
 
 impl Dispatch for HyperQueue {
-    fn start(&mut self, id: usize, launch: Launch, tx: Sender<(usize, Report)>) -> anyhow::Result<()> {
+    fn start(&mut self, launch: Launch, reports: Reports) -> anyhow::Result<()> {
         let client = self.client()?;
         let task = Task { client, dir: self.dir.clone(), launch, retries: self.settings.retries, gpus: self.settings.gpus, own: self.own.clone() };
         let log = Arc::new(Mutex::new(File::create(&task.launch.log).with_context(|| format!("creating {}", task.launch.log.display()))?));
         std::thread::spawn(move || {
-            let exit = task.run(id, &tx, &log).unwrap_or_else(|e| Exit::Lost(format!("{e:#}")));
-            let _ = tx.send((id, Report::Exited(exit)));
+            let exit = task.run(&reports, &log).unwrap_or_else(|e| Exit::Lost(format!("{e:#}")));
+            reports(Report::Exited(exit));
         });
         Ok(())
     }
@@ -238,7 +237,7 @@ const TIMED_OUT: i32 = 124;
 const POLL: Duration = Duration::from_millis(100);
 
 impl Task {
-    fn run(&self, id: usize, tx: &Sender<(usize, Report)>, log: &Mutex<File>) -> anyhow::Result<Exit> {
+    fn run(&self, reports: &Reports, log: &Mutex<File>) -> anyhow::Result<Exit> {
         let name = rlmflow_cache::file_safe(&self.launch.label);
         let own = match &self.own {
             Some(own) => match OwnTask::prepare(own, &self.launch)? {
@@ -254,7 +253,7 @@ impl Task {
                     let stdout = self.dir.join(format!("{name}.{attempt}.stdout"));
                     let stderr = self.dir.join(format!("{name}.{attempt}.stderr"));
                     let job = self.submit(&name, self.launch.args.clone(), &self.dir, [&stdout, &stderr], None)?;
-                    let (exit, outcome) = self.follow(job, &stdout, id, tx, log)?;
+                    let (exit, outcome) = self.follow(job, &stdout, reports, log)?;
                     if let Ok(mut text) = std::fs::read_to_string(&stderr) {
                         if !text.is_empty() && !text.ends_with('\n') {
                             text.push('\n');
@@ -269,7 +268,7 @@ impl Task {
                     let [stdout, stderr] = ["stdout", "stderr"].map(|ext| cwd.join(format!("rlmflow-{}-{name}.{attempt}.{ext}", own.run)));
                     let job = self.submit(&name, own.args(&self.launch, &transcript), &cwd, [&stdout, &stderr], Some(&own.request))?;
                     let reason = self.wait(job, || {})?;
-                    let (exit, outcome) = own.finish(&reason, &transcript, &stderr, id, tx, log)?;
+                    let (exit, outcome) = own.finish(&reason, &transcript, &stderr, reports, log)?;
                     (job, exit, outcome)
                 }
             };
@@ -284,7 +283,7 @@ impl Task {
             }
             attempt += 1;
             let data = json!({"job": job, "attempt": attempt, "retries": self.retries, "reason": exit.describe()});
-            let _ = tx.send((id, Report::Message(Message::Event { name: "hyperqueue_retry".into(), data })));
+            reports(Report::Message(Message::Event { name: "hyperqueue_retry".into(), data }));
             let _ =
                 writeln!(log.lock().unwrap(), "rlmflow: HyperQueue job {job} ended without an outcome ({}); submitting it again", exit.describe());
         }
@@ -336,12 +335,12 @@ impl Task {
 
     /// Follows the task's stdout until the job ends; returns how it ended and whether the
     /// process reported an outcome (done, reused, failed, corrupt input).
-    fn follow(&self, job: u64, stdout: &Path, id: usize, tx: &Sender<(usize, Report)>, log: &Mutex<File>) -> anyhow::Result<(Exit, bool)> {
+    fn follow(&self, job: u64, stdout: &Path, reports: &Reports, log: &Mutex<File>) -> anyhow::Result<(Exit, bool)> {
         let mut tail = Tail::default();
         let mut outcome = false;
         let mut forward = |line: &str| {
             outcome |= outcome_of(line).is_some();
-            forward_line(line, id, tx, log);
+            forward_line(line, reports, log);
         };
         let reason = self.wait(job, || tail.read(stdout, &mut forward))?;
         tail.read(stdout, &mut forward);
@@ -400,22 +399,14 @@ impl OwnTask {
     /// After the job ended (HyperQueue's `reason` it failed, "" if it did not): forwards the
     /// transcript, and pulls the result into the engine's store. Returns how the task ended
     /// and whether it reported an outcome.
-    fn finish(
-        &self,
-        reason: &str,
-        transcript: &str,
-        stderr: &Path,
-        id: usize,
-        tx: &Sender<(usize, Report)>,
-        log: &Mutex<File>,
-    ) -> anyhow::Result<(Exit, bool)> {
+    fn finish(&self, reason: &str, transcript: &str, stderr: &Path, reports: &Reports, log: &Mutex<File>) -> anyhow::Result<(Exit, bool)> {
         let mut exit = if reason.is_empty() { Exit::Code(0) } else { exit_of(reason) };
         let mut outcome = None;
         match self.remote.transcript(transcript) {
             Some(text) => {
                 for line in text.lines() {
                     outcome = outcome_of(line).or(outcome);
-                    forward_line(line, id, tx, log);
+                    forward_line(line, reports, log);
                 }
                 self.remote.remove_transcript(transcript);
             }
@@ -438,7 +429,7 @@ impl OwnTask {
             };
             if let Some(why) = why {
                 let message = format!("the task finished, but its result could not be fetched from the remote cache: {why}");
-                let _ = tx.send((id, Report::Message(Message::Failed { message, setting: None })));
+                reports(Report::Message(Message::Failed { message, setting: None }));
                 exit = Exit::Code(1);
             }
         }

@@ -3,13 +3,12 @@
 use std::fs::File;
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Command, Stdio};
-use std::sync::mpsc::Sender;
 use std::sync::{Arc, Mutex};
 
 use anyhow::Context as _;
 use rlmflow_stages::Device;
 
-use super::{Dispatch, Exit, Launch, Report, forward_lines};
+use super::{Dispatch, Exit, Launch, Report, Reports, forward_lines};
 
 pub struct Local {
     /// Whether a stage that can use a GPU may get one here, so such stages run one at a time.
@@ -26,7 +25,7 @@ impl Local {
 }
 
 impl Dispatch for Local {
-    fn start(&mut self, id: usize, launch: Launch, tx: Sender<(usize, Report)>) -> anyhow::Result<()> {
+    fn start(&mut self, launch: Launch, reports: Reports) -> anyhow::Result<()> {
         // Appending, so the engine's note of how the attempt ended lands after the last line.
         File::create(&launch.log).with_context(|| format!("creating {}", launch.log.display()))?;
         let log = std::fs::OpenOptions::new().append(true).open(&launch.log).with_context(|| format!("opening {}", launch.log.display()))?;
@@ -45,7 +44,7 @@ impl Dispatch for Local {
         });
         let timer = launch.timeout.map(|limit| Timer::start(child.id(), limit));
         std::thread::spawn(move || {
-            forward_lines(BufReader::new(stdout), id, &tx, &log);
+            forward_lines(BufReader::new(stdout), &reports, &log);
             let timed_out = timer.is_some_and(|t| {
                 wait_unreaped(child.id());
                 t.stop()
@@ -56,7 +55,7 @@ impl Dispatch for Local {
                 Ok(status) => exit_of(status),
                 Err(e) => Exit::Lost(format!("could not wait for the child: {e}")),
             };
-            let _ = tx.send((id, Report::Exited(exit)));
+            reports(Report::Exited(exit));
         });
         Ok(())
     }

@@ -1,14 +1,14 @@
-//! Dispatch: how an action's process is started and watched. The executor (`run.rs`) decides
+//! Dispatch: how an action's process is started and watched. The scheduler (`run/`) decides
 //! what runs, when, and what its outcome means; a dispatcher only starts `rlmflow exec KEY
-//! --store DIR` (or the worker binary's) somewhere and reports back, on one channel, the
-//! protocol messages the process prints and how it ended. Planning, keys, locks, the commit
+//! --store DIR` (or the worker binary's) somewhere and reports back, through the [`Reports`] it
+//! is given, the protocol messages the process prints and how it ended. Planning, keys, locks, the commit
 //! protocol and records are the same whichever dispatcher runs the action.
 //!
 //! `local.rs` starts child processes; `hyperqueue.rs` submits HyperQueue tasks. Another backend
 //! (Slurm directly, Kubernetes) is one more file implementing [`Dispatch`].
 
 use std::path::PathBuf;
-use std::sync::mpsc::Sender;
+use std::sync::Arc;
 
 use crate::protocol::Message;
 
@@ -43,14 +43,14 @@ pub struct Launch {
     pub timeout: Option<std::time::Duration>,
 }
 
-/// What a dispatcher tells the executor about a started action.
+/// What a dispatcher tells the scheduler about a started action.
 pub enum Report {
     Message(Message),
     Exited(Exit),
-    /// Not a dispatcher's: the end of a pull from the remote cache the executor started on a
-    /// thread of its own, on the same channel so one wait hears both.
-    Pulled(anyhow::Result<rlmflow_remote::Pulled>),
 }
+
+/// Where a dispatcher tells what it hears of one action, from any of its threads.
+pub type Reports = Arc<dyn Fn(Report) + Send + Sync>;
 
 /// How an action's process ended.
 #[derive(Clone, Debug, PartialEq)]
@@ -83,8 +83,8 @@ impl Exit {
 
 /// Starts actions and reports on them.
 pub trait Dispatch {
-    /// Starts `launch`; its messages, then exactly one `Exited`, come back on `tx` tagged `id`.
-    fn start(&mut self, id: usize, launch: Launch, tx: Sender<(usize, Report)>) -> anyhow::Result<()>;
+    /// Starts `launch`; its messages, then exactly one `Exited`, go to `reports`.
+    fn start(&mut self, launch: Launch, reports: Reports) -> anyhow::Result<()>;
 
     /// The most CPU threads one action may be given (a worker's cores), if the backend has a cap.
     fn max_threads(&self) -> Option<usize> {
@@ -108,20 +108,18 @@ pub trait Dispatch {
     fn describe(&self) -> String;
 }
 
-/// Reads protocol lines from `reader` into `tx`; other lines go to `log`.
-pub(crate) fn forward_lines(reader: impl std::io::BufRead, id: usize, tx: &Sender<(usize, Report)>, log: &std::sync::Mutex<std::fs::File>) {
+/// Reads protocol lines from `reader` into `reports`; other lines go to `log`.
+pub(crate) fn forward_lines(reader: impl std::io::BufRead, reports: &Reports, log: &std::sync::Mutex<std::fs::File>) {
     for line in reader.lines().map_while(Result::ok) {
-        forward_line(&line, id, tx, log);
+        forward_line(&line, reports, log);
     }
 }
 
-/// One line of a stage's stdout: a protocol message to `tx`, anything else to `log`.
-pub(crate) fn forward_line(line: &str, id: usize, tx: &Sender<(usize, Report)>, log: &std::sync::Mutex<std::fs::File>) {
+/// One line of a stage's stdout: a protocol message to `reports`, anything else to `log`.
+pub(crate) fn forward_line(line: &str, reports: &Reports, log: &std::sync::Mutex<std::fs::File>) {
     use std::io::Write;
     match line.strip_prefix(crate::protocol::PREFIX).map(serde_json::from_str::<Message>) {
-        Some(Ok(message)) => {
-            let _ = tx.send((id, Report::Message(message)));
-        }
+        Some(Ok(message)) => reports(Report::Message(message)),
         _ => {
             let _ = writeln!(log.lock().unwrap(), "{line}");
         }
