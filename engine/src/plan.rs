@@ -208,13 +208,49 @@ impl Plan<'_> {
     /// `clipcap[pretrain=alpha4]`, with `seed=N` where the stage runs per seed (among several
     /// seeds one must be named); an error lists what would be valid, the nearest first.
     pub fn instance_named(&self, text: &str) -> anyhow::Result<usize> {
+        match self.labelled(text)?.as_slice() {
+            [one] => Ok(*one),
+            many => {
+                let labels: Vec<&str> = many.iter().map(|&n| self.instances[n].label.as_str()).collect();
+                bail!("`{text}` names {} instances: {}; name one (its seed with `seed=N`)", many.len(), labels.join(", "))
+            }
+        }
+    }
+
+    /// The instances `text` names wherever a command takes a stage: every instance of the stage
+    /// it names, or those its label names as a run prints it (`clipcap[alpha4]`, `pretrain[clip]`
+    /// for all of that variant's seeds, `pretrain[clip,seed=2]` for one); on a typo, the nearest
+    /// stage or label.
+    pub fn instances_named(&self, text: &str) -> anyhow::Result<Vec<usize>> {
+        if text.contains('[') {
+            return self.labelled(text);
+        }
+        match self.pipeline.stage(text) {
+            Some(s) => Ok((0..self.instances.len()).filter(|&i| self.instances[i].stage == s).collect()),
+            None => {
+                let names = self.pipeline.stage_names();
+                let mut near = names.clone();
+                near.extend(self.whole().map(|i| i.label.as_str()));
+                bail!("no stage named `{text}` in {}; stages: {}{}", self.pipeline.file.display(), names.join(", "), suggest(text, &near))
+            }
+        }
+    }
+
+    /// The instances that are not shards.
+    fn whole(&self) -> impl Iterator<Item = &Instance> {
+        self.instances.iter().filter(|i| i.shard.is_none())
+    }
+
+    /// The whole instances a label names (at least one).
+    fn labelled(&self, text: &str) -> anyhow::Result<Vec<usize>> {
         let (stage, items) = match text.split_once('[') {
             Some((stage, rest)) => (stage, rest.strip_suffix(']').unwrap_or(rest)),
             None => (text, ""),
         };
         let Some(s) = self.pipeline.stage(stage) else {
             let names = self.pipeline.stage_names();
-            bail!("no stage named `{stage}` in {}; stages: {}{}", self.pipeline.file.display(), names.join(", "), suggest(stage, &names));
+            let labels: Vec<&str> = self.whole().map(|i| i.label.as_str()).collect();
+            bail!("no stage named `{stage}` in {}; stages: {}{}", self.pipeline.file.display(), names.join(", "), suggest(text, &labels));
         };
         let given: Vec<&str> = items.split(',').map(str::trim).filter(|i| !i.is_empty()).collect();
         let matches = |inst: &Instance| {
@@ -226,31 +262,22 @@ impl Plan<'_> {
                 }
             })
         };
-        let whole = || self.instances.iter().enumerate().filter(|(_, i)| i.stage == s && i.shard.is_none());
-        let found: Vec<usize> = whole().filter(|(_, i)| matches(i)).map(|(n, _)| n).collect();
-        match found.as_slice() {
-            [one] => Ok(*one),
-            [] => {
-                let labels: Vec<&str> = whole().map(|(_, i)| i.label.as_str()).collect();
-                bail!("no instance `{text}`; instances of `{stage}`: {}{}", labels.join(", "), suggest(text, &labels))
-            }
-            many => {
-                let labels: Vec<&str> = many.iter().map(|&n| self.instances[n].label.as_str()).collect();
-                bail!("`{text}` names {} instances: {}; name one (its seed with `seed=N`)", many.len(), labels.join(", "))
-            }
+        let of_stage = || self.instances.iter().enumerate().filter(|(_, i)| i.stage == s && i.shard.is_none());
+        let found: Vec<usize> = of_stage().filter(|(_, i)| matches(i)).map(|(n, _)| n).collect();
+        if found.is_empty() {
+            let labels: Vec<&str> = of_stage().map(|(_, i)| i.label.as_str()).collect();
+            bail!("no instance `{text}`; instances of `{stage}`: {}{}", labels.join(", "), suggest(text, &labels))
         }
+        Ok(found)
     }
 
-    /// Instances of the named stages and everything upstream of them.
-    pub fn select(&self, stages: &[String]) -> anyhow::Result<Vec<bool>> {
-        let mut keep = vec![stages.is_empty(); self.instances.len()];
-        for name in stages {
-            let Some(s) = self.pipeline.stage(name) else {
-                let names = self.pipeline.stage_names();
-                bail!("no stage named `{name}` in {}; stages: {}{}", self.pipeline.file.display(), names.join(", "), suggest(name, &names));
-            };
-            for (i, inst) in self.instances.iter().enumerate() {
-                keep[i] |= inst.stage == s;
+    /// The instances `names` name ([`Plan::instances_named`]: stages or labels) and everything
+    /// upstream of them; all of them when `names` is empty.
+    pub fn select(&self, names: &[String]) -> anyhow::Result<Vec<bool>> {
+        let mut keep = vec![names.is_empty(); self.instances.len()];
+        for name in names {
+            for i in self.instances_named(name)? {
+                keep[i] = true;
             }
         }
         for i in (0..self.instances.len()).rev() {

@@ -194,3 +194,41 @@ fn results_link_each_instance_to_its_current_output_and_say_so_when_gc_collected
     assert_eq!(out.status.code(), Some(2), "{}", text(&out.stderr));
     assert!(text(&out.stderr).contains("pipeline.results"), "{}", text(&out.stderr));
 }
+
+/// A label as the run prints it (`map[loud]`, or its long form `map[map=loud]`) is taken
+/// wherever a stage is: `run --only`, `status --only`, `show`, `explain`, `pin --only`; a typo
+/// is answered with the nearest label.
+#[test]
+fn every_command_that_takes_a_stage_takes_the_label_a_run_prints() {
+    let s = Scratch::new("labels");
+    s.pipeline(&CHAIN.replace(r#"suffix = "!""#, "[stages.map.variants]\nloud = { suffix = \"!!!\" }\nquiet = { suffix = \".\" }"));
+    let events = s.run_expecting(0, &["--only", "map[loud]"]);
+    let mut ran: Vec<String> = events.finished().into_iter().map(|(stage, _)| stage).collect();
+    ran.sort();
+    assert_eq!(ran, ["map[loud]", "source"], "the instance and what it needs, nothing else");
+
+    let status: Vec<Value> =
+        stdout_of(&s, &["status", "p.toml", "--json", "--only", "map[map=loud]"]).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let shown: Vec<(&str, &str)> = status.iter().map(|l| (l["stage"].as_str().unwrap(), l["state"].as_str().unwrap())).collect();
+    assert_eq!(shown, [("source", "cached"), ("map[loud]", "cached")], "{status:#?}");
+    let whole = stdout_of(&s, &["status", "p.toml"]);
+    assert!(whole.contains("map[quiet]") && whole.contains("measure[loud]"), "{whole}");
+
+    for command in ["show", "explain"] {
+        let out = stdout_of(&s, &[command, "p.toml", "map[loud]"]);
+        assert!(out.contains("map[loud]") && !out.contains("map[quiet]"), "{command}: {out}");
+        let both = stdout_of(&s, &[command, "p.toml", "map"]);
+        assert!(both.contains("map[loud]") && both.contains("map[quiet]"), "{command}: {both}");
+    }
+    assert!(stdout_of(&s, &["pin", "p.toml", "loud", "--only", "map[loud]"]).starts_with("pinned 2 cached stage instances"));
+
+    for (args, nearest) in [
+        (vec!["show", "p.toml", "map[lod]"], "did you mean `map[loud]`?"),
+        (vec!["explain", "p.toml", "mpa[loud]"], "did you mean `map[loud]`?"),
+        (vec!["status", "p.toml", "--only", "map[qiet]"], "did you mean `map[quiet]`?"),
+        (vec!["run", "p.toml", "--only", "maploud"], "did you mean `map[loud]`?"),
+    ] {
+        let out = s.cli(&args);
+        assert!(!out.status.success() && text(&out.stderr).contains(nearest), "{args:?}: {}", text(&out.stderr));
+    }
+}

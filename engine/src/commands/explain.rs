@@ -7,13 +7,15 @@ use anyhow::Context as _;
 use rlmflow_cache::{Digest, Store};
 use rlmflow_stages::{Device, Registry};
 
-use super::{SetArg, StoreArg, instances_of, store_root};
+use super::{SetArg, StoreArg, store_root};
 use crate::plan::{Freshness, assess};
 use crate::preflight::planned;
 
 #[derive(clap::Args)]
 pub(crate) struct Args {
     pipeline: PathBuf,
+    /// A stage (every instance of it), one instance as a run prints it (`pretrain[alpha4]`), or a
+    /// claim.
     stage: String,
     #[command(flatten)]
     set: SetArg,
@@ -41,7 +43,7 @@ fn explain(registry: &Registry, file: &Path, set: &SetArg, stage: &str, arg: &St
         Some(s) => s.last_keys(&p.name)?,
         None => Default::default(),
     };
-    for i in instances_of(&plan, stage)? {
+    for i in plan.instances_named(stage)? {
         let label = &plan.instances[i].label;
         println!("{label}");
         match &states[i] {

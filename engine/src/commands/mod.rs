@@ -22,7 +22,7 @@ pub(crate) mod verify;
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context as _, bail};
+use anyhow::Context as _;
 use rlmflow_cache::Store;
 use rlmflow_stages::Registry;
 
@@ -151,14 +151,6 @@ pub(crate) fn existing_store(registry: &Registry, pipeline: Option<&Path>, arg: 
         (None, None) => PathBuf::from(".rlmflow"),
     };
     Store::open_existing(&root)?.with_context(|| format!("no rlmflow store at {}", root.display()))
-}
-
-pub(crate) fn instances_of(plan: &crate::plan::Plan, stage: &str) -> anyhow::Result<Vec<usize>> {
-    let Some(s) = plan.pipeline.stage(stage) else {
-        let names = plan.pipeline.stage_names();
-        bail!("no stage named `{stage}`; stages: {}{}", names.join(", "), config::suggest(stage, &names));
-    };
-    Ok((0..plan.instances.len()).filter(|&i| plan.instances[i].stage == s).collect())
 }
 
 /// Says, for a command that only asks the remote (`status`, `dag`), that it went down meanwhile

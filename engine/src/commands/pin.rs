@@ -15,20 +15,26 @@ use crate::preflight::planned;
 pub(crate) struct Args {
     pipeline: PathBuf,
     name: String,
+    /// Pin only these stages (or instances, as a run prints them: `pretrain[alpha4]`) and what
+    /// they need (repeatable).
+    #[arg(long, value_name = "STAGE")]
+    only: Vec<String>,
     #[command(flatten)]
     store: StoreArg,
 }
 
 pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
-    let Args { pipeline, name, store } = args;
+    let Args { pipeline, name, only, store } = args;
     config::check_name(&name).map_err(|problem| anyhow::anyhow!("the pin name {problem}"))?;
     let p = super::at_look(config::load(&pipeline, registry)?, registry, &store)?;
     let store = ran_store(&p, &store, "nothing to pin")?;
     let plan = planned(&p, Some(&store), Device::Cpu)?;
+    let selected = plan.select(&only)?;
     let states = assess(&plan, registry, Some(&store))?;
     let keys: std::collections::BTreeMap<String, Digest> = states
         .iter()
         .enumerate()
+        .filter(|&(i, _)| selected[i])
         .filter_map(|(i, s)| match s {
             Freshness::Cached(r) => Some((plan.instances[i].label.clone(), r.key)),
             _ => None,

@@ -21,7 +21,8 @@ pub(crate) struct Args {
     /// Print the plan (cached / will run / pending, with reasons) and change nothing.
     #[arg(long)]
     dry_run: bool,
-    /// Run only these stages and what they need (repeatable).
+    /// Run only these stages (or instances, as a run prints them: `pretrain[alpha4]`) and what
+    /// they need (repeatable).
     #[arg(long, value_name = "STAGE")]
     only: Vec<String>,
     /// CPU threads shared by concurrently running stages; default: all cores (with

@@ -7,7 +7,7 @@ use rlmflow_cache::{ActionRecord, Store, canonical_json};
 use rlmflow_stages::{Device, Registry};
 use serde_json::{Value, json};
 
-use super::{StoreArg, instances_of, store_root};
+use super::{StoreArg, store_root};
 use crate::config::{self, SEED_DIMENSION};
 use crate::plan::{Freshness, Plan, assess};
 use crate::preflight::planned;
@@ -34,7 +34,7 @@ fn show(registry: &Registry, file: &Path, stage: &str, json: bool, arg: &StoreAr
     let store = Store::open_existing(&store_root(&p, arg))?;
     let plan = planned(&p, store.as_ref(), Device::Cpu)?;
     let states = assess(&plan, registry, store.as_ref())?;
-    let shown = if stage.contains('[') { vec![plan.instance_named(stage)?] } else { instances_of(&plan, stage)? };
+    let shown = plan.instances_named(stage)?;
     if json {
         let instances: Vec<Value> = shown.iter().map(|&i| instance_json(&plan, i, &states[i], store.as_ref())).collect();
         println!("{}", json!({ "pipeline": p.name, "instances": instances }));

@@ -14,6 +14,10 @@ pub(crate) struct Args {
     pipeline: PathBuf,
     #[arg(long)]
     json: bool,
+    /// Only these stages (or instances, as a run prints them: `pretrain[alpha4]`) and what they
+    /// need (repeatable).
+    #[arg(long, value_name = "STAGE")]
+    only: Vec<String>,
     #[command(flatten)]
     set: SetArg,
     #[command(flatten)]
@@ -23,9 +27,9 @@ pub(crate) struct Args {
 }
 
 pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
-    let Args { pipeline, json, set, store, remote } = args;
+    let Args { pipeline, json, only, set, store, remote } = args;
     let p = set.load_at_look(&pipeline, registry, &store)?;
-    let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &[])?;
+    let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &only)?;
     let remote = remote.open(&p)?;
     print_status(&pre.plan, &pre.states, &pre.selected, &pre.fits, remote.as_ref(), json);
     warn_unasked(remote.as_ref());
