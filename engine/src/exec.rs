@@ -215,6 +215,7 @@ fn pin_platform(
         ));
     }
     rlmflow_stages::numerics::apply(kernels.numerics, &record.cpu, target);
+    registry.pin_kernels().map_err(|e| format!("{}: pinning the kernels: {e:#}", request.stage))?;
     Ok((target.device(), Some(record)))
 }
 

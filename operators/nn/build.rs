@@ -25,9 +25,15 @@ fn main() {
         .file("cpp/torch_settings.cpp")
         .file("cpp/chain_gemm.cpp")
         .opt_level(2)
-        .include(libtorch.join("include"))
-        .include(libtorch.join("include/torch/csrc/api/include"))
+        // libtorch's headers as system headers: their own warnings are libtorch's, ours fail the
+        // build (`-Wall -Wextra -Werror` on the two files).
+        .flag("-isystem")
+        .flag(libtorch.join("include").to_str().expect("a UTF-8 LIBTORCH path"))
+        .flag("-isystem")
+        .flag(libtorch.join("include/torch/csrc/api/include").to_str().expect("a UTF-8 LIBTORCH path"))
         .define("_GLIBCXX_USE_CXX11_ABI", "1")
-        .warnings(false)
+        .warnings(true)
+        .extra_warnings(true)
+        .warnings_into_errors(true)
         .compile("rlmflow_torch_settings");
 }

@@ -27,6 +27,26 @@ pub const LIBTORCH_LOCK: &str = include_str!("../libtorch.lock");
 pub const CUDA_LOCK: &str = include_str!("../libtorch-cuda.lock");
 const CUDA_READY: &str = "rlmflow-libtorch-cuda.json";
 /// The libtorch version tch needs.
+///
+/// Upgrading it (with tch, which accepts exactly one libtorch, and `libtorch.lock`): the portable
+/// numerics lean on ATen internals that `operators/nn/cpp` compiles against. Re-check each:
+/// 1. `chain_gemm.cpp` registers over `aten::mm`, `mm.out`, `addmm`, `addmm.out`, `addmm_`,
+///    `bmm`, `bmm.out`, `baddbmm`, `baddbmm.out` and `baddbmm_` for `DispatchKey::CPU`: each
+///    schema still exists with these signatures (a mismatch fails the registration when a model
+///    stage starts), and no new float32 product that `nn::linear`, `matmul` or attention reaches
+///    bypasses them.
+/// 2. The fallbacks for other dtypes, `at::cpu::{mm,addmm,bmm,baddbmm}` (`_outf`, `_`) from
+///    `ATen/ops/*_cpu_dispatch.h`, still exist.
+/// 3. `at::native::resize_output` (`ATen/native/Resize.h`) still resizes an `out=` tensor as
+///    ATen's own kernels do.
+/// 4. `torch_settings.cpp`'s `_fused_adamw`, `_foreach_norm`, `_foreach_mul`, autocast and
+///    `Context` calls keep their signatures; both files build warning-free (`-Werror`,
+///    `operators/nn/build.rs`).
+///
+/// Then `cargo xtask test -p rlmflow-nn --test chain_gemm` (an installed `mm` is the chain
+/// kernel; every product of a model step gives the same bits at every width and thread count;
+/// unset, ATen's kernels return), the whole suite, and `docs/digests/` regenerated: the library
+/// is in every model action's platform record, and its kernels may move the bytes.
 pub const TORCH_VERSION: &str = "2.11.0";
 const READY: &str = "rlmflow-libtorch.json";
 

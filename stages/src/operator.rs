@@ -645,11 +645,26 @@ pub struct Registry {
     pub catalog: Catalog,
     operators: Vec<(String, Box<dyn DynOperator>)>,
     libraries: Vec<&'static str>,
+    kernel_pin: Option<fn() -> anyhow::Result<()>>,
 }
 
 impl Registry {
     pub fn new(catalog: Catalog) -> Self {
-        Registry { catalog, operators: Vec::new(), libraries: Vec::new() }
+        Registry { catalog, ..Registry::default() }
+    }
+
+    /// What makes this binary's numeric library compute as the kernel pins (environment
+    /// variables, [`crate::numerics::apply`]) ask, where reading the variables is not enough
+    /// (`rlmflow-torch` installs its chain GEMM): run once by `exec`, after the pins are set and
+    /// before the operator computes anything.
+    pub fn set_kernel_pin(&mut self, pin: fn() -> anyhow::Result<()>) -> &mut Self {
+        self.kernel_pin = Some(pin);
+        self
+    }
+
+    /// Applies the kernel pin, where the binary has one.
+    pub fn pin_kernels(&self) -> anyhow::Result<()> {
+        self.kernel_pin.map_or(Ok(()), |pin| pin())
     }
 
     /// Names a numeric library this binary's operators compute with (`libtorch 2.11.0`), for

@@ -38,9 +38,16 @@ fn the_pins_win_over_the_callers_kernel_choices() {
     let seen = written(&s);
     let cpu = Cpu::detect();
     let pins = rlmflow_stages::numerics::pins(Numerics::Portable, &cpu, Target::Cpu);
-    for (var, value) in pins {
+    for (var, value) in &pins {
         assert!(seen.contains(&format!("\n{var}={}", value.unwrap_or(""))), "{var} should be {value:?}:\n{seen}");
     }
+    // The binary's kernel pin ran once, after the pins were set and before the operator.
+    let trace = s.trace();
+    let gemm = pins.get(rlmflow_stages::numerics::GEMM_VARIABLE).copied().flatten().unwrap_or("");
+    let pinned: Vec<usize> = (0..trace.len()).filter(|&i| trace[i].starts_with("kernel pin ")).collect();
+    let started = trace.iter().position(|l| l.starts_with("start write-text")).expect("the operator ran");
+    assert!(pinned.len() == 1 && pinned[0] < started, "{trace:#?}");
+    assert!(trace[pinned[0]].starts_with(&format!("kernel pin RLMFLOW_GEMM={gemm} ")), "{trace:#?}");
     // Native removes every choice, the caller's too: the fastest kernels the machine has.
     s.pipeline(&PORTABLE.replace("portable", "native"));
     let out = s.command(&["run", "p.toml"]).env("ATEN_CPU_CAPABILITY", "default").output().unwrap();

@@ -23,6 +23,11 @@ pub fn registry() -> Registry {
     let measures = vec![Measures { artifact: "Measure", metrics: measure_metrics, frames: None }];
     let mut r = Registry::new(Catalog { kinds: TEST_KINDS.to_vec(), markers, measures });
     r.add(WriteText).add(Shout).add(Count).add(Sample).add(Collect).add(Echo).add(JoinText).add(Score);
+    // As `rlmflow-torch` installs its chain GEMM: traced with the variable it reads.
+    r.set_kernel_pin(|| {
+        trace(format!("kernel pin RLMFLOW_GEMM={}", std::env::var(rlmflow_stages::numerics::GEMM_VARIABLE).unwrap_or_default()));
+        Ok(())
+    });
     r
 }
 

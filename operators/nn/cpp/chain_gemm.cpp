@@ -22,9 +22,11 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstring>
 #include <memory>
+#include <mutex>
 #include <vector>
 
 #include "guarded.h"
@@ -38,8 +40,11 @@ namespace {
 // k rows of B per packed block: a block of 32-column panels stays in L2 while rows of A pass.
 constexpr int64_t KC = 256;
 
-// Lanes of the kernel in use: 1, 8 or 16.
-int chosen_lanes = 1;
+// Lanes of the kernel in use: 1, 8 or 16. Written only by `rlmflow_chain_gemm_install` (before a
+// stage computes), read by every product on any of ATen's threads.
+std::atomic<int> chosen_lanes{1};
+
+int lanes_in_use() { return chosen_lanes.load(std::memory_order_relaxed); }
 
 // Element (r, c) of a strided float matrix is p[r * s0 + c * s1].
 struct View {
@@ -288,58 +293,59 @@ at::Tensor& into(at::Tensor& out, const at::Tensor& p) {
 
 at::Tensor mm(const at::Tensor& self, const at::Tensor& mat2) {
   if (!is_float(self) || !is_float(mat2)) return at::cpu::mm(self, mat2);
-  return product(self, mat2, chosen_lanes);
+  return product(self, mat2, lanes_in_use());
 }
 
 at::Tensor& mm_out(const at::Tensor& self, const at::Tensor& mat2, at::Tensor& out) {
   if (!is_float(self) || !is_float(mat2) || !is_float(out)) return at::cpu::mm_outf(self, mat2, out);
-  return into(out, product(self, mat2, chosen_lanes));
+  return into(out, product(self, mat2, lanes_in_use()));
 }
 
 at::Tensor addmm(const at::Tensor& self, const at::Tensor& mat1, const at::Tensor& mat2, const at::Scalar& beta, const at::Scalar& alpha) {
   if (!is_float(self) || !is_float(mat1) || !is_float(mat2)) return at::cpu::addmm(self, mat1, mat2, beta, alpha);
-  return epilogue(product(mat1, mat2, chosen_lanes), self, beta, alpha);
+  return epilogue(product(mat1, mat2, lanes_in_use()), self, beta, alpha);
 }
 
 at::Tensor& addmm_out(const at::Tensor& self, const at::Tensor& mat1, const at::Tensor& mat2, const at::Scalar& beta, const at::Scalar& alpha,
                       at::Tensor& out) {
   if (!is_float(self) || !is_float(mat1) || !is_float(mat2) || !is_float(out)) return at::cpu::addmm_outf(self, mat1, mat2, beta, alpha, out);
-  return into(out, epilogue(product(mat1, mat2, chosen_lanes), self, beta, alpha));
+  return into(out, epilogue(product(mat1, mat2, lanes_in_use()), self, beta, alpha));
 }
 
 at::Tensor& addmm_(at::Tensor& self, const at::Tensor& mat1, const at::Tensor& mat2, const at::Scalar& beta, const at::Scalar& alpha) {
   if (!is_float(self) || !is_float(mat1) || !is_float(mat2)) return at::cpu::addmm_(self, mat1, mat2, beta, alpha);
-  return self.copy_(epilogue(product(mat1, mat2, chosen_lanes), self, beta, alpha));
+  return self.copy_(epilogue(product(mat1, mat2, lanes_in_use()), self, beta, alpha));
 }
 
 at::Tensor bmm(const at::Tensor& self, const at::Tensor& mat2) {
   if (!is_float(self) || !is_float(mat2)) return at::cpu::bmm(self, mat2);
-  return batched(self, mat2, chosen_lanes);
+  return batched(self, mat2, lanes_in_use());
 }
 
 at::Tensor& bmm_out(const at::Tensor& self, const at::Tensor& mat2, at::Tensor& out) {
   if (!is_float(self) || !is_float(mat2) || !is_float(out)) return at::cpu::bmm_outf(self, mat2, out);
-  return into(out, batched(self, mat2, chosen_lanes));
+  return into(out, batched(self, mat2, lanes_in_use()));
 }
 
 at::Tensor baddbmm(const at::Tensor& self, const at::Tensor& b1, const at::Tensor& b2, const at::Scalar& beta, const at::Scalar& alpha) {
   if (!is_float(self) || !is_float(b1) || !is_float(b2)) return at::cpu::baddbmm(self, b1, b2, beta, alpha);
-  return epilogue(batched(b1, b2, chosen_lanes), self, beta, alpha);
+  return epilogue(batched(b1, b2, lanes_in_use()), self, beta, alpha);
 }
 
 at::Tensor& baddbmm_out(const at::Tensor& self, const at::Tensor& b1, const at::Tensor& b2, const at::Scalar& beta, const at::Scalar& alpha,
                         at::Tensor& out) {
   if (!is_float(self) || !is_float(b1) || !is_float(b2) || !is_float(out)) return at::cpu::baddbmm_outf(self, b1, b2, beta, alpha, out);
-  return into(out, epilogue(batched(b1, b2, chosen_lanes), self, beta, alpha));
+  return into(out, epilogue(batched(b1, b2, lanes_in_use()), self, beta, alpha));
 }
 
 at::Tensor& baddbmm_(at::Tensor& self, const at::Tensor& b1, const at::Tensor& b2, const at::Scalar& beta, const at::Scalar& alpha) {
   if (!is_float(self) || !is_float(b1) || !is_float(b2)) return at::cpu::baddbmm_(self, b1, b2, beta, alpha);
-  return self.copy_(epilogue(batched(b1, b2, chosen_lanes), self, beta, alpha));
+  return self.copy_(epilogue(batched(b1, b2, lanes_in_use()), self, beta, alpha));
 }
 
-// The registration; dropping it restores ATen's kernels.
+// The registration; dropping it restores ATen's kernels. `registration` serialises installs.
 std::unique_ptr<torch::Library> registered;
+std::mutex registration;
 
 // Replacing ATen's kernels is the point, so the dispatcher's warning that it happened is not
 // passed on.
@@ -364,9 +370,10 @@ int rlmflow_chain_gemm_widest() { return widest_lanes(); }
 // the widest); lanes = 0 removes them. The caller checks `lanes` first.
 char* rlmflow_chain_gemm_install(int lanes) {
   return guarded([&] {
+    std::lock_guard<std::mutex> held(registration);
     registered.reset();
     if (lanes == 0) return;
-    chosen_lanes = lanes;
+    chosen_lanes.store(lanes, std::memory_order_relaxed);
     Silent silent;
     c10::WarningUtils::WarningHandlerGuard quiet(&silent);
     registered = std::make_unique<torch::Library>(torch::Library::IMPL, "aten", c10::DispatchKey::CPU, __FILE__, __LINE__);

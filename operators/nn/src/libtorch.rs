@@ -157,7 +157,11 @@ static CHAIN_LANES: Mutex<usize> = Mutex::new(0);
 /// `RLMFLOW_GEMM` asks: `fma-chain` (the portable pin, `rlmflow_stages::numerics::pins`)
 /// replaces MKL's kernels by the chain GEMM at this CPU's widest lanes, or at
 /// `RLMFLOW_GEMM_LANES` (what a check asks for to compare widths); unset leaves ATen's own.
-/// Returns the lanes installed (0: none). Every model stage calls it before it computes.
+/// Returns the lanes installed (0: none). `rlmflow-torch exec` installs it once, after the pins
+/// are set and before the operator makes a tensor (its registry's kernel pin); every model
+/// stage calls it again before it computes (a no-op then), as do `rlmflow-torch step` and the
+/// tests. Asking for other lanes re-registers the kernels, which only the width test does,
+/// between computations; the C++ side serialises registrations and reads the lanes atomically.
 pub fn pin_gemm() -> anyhow::Result<usize> {
     let lanes = match std::env::var(GEMM_VARIABLE).ok().as_deref() {
         None | Some("") => 0,
