@@ -30,7 +30,7 @@ pub use overrides::Override;
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
-use rlmflow_stages::{Arity, Part, Registry, StageKind};
+use rlmflow_stages::{Arity, Parsed, Part, Registry, StageKind};
 
 use serde_json::{Map, Value};
 use toml::de::DeTable;
@@ -114,10 +114,10 @@ pub struct Bounds {
 #[derive(Clone, Debug)]
 pub struct Variant {
     pub name: Option<String>,
-    /// Every setting, defaults filled in.
-    pub settings: Value,
+    /// Every setting, defaults filled in, parsed once.
+    pub settings: Parsed,
     /// A sharded stage's parts: the items each computes and its settings, in order.
-    pub shards: Vec<(Part, Value)>,
+    pub shards: Vec<(Part, Parsed)>,
     /// The files or directories outside the store it reads, by setting (`Settings::TRACKED`),
     /// made absolute against the pipeline file.
     pub tracked: Vec<(String, rlmflow_cache::external::Source)>,
@@ -129,7 +129,7 @@ pub struct Variant {
 pub struct Merge {
     pub operator: String,
     pub slot: &'static str,
-    pub settings: Value,
+    pub settings: Parsed,
 }
 
 /// An input slot bound to the stages that provide it (indices into `Pipeline::stages`).

@@ -13,7 +13,7 @@ use std::time::Instant;
 use anyhow::Context as _;
 use rlmflow_cache::{ActionRecord, ActionRequest, Digest, Store, hash_tree, now_rfc3339};
 use rlmflow_stages::numerics::{PlatformRecord, Target};
-use rlmflow_stages::{Context, Device, DynOperator, Input, Outcome, Registry, Reporter, SettingError};
+use rlmflow_stages::{Context, Device, DynOperator, Input, Outcome, Parsed, Registry, Reporter, SettingError};
 use serde_json::Value;
 
 use crate::platform::cuda_present;
@@ -90,6 +90,11 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
     }
     store.sweep_tmp(Some(&key))?;
     let op = registry.get(&request.preimage.operator).with_context(|| format!("this rlmflow has no operator `{}`", request.preimage.operator))?;
+    // Parsed once: the platform check and the operator read the typed settings.
+    let settings = match op.settings(request.settings.clone()) {
+        Ok(settings) => settings,
+        Err(wrong) => return Ok(fail(Failure { message: wrong.message, setting: Some(wrong.key) })),
+    };
     let inputs = match inputs(&store, &request)? {
         Ok(inputs) => inputs,
         Err(code) => return Ok(code),
@@ -97,14 +102,14 @@ pub fn exec(registry: &Registry, store: &Path, key: Digest, threads: usize, devi
     let work = store.work_dir(&key)?;
     let output_dir = work.join("out");
     let checkpoint_dir = store.checkpoint_dir(&key);
-    let (device, platform) = match pin_platform(registry, op, &request, device) {
+    let (device, platform) = match pin_platform(registry, op, &request, &settings, device) {
         Ok(pinned) => pinned,
         Err(message) => return Ok(fail(message.into())),
     };
     let started = now_rfc3339();
     let clock = Instant::now();
     let dirs = Dirs { output: output_dir.clone(), checkpoint: checkpoint_dir.clone(), responses: store.responses_dir(&request.preimage.operator) };
-    let outcome = match run_operator(op, &request, inputs, dirs, threads, device)? {
+    let outcome = match run_operator(op, &request, &settings, inputs, dirs, threads, device)? {
         Ok(outcome) => outcome,
         Err(failure) => {
             store.write_failure(&key, &failure.to_string())?;
@@ -142,18 +147,23 @@ pub fn exec_scratch(registry: &Registry, store: &Path, key: Digest, threads: usi
     let _shared = store.lock_shared()?;
     let request = store.request(&key)?.with_context(|| format!("the store has no request for action {key}"))?;
     let op = registry.get(&request.preimage.operator).with_context(|| format!("this rlmflow has no operator `{}`", request.preimage.operator))?;
+    // Parsed once: the platform check and the operator read the typed settings.
+    let settings = match op.settings(request.settings.clone()) {
+        Ok(settings) => settings,
+        Err(wrong) => return Ok(fail(Failure { message: wrong.message, setting: Some(wrong.key) })),
+    };
     let inputs = match inputs(&store, &request)? {
         Ok(inputs) => inputs,
         Err(code) => return Ok(code),
     };
-    let device = match pin_platform(registry, op, &request, device) {
+    let device = match pin_platform(registry, op, &request, &settings, device) {
         Ok((device, _)) => device,
         Err(message) => return Ok(fail(message.into())),
     };
     let output_dir = scratch.join("out");
     let dirs =
         Dirs { output: output_dir.clone(), checkpoint: scratch.join("checkpoint"), responses: store.responses_dir(&request.preimage.operator) };
-    match run_operator(op, &request, inputs, dirs, threads, device)? {
+    match run_operator(op, &request, &settings, inputs, dirs, threads, device)? {
         Ok(_) => {
             send(&Message::Done { output: hash_tree(&output_dir)?.digest });
             Ok(0)
@@ -201,9 +211,10 @@ fn pin_platform(
     registry: &Registry,
     op: &dyn DynOperator,
     request: &ActionRequest,
+    settings: &Parsed,
     device: Device,
 ) -> Result<(Device, Option<PlatformRecord>), String> {
-    let resources = op.resources(&request.settings).map_err(|e| format!("{}: {e}", request.stage))?;
+    let resources = op.resources(settings);
     let Some(kernels) = resources.kernels else { return Ok((device, None)) };
     let target = Target::of(kernels.device, device, cuda_present());
     // A model operator computes with its own `threads` setting (part of its key).
@@ -232,6 +243,7 @@ struct Dirs {
 fn run_operator(
     op: &dyn DynOperator,
     request: &ActionRequest,
+    settings: &Parsed,
     inputs: BTreeMap<String, Vec<Input>>,
     dirs: Dirs,
     threads: usize,
@@ -250,7 +262,7 @@ fn run_operator(
         Arc::new(StdoutReporter),
     );
     ctx.responses = Some(dirs.responses);
-    Ok(match catch_unwind(AssertUnwindSafe(|| op.run(&request.settings, &mut ctx))) {
+    Ok(match catch_unwind(AssertUnwindSafe(|| op.run(settings, &mut ctx))) {
         Ok(Ok(outcome)) => Ok(outcome),
         Ok(Err(e)) => Err(match e.chain().find_map(|cause| cause.downcast_ref::<SettingError>()) {
             Some(wrong) => Failure { message: wrong.message.clone(), setting: Some(wrong.key.clone()) },

@@ -62,7 +62,7 @@ pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> 
             fits.push(None);
             continue;
         }
-        let resources = op.resources(&inst.settings).map_err(|e| anyhow::anyhow!("{}: {e}", inst.label))?;
+        let resources = op.resources(&inst.settings);
         let cuda = resources.needs_cuda || (resources.gpu && (matches!(device, Device::Cuda(_)) || crate::platform::cuda_present()));
         // The device the stage names, else the run's, else the first.
         let index = match (resources.kernels.map(|k| k.device), device) {

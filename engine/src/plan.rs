@@ -6,7 +6,7 @@ use std::collections::{BTreeMap, HashMap};
 use anyhow::{Context as _, bail};
 use rlmflow_cache::external::Source;
 use rlmflow_cache::{ActionRecord, ActionRequest, Digest, InputDigest, Preimage, Store};
-use rlmflow_stages::{Arity, InstanceId, Part, Registry, SettingError};
+use rlmflow_stages::{Arity, InstanceId, Parsed, Part, Registry, SettingError};
 use serde_json::Value;
 
 use crate::config::{Pipeline, SEED_DIMENSION, suggest};
@@ -24,8 +24,8 @@ pub struct Instance {
     pub assignment: BTreeMap<String, String>,
     /// The operator it runs: the stage's, or the merge operator of a sharded stage.
     pub operator: String,
-    /// Every setting of this instance.
-    pub settings: Value,
+    /// Every setting of this instance, parsed once when the pipeline was read.
+    pub settings: Parsed,
     pub inputs: Vec<InstanceInput>,
     /// The items a shard computes (`None`: not a shard).
     pub shard: Option<Part>,
@@ -305,7 +305,7 @@ impl Plan<'_> {
             key,
             stage: inst.label.clone(),
             preimage,
-            settings: inst.settings.clone(),
+            settings: inst.settings.json().clone(),
             input_labels: self.input_labels(i),
             input_instances: self.input_instances(i),
         }
@@ -362,9 +362,9 @@ impl Plan<'_> {
     pub fn preimage_with(&self, i: usize, registry: &Registry, inputs: Vec<InputDigest>) -> Result<Preimage, SettingError> {
         let inst = &self.instances[i];
         let op = registry.get(&inst.operator).expect("validated operator");
-        let config = rlmflow_stages::operator::result_settings(&inst.settings, op.non_result_keys(), op.tracked_keys());
+        let config = rlmflow_stages::settings::result_settings(&inst.settings, op.non_result_keys(), op.tracked_keys());
         let seed = inst.assignment.get(SEED_DIMENSION).map_or(self.pipeline.seed, |s| s.parse().expect("seeds are integers"));
-        let platform = op.resources(&inst.settings)?.kernels.map(|k| self.platform.class(k));
+        let platform = op.resources(&inst.settings).kernels.map(|k| self.platform.class(k));
         Ok(Preimage { operator: inst.operator.clone(), operator_version: op.spec().version, config, seed, inputs, platform })
     }
 

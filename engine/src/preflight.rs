@@ -4,7 +4,6 @@
 
 use std::path::Path;
 
-use anyhow::Context as _;
 use rlmflow_cache::Store;
 use rlmflow_stages::{Device, Registry};
 
@@ -77,7 +76,7 @@ fn refuse_cuda_stages(plan: &Plan, registry: &Registry, runs: &[bool]) -> anyhow
     let mut stages = std::collections::BTreeSet::new();
     for (i, inst) in plan.instances.iter().enumerate() {
         let op = registry.get(&inst.operator).expect("validated operator");
-        if runs[i] && op.resources(&inst.settings).with_context(|| inst.label.clone())?.needs_cuda {
+        if runs[i] && op.resources(&inst.settings).needs_cuda {
             stages.insert(inst.stage);
         }
     }

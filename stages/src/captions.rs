@@ -53,9 +53,9 @@ pub struct Captions {
 
 impl Captions {
     pub fn open(dir: &Path) -> anyhow::Result<Captions> {
-        let summary: Summary = crate::read_summary(dir, SUMMARY, crate::artifact::CAPTIONS, "captions", FORMAT)?;
+        let summary: Summary = crate::reading::read_summary(dir, SUMMARY, crate::artifact::CAPTIONS, "captions", FORMAT)?;
         let path = dir.join(LINES);
-        let captions: Vec<Caption> = crate::read_lines(&path, |l| serde_json::from_str(l).map_err(|e| format!("not a caption line: {e}")))?;
+        let captions: Vec<Caption> = crate::reading::read_lines(&path, |l| serde_json::from_str(l).map_err(|e| format!("not a caption line: {e}")))?;
         if captions.len() as u64 != summary.captions {
             bail!("{}: {} captions, but the summary says {}", path.display(), captions.len(), summary.captions);
         }

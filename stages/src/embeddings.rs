@@ -36,7 +36,7 @@ pub struct Summary {
 }
 
 pub fn read_summary(dir: &Path) -> anyhow::Result<Summary> {
-    crate::read_summary(dir, SUMMARY, crate::artifact::EMBEDDINGS, "embed", FORMAT)
+    crate::reading::read_summary(dir, SUMMARY, crate::artifact::EMBEDDINGS, "embed", FORMAT)
 }
 
 /// One line of [`FRAMES`].

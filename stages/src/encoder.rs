@@ -283,7 +283,7 @@ pub struct Encoder {
 impl Encoder {
     pub fn open(dir: &std::path::Path) -> anyhow::Result<Encoder> {
         use anyhow::Context as _;
-        let summary: Summary = crate::read_summary(dir, SUMMARY, crate::artifact::ENCODER, "pretrain", FORMAT)?;
+        let summary: Summary = crate::reading::read_summary(dir, SUMMARY, crate::artifact::ENCODER, "pretrain", FORMAT)?;
         let path = dir.join(CONFIG);
         let config = serde_json::from_slice(&std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?)
             .with_context(|| format!("{} is not a model config", path.display()))?;

@@ -193,7 +193,7 @@ pub fn check_overlap(stage: &str, test: &FrameSet, learnt: &[Learnt], allow: boo
 /// The overlap check of a probe or segmenter: its test frames against the frames its `encoder`
 /// input (or the encoder behind its `embeddings`) trained on and its tokenizer learnt from, and
 /// those its own `tokens` input (if any) learnt from. Refuses a non-zero overlap unless `allow`.
-pub fn check_inputs(ctx: &crate::Context, test: &FrameSet, allow: bool) -> anyhow::Result<Vec<Overlap>> {
+pub fn check_inputs(ctx: &crate::context::Context, test: &FrameSet, allow: bool) -> anyhow::Result<Vec<Overlap>> {
     let mut learnt = Vec::new();
     let label = |slot: &'static str| ctx.input_label(slot).filter(|l| !l.is_empty()).unwrap_or(slot);
     // An encoder, and the features of a frozen one, which carry its sets with them.

@@ -144,9 +144,9 @@ pub struct Labels {
 
 impl Labels {
     pub fn open(dir: &Path) -> anyhow::Result<Labels> {
-        let summary: Summary = crate::read_summary(dir, SUMMARY, crate::artifact::LABELS, "labels", FORMAT)?;
+        let summary: Summary = crate::reading::read_summary(dir, SUMMARY, crate::artifact::LABELS, "labels", FORMAT)?;
         let path = dir.join(LINES);
-        let frames = crate::read_lines(&path, FrameLabel::from_line)?;
+        let frames = crate::reading::read_lines(&path, FrameLabel::from_line)?;
         if frames.len() as u64 != summary.frames || frames.iter().enumerate().any(|(i, f)| f.frame != i as u64) {
             bail!("{}: expected frames 0..{} in order", path.display(), summary.frames);
         }

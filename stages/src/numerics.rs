@@ -2,7 +2,7 @@
 //!
 //! libtorch picks its CPU kernels at run time (ATen's capability, oneDNN's instruction set, MKL's
 //! code path), so the same model action gives other bytes on another CPU unless they are pinned.
-//! An operator that computes with such kernels says so ([`crate::Resources::numerics`]); then:
+//! An operator that computes with such kernels says so ([`crate::operator::Resources::kernels`]); then:
 //!
 //! - its process runs with the kernel choices of [`pins`], set by [`apply`] before the operator
 //!   starts, whatever the caller's environment says;
@@ -27,7 +27,7 @@ use std::fmt;
 
 use serde::{Deserialize, Serialize};
 
-use crate::Device;
+use crate::context::Device;
 
 /// How a model action picks its kernels (the `numerics` setting).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

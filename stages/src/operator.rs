@@ -1,138 +1,15 @@
 //! The Operator contract: one implementation of a stage kind, configured by a plain settings struct.
 
-use std::fmt;
 use std::ops::Range;
 
-use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::context::Context;
-use crate::kind::{Catalog, StageKind};
 use crate::memory::Footprint;
 use crate::numerics::Target;
-
-/// An operator's settings: a plain struct with defaults (`#[serde(default, deny_unknown_fields)]`).
-pub trait Settings: Serialize + DeserializeOwned + Default + Send + Sync + 'static {
-    /// Settings that cannot change the result (thread counts, logging cadence). They are left out
-    /// of the action key, so changing them reuses cached results.
-    const NON_RESULT: &'static [&'static str] = &[];
-
-    /// Settings that name a file or directory outside the store (relative to the pipeline file)
-    /// that the operator reads: the engine tracks each by content (its digest enters the key as
-    /// an input in the slot of the setting's name, `ctx.input(key)`, a snapshot of it in the
-    /// store), so the path itself stays out of the key and out of the artifact. One left empty
-    /// reads nothing; an operator that needs it says so in [`Settings::check`].
-    const TRACKED: &'static [&'static str] = &[];
-
-    /// The setting through which the operator receives the pipeline's claims
-    /// ([`crate::claims::Spec`], from `[claims]`): the engine fills it in, so it enters the key
-    /// as any setting, and a stage may not set it itself. `None`: the operator reads no claims.
-    const CLAIMS: Option<&'static str> = None;
-
-    /// Checks that types cannot express ("impossible settings"). The error names the key.
-    fn check(&self) -> Result<(), SettingError> {
-        Ok(())
-    }
-
-    /// Checks what tracked setting `key` names, before anything runs: `path` (resolved against
-    /// the pipeline file) is a regular file or a directory; the engine refuses anything else
-    /// without opening it.
-    fn check_tracked(&self, _key: &str, _path: &std::path::Path) -> Result<(), SettingError> {
-        Ok(())
-    }
-
-    /// The files tracked setting `key` names where it names chosen files rather than one path
-    /// (a script's `sources`): patterns relative to the pipeline file, which the engine resolves
-    /// inside the pipeline file's directory and tracks as one tree. `None`: the setting is one
-    /// path, a string.
-    fn tracked_files(&self, _key: &str) -> Option<Vec<FilePattern>> {
-        None
-    }
-
-    /// The settings as an artifact may record them: those the key covers ([`result_settings`]).
-    fn result_settings(&self) -> Value {
-        result_settings(&serde_json::to_value(self).expect("settings serialise to JSON"), Self::NON_RESULT, Self::TRACKED)
-    }
-}
-
-/// The settings an action's key covers, so an artifact that records them stays a function of its
-/// key: all but the `non_result` ones and the `tracked` ones that are set or list files (their
-/// content is an input of the key instead).
-pub fn result_settings(settings: &Value, non_result: &[&str], tracked: &[&str]) -> Value {
-    let mut value = settings.clone();
-    if let Value::Object(map) = &mut value {
-        for key in non_result {
-            map.remove(*key);
-        }
-        for key in tracked {
-            let named = match map.get(*key) {
-                Some(Value::String(path)) => !path.is_empty(),
-                // Chosen files ([`Settings::tracked_files`]): their content is the input.
-                Some(Value::Array(_)) => true,
-                _ => false,
-            };
-            if named {
-                map.remove(*key);
-            }
-        }
-    }
-    value
-}
-
-/// Files a tracked setting names ([`Settings::tracked_files`]): a glob (`*`, `?`, `[..]` within
-/// a name, `**` across directories) or a plain path, relative to the pipeline file.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct FilePattern {
-    pub pattern: String,
-    /// It must match at least one file; else it counts where it names a file (a command's
-    /// argument that may or may not be one).
-    pub required: bool,
-}
-
-/// A setting that is invalid: its dotted key (relative to the stage table) and what is valid.
-#[derive(Clone, Debug, PartialEq)]
-pub struct SettingError {
-    pub key: String,
-    pub message: String,
-    /// Valid names for the key, when the key itself is unknown (used to suggest the nearest).
-    pub valid: Vec<String>,
-}
-
-impl SettingError {
-    pub fn new(key: impl Into<String>, message: impl Into<String>) -> Self {
-        SettingError { key: key.into(), message: message.into(), valid: Vec::new() }
-    }
-
-    /// A documented bound: `Ok` when `value` lies in `range`, else an error naming the key and
-    /// the bounds. Every numeric setting has one, so a setting that validates cannot exhaust
-    /// memory or run forever.
-    pub fn check_range<T: PartialOrd + fmt::Display>(key: &str, value: T, range: std::ops::RangeInclusive<T>) -> Result<(), SettingError> {
-        if range.contains(&value) {
-            return Ok(());
-        }
-        Err(SettingError::new(key, format!("must be in {}..={}, not {value}", range.start(), range.end())))
-    }
-
-    /// `value` in (0, `max`]: a rate or a norm that must not be zero.
-    pub fn check_positive(key: &str, value: f64, max: f64) -> Result<(), SettingError> {
-        if value > 0.0 && value <= max {
-            return Ok(());
-        }
-        Err(SettingError::new(key, format!("must be in (0, {max}], not {value}")))
-    }
-}
-
-impl fmt::Display for SettingError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}: {}", self.key, self.message)
-    }
-}
-
-/// An operator's run may fail with one (`anyhow::Error::new(SettingError::new(..))`, context
-/// around it allowed) when only the data shows a setting is wrong: the engine then names the
-/// setting's file and line.
-impl std::error::Error for SettingError {}
+use crate::outline::{InputOutlines, Outline};
+use crate::settings::{FilePattern, Parsed, SettingError, Settings, parse_settings};
 
 /// What identifies an operator to the engine.
 #[derive(Clone, Copy, Debug)]
@@ -163,7 +40,7 @@ pub struct Resources {
     pub needs_cuda: bool,
     /// Its bytes depend on the kernels it computes with (libtorch's): the engine pins them and
     /// keys the action by its numeric platform class (see [`crate::numerics`]).
-    pub kernels: Option<crate::Kernels>,
+    pub kernels: Option<crate::numerics::Kernels>,
 }
 
 impl Default for Resources {
@@ -171,75 +48,6 @@ impl Default for Resources {
         Resources { threads: 1, gpu: false, needs_cuda: false, kernels: None }
     }
 }
-
-/// What a stage's output will be, as far as settings tell before anything runs: what checks
-/// across stages read (an image side a ViT patch must divide, frames a batch must not exceed).
-/// `None`: not known from settings.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Outline {
-    /// The side of the frames' primary image, in pixels.
-    pub image: Option<u64>,
-    /// The frames the artifact holds.
-    pub frames: Option<u64>,
-    /// The groups a split keeps whole (a sequence's frames; a frame outside any is its own).
-    pub groups: Option<u64>,
-    /// The frames of the training split, in expectation (the split is by identity): what a
-    /// batch is checked against.
-    pub train_frames: Option<u64>,
-    /// A tokens artifact's tokens per caption and largest vocabulary.
-    pub context: Option<u64>,
-    pub vocab: Option<u64>,
-    /// The model an encoder artifact holds.
-    pub model: Option<ModelOutline>,
-}
-
-/// An encoder's model as its consumers' memory estimates need it.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct ModelOutline {
-    pub parameters: u64,
-    /// The radar tower's token width and the side of its token grid.
-    pub width: u64,
-    pub grid: u64,
-    /// The shared space's width.
-    pub embed: u64,
-}
-
-impl Outline {
-    /// What two outlines (a stage's variants) agree on.
-    pub fn common(self, other: Outline) -> Outline {
-        fn same<T: PartialEq>(a: Option<T>, b: Option<T>) -> Option<T> {
-            if a == b { a } else { None }
-        }
-        Outline {
-            image: same(self.image, other.image),
-            frames: same(self.frames, other.frames),
-            groups: same(self.groups, other.groups),
-            train_frames: same(self.train_frames, other.train_frames),
-            context: same(self.context, other.context),
-            vocab: same(self.vocab, other.vocab),
-            model: same(self.model, other.model),
-        }
-    }
-
-    /// The outline of input `slot`'s first artifact, if it is bound.
-    pub fn of<'a>(inputs: &'a InputOutlines, slot: &str) -> Option<&'a Outline> {
-        inputs.get(slot).and_then(|v| v.first())
-    }
-
-    /// The outline a stage passes on by default: that of the scenes it reads, else of its first
-    /// input.
-    pub fn passed_on(inputs: &InputOutlines) -> Outline {
-        inputs.get("scenes").or_else(|| inputs.values().next()).and_then(|v| v.first()).copied().unwrap_or_default()
-    }
-
-    /// [`Outline::passed_on`] as an [`InWorker`]'s outline check, for settings that read nothing of it.
-    pub fn pass_on<S>(_: &S, inputs: &InputOutlines) -> Result<Outline, SettingError> {
-        Ok(Outline::passed_on(inputs))
-    }
-}
-
-/// The outlines of a stage's inputs, by slot (a gathered slot's in order).
-pub type InputOutlines<'a> = std::collections::BTreeMap<&'a str, Vec<Outline>>;
 
 /// What a finished operator reports besides its output files.
 #[derive(Clone, Debug, Default)]
@@ -414,42 +222,40 @@ impl<S: Settings> Operator for InWorker<S> {
     }
 }
 
-/// An [`Operator`] with its settings type erased, as the engine's registry stores it. Settings
-/// travel as JSON objects.
+/// An [`Operator`] with its settings type erased, as the engine's registry stores it. A stage's
+/// settings are parsed once ([`DynOperator::settings`]) and handed back as [`Parsed`], so every
+/// later question reads the typed value.
 pub trait DynOperator: Send + Sync {
     fn spec(&self) -> OperatorSpec;
-    /// Fills in defaults and checks a stage's settings; returns every setting, canonical.
-    fn settings(&self, raw: Value) -> Result<Value, SettingError>;
+    /// Fills in defaults and checks a stage's settings: every setting, canonical, and typed.
+    fn settings(&self, raw: Value) -> Result<Parsed, SettingError>;
     /// Every setting at its default (which need not be valid alone: `import`'s `path` must be set).
     fn defaults(&self) -> Value;
     fn non_result_keys(&self) -> &'static [&'static str];
     fn tracked_keys(&self) -> &'static [&'static str];
     /// [`Settings::check_tracked`] of these settings.
-    fn check_tracked(&self, settings: &Value, key: &str, path: &std::path::Path) -> Result<(), SettingError>;
+    fn check_tracked(&self, settings: &Parsed, key: &str, path: &std::path::Path) -> Result<(), SettingError>;
     /// [`Settings::tracked_files`] of these settings.
-    fn tracked_files(&self, settings: &Value, key: &str) -> Result<Option<Vec<FilePattern>>, SettingError>;
-    /// What an action of these settings needs (threads, a GPU, its kernels); an error names the
-    /// setting that does not parse (every planned instance's settings were normalised through
-    /// [`DynOperator::settings`] first, so that would be a broken invariant, never hidden behind
-    /// defaults).
-    fn resources(&self, settings: &Value) -> Result<Resources, SettingError>;
+    fn tracked_files(&self, settings: &Parsed, key: &str) -> Option<Vec<FilePattern>>;
+    /// What an action of these settings needs (threads, a GPU, its kernels).
+    fn resources(&self, settings: &Parsed) -> Resources;
     fn worker(&self) -> Option<&'static str>;
     /// The operator that merges this one's shards, when it can be sharded.
     fn merge(&self) -> Option<&'static str>;
     /// How many items these settings produce and what an item is (`frames`), when the operator
     /// can be sharded.
-    fn items(&self, settings: &Value) -> Option<(ItemCount, &'static str)>;
+    fn items(&self, settings: &Parsed) -> Option<(ItemCount, &'static str)>;
     /// The settings of the shard computing `part`, when the operator can be sharded that way.
-    fn part(&self, settings: &Value, part: &Part) -> Option<Value>;
-    /// The output's outline for valid `settings` and the inputs' outlines.
-    fn outline(&self, settings: &Value, inputs: &InputOutlines) -> Result<Outline, SettingError>;
-    fn footprint(&self, settings: &Value, inputs: &InputOutlines, target: Target) -> Option<Footprint>;
+    fn part(&self, settings: &Parsed, part: &Part) -> Option<Parsed>;
+    /// The output's outline for these settings and the inputs' outlines.
+    fn outline(&self, settings: &Parsed, inputs: &InputOutlines) -> Result<Outline, SettingError>;
+    fn footprint(&self, settings: &Parsed, inputs: &InputOutlines, target: Target) -> Option<Footprint>;
     fn resumes_from(&self) -> &'static str;
-    /// [`Operator::metrics`] of valid `settings`.
-    fn metrics(&self, settings: &Value) -> Result<Vec<String>, SettingError>;
+    /// [`Operator::metrics`] of these settings.
+    fn metrics(&self, settings: &Parsed) -> Vec<String>;
     /// [`Settings::CLAIMS`].
     fn claims_key(&self) -> Option<&'static str>;
-    fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome>;
+    fn run(&self, settings: &Parsed, ctx: &mut Context) -> anyhow::Result<Outcome>;
 }
 
 impl<O: Operator> DynOperator for O {
@@ -457,9 +263,8 @@ impl<O: Operator> DynOperator for O {
         Operator::spec(self)
     }
 
-    fn settings(&self, raw: Value) -> Result<Value, SettingError> {
-        let typed = parse_settings::<O::Settings>(raw)?;
-        Ok(serde_json::to_value(&typed).expect("settings serialise to JSON"))
+    fn settings(&self, raw: Value) -> Result<Parsed, SettingError> {
+        Ok(Parsed::of(parse_settings::<O::Settings>(raw)?))
     }
 
     fn defaults(&self) -> Value {
@@ -474,16 +279,16 @@ impl<O: Operator> DynOperator for O {
         O::Settings::TRACKED
     }
 
-    fn check_tracked(&self, settings: &Value, key: &str, path: &std::path::Path) -> Result<(), SettingError> {
-        parse_settings::<O::Settings>(settings.clone())?.check_tracked(key, path)
+    fn check_tracked(&self, settings: &Parsed, key: &str, path: &std::path::Path) -> Result<(), SettingError> {
+        settings.typed::<O::Settings>().check_tracked(key, path)
     }
 
-    fn tracked_files(&self, settings: &Value, key: &str) -> Result<Option<Vec<FilePattern>>, SettingError> {
-        Ok(parse_settings::<O::Settings>(settings.clone())?.tracked_files(key))
+    fn tracked_files(&self, settings: &Parsed, key: &str) -> Option<Vec<FilePattern>> {
+        settings.typed::<O::Settings>().tracked_files(key)
     }
 
-    fn resources(&self, settings: &Value) -> Result<Resources, SettingError> {
-        Ok(Operator::resources(self, &parse_settings::<O::Settings>(settings.clone())?))
+    fn resources(&self, settings: &Parsed) -> Resources {
+        Operator::resources(self, settings.typed())
     }
 
     fn worker(&self) -> Option<&'static str> {
@@ -494,250 +299,53 @@ impl<O: Operator> DynOperator for O {
         Operator::sharding(self).map(|s| s.merge)
     }
 
-    fn items(&self, settings: &Value) -> Option<(ItemCount, &'static str)> {
+    fn items(&self, settings: &Parsed) -> Option<(ItemCount, &'static str)> {
         let sharding = Operator::sharding(self)?;
         let count = match sharding.items {
-            Items::Counted { count, .. } => ItemCount::Known(count(&parse_settings::<O::Settings>(settings.clone()).ok()?)),
+            Items::Counted { count, .. } => ItemCount::Known(count(settings.typed())),
             Items::OfInput { slot, .. } => ItemCount::OfInput(slot),
         };
         Some((count, sharding.unit))
     }
 
-    fn part(&self, settings: &Value, part: &Part) -> Option<Value> {
-        let typed = parse_settings::<O::Settings>(settings.clone()).ok()?;
+    fn part(&self, settings: &Parsed, part: &Part) -> Option<Parsed> {
+        let typed = settings.typed();
         let settings = match (Operator::sharding(self)?.items, part) {
-            (Items::Counted { part, .. }, Part::Items(range)) => part(&typed, range.clone()),
-            (Items::OfInput { part, .. }, Part::Share(share)) => part(&typed, *share),
+            (Items::Counted { part, .. }, Part::Items(range)) => part(typed, range.clone()),
+            (Items::OfInput { part, .. }, Part::Share(share)) => part(typed, *share),
             _ => return None,
         };
-        Some(serde_json::to_value(&settings).expect("settings serialise to JSON"))
+        Some(Parsed::of(settings))
     }
 
-    fn outline(&self, settings: &Value, inputs: &InputOutlines) -> Result<Outline, SettingError> {
-        Operator::outline(self, &parse_settings::<O::Settings>(settings.clone())?, inputs)
+    fn outline(&self, settings: &Parsed, inputs: &InputOutlines) -> Result<Outline, SettingError> {
+        Operator::outline(self, settings.typed(), inputs)
     }
 
-    fn footprint(&self, settings: &Value, inputs: &InputOutlines, target: Target) -> Option<Footprint> {
-        Operator::footprint(self, &parse_settings::<O::Settings>(settings.clone()).ok()?, inputs, target)
+    fn footprint(&self, settings: &Parsed, inputs: &InputOutlines, target: Target) -> Option<Footprint> {
+        Operator::footprint(self, settings.typed(), inputs, target)
     }
 
     fn resumes_from(&self) -> &'static str {
         Operator::resumes_from(self)
     }
 
-    fn metrics(&self, settings: &Value) -> Result<Vec<String>, SettingError> {
-        Ok(Operator::metrics(self, &parse_settings::<O::Settings>(settings.clone())?))
+    fn metrics(&self, settings: &Parsed) -> Vec<String> {
+        Operator::metrics(self, settings.typed())
     }
 
     fn claims_key(&self) -> Option<&'static str> {
         O::Settings::CLAIMS
     }
 
-    fn run(&self, settings: &Value, ctx: &mut Context) -> anyhow::Result<Outcome> {
-        let typed = parse_settings::<O::Settings>(settings.clone()).map_err(|e| anyhow::anyhow!("invalid settings: {e}"))?;
-        Operator::run(self, &typed, ctx)
-    }
-}
-
-/// Typed settings from a stage's table: given keys over the operator's defaults, deserialised
-/// with the failing key's path, then checked. A struct that flattens a shared group (such as
-/// [`crate::Training`]) cannot deny unknown fields through serde, and serde loses the key of a
-/// bad value inside the group: both are recovered here, so every struct reports alike.
-fn parse_settings<S: Settings>(raw: Value) -> Result<S, SettingError> {
-    let defaults = serde_json::to_value(S::default()).expect("settings serialise to JSON");
-    if let Some(e) = not_finite(&defaults, &raw, &mut Vec::new()) {
-        return Err(e);
-    }
-    let Value::Object(given) = &raw else { return deserialize::<S>(raw, &defaults).and_then(|t| t.check().map(|()| t)) };
-    let typed: S = deserialize(over_defaults(&defaults, given), &defaults).map_err(|e| match e.key.is_empty() {
-        true => locate::<S>(&defaults, given).unwrap_or(e),
-        false => e,
-    })?;
-    let Value::Object(known) = serde_json::to_value(&typed).expect("settings serialise to JSON") else { return Ok(typed) };
-    if let Some(unknown) = given.keys().find(|k| !known.contains_key(*k)) {
-        return Err(SettingError { key: unknown.clone(), message: format!("unknown setting `{unknown}`"), valid: known.keys().cloned().collect() });
-    }
-    typed.check()?;
-    Ok(typed)
-}
-
-/// The defaults with the given top-level keys replaced.
-fn over_defaults(defaults: &Value, given: &serde_json::Map<String, Value>) -> Value {
-    let mut full = defaults.clone();
-    if let Value::Object(map) = &mut full {
-        map.extend(given.iter().map(|(k, v)| (k.clone(), v.clone())));
-    }
-    full
-}
-
-/// The first given key whose value alone, over the defaults, fails to deserialise, with its error.
-fn locate<S: Settings>(defaults: &Value, given: &serde_json::Map<String, Value>) -> Option<SettingError> {
-    given.iter().find_map(|(key, value)| {
-        let one = serde_json::Map::from_iter([(key.clone(), value.clone())]);
-        deserialize::<S>(over_defaults(defaults, &one), defaults).err().map(|e| SettingError { key: key.clone(), ..e })
-    })
-}
-
-/// `value` as `S`; an error is read against `defaults` (`S::default()` as JSON).
-fn deserialize<S: Settings>(value: Value, defaults: &Value) -> Result<S, SettingError> {
-    serde_path_to_error::deserialize(value).map_err(|e| {
-        let key = e.path().to_string();
-        // Read from where the error is, never from serde's wording: a key the defaults' table
-        // there lacks is unknown (and the valid keys are what a user may set: those the defaults
-        // show, so an internal one such as a shard's share, skipped while unset, is not offered).
-        if let Some((field, valid)) = unknown_key(defaults, &key) {
-            return SettingError { message: format!("unknown setting `{field}`"), key, valid };
-        }
-        SettingError::new(if key == "." { String::new() } else { key }, e.inner().to_string())
-    })
-}
-
-/// The first `nan` or `inf` given where the defaults hold a number: the config reader hands
-/// them over as their text (JSON has no such numbers), which serde would call a type error.
-/// `path` holds the keys (or item indices) down to `given`, written out only for a hit.
-fn not_finite(defaults: &Value, given: &Value, path: &mut Vec<String>) -> Option<SettingError> {
-    let mut inside = |segment: String, value: &Value| {
-        path.push(segment);
-        let found = not_finite(defaults, value, path);
-        path.pop();
-        found
-    };
-    match given {
-        Value::Object(table) => table.iter().find_map(|(key, value)| inside(key.clone(), value)),
-        Value::Array(items) => items.iter().enumerate().find_map(|(i, value)| inside(i.to_string(), value)),
-        Value::String(text) if matches!(text.trim_start_matches(['+', '-']), "nan" | "inf") => {
-            let key = path.join(".");
-            number_expected(defaults, &key).then(|| SettingError::new(&key, format!("`{text}` is not a finite number")))
-        }
-        _ => None,
-    }
-}
-
-/// The value at dotted `path` (`.`: the whole) inside `value`.
-fn at<'v>(value: &'v Value, path: &str) -> Option<&'v Value> {
-    path.split('.').filter(|p| !p.is_empty()).try_fold(value, |v, p| v.get(p))
-}
-
-/// `path`'s last key and the keys beside it, when the defaults hold a table at its parent that
-/// lacks that key.
-fn unknown_key(defaults: &Value, path: &str) -> Option<(String, Vec<String>)> {
-    let (parent, field) = path.rsplit_once('.').unwrap_or(("", path));
-    let table = at(defaults, parent)?.as_object()?;
-    (!field.is_empty() && field != "." && !table.contains_key(field)).then(|| (field.to_owned(), table.keys().cloned().collect()))
-}
-
-/// Whether the defaults hold a number at `path` (or a list of numbers: `path` then names an item).
-fn number_expected(defaults: &Value, path: &str) -> bool {
-    let (parent, last) = path.rsplit_once('.').unwrap_or(("", path));
-    match at(defaults, path) {
-        Some(v) => v.is_number(),
-        None => {
-            last.parse::<usize>().is_ok() && at(defaults, parent).and_then(Value::as_array).is_some_and(|items| items.iter().all(Value::is_number))
-        }
-    }
-}
-
-/// The stage kinds and operators an rlmflow binary knows. Each operator has an id, the name
-/// keys and plans hold: its name, or `NAME@KIND` for one of an operator serving several kinds
-/// (a `script`), each kind's its own definition.
-#[derive(Default)]
-pub struct Registry {
-    pub catalog: Catalog,
-    operators: Vec<(String, Box<dyn DynOperator>)>,
-    libraries: Vec<&'static str>,
-    kernel_pin: Option<fn() -> anyhow::Result<()>>,
-}
-
-impl Registry {
-    pub fn new(catalog: Catalog) -> Self {
-        Registry { catalog, ..Registry::default() }
-    }
-
-    /// What makes this binary's numeric library compute as the kernel pins (environment
-    /// variables, [`crate::numerics::apply`]) ask, where reading the variables is not enough
-    /// (`rlmflow-torch` installs its chain GEMM): run once by `exec`, after the pins are set and
-    /// before the operator computes anything.
-    pub fn set_kernel_pin(&mut self, pin: fn() -> anyhow::Result<()>) -> &mut Self {
-        self.kernel_pin = Some(pin);
-        self
-    }
-
-    /// Applies the kernel pin, where the binary has one.
-    pub fn pin_kernels(&self) -> anyhow::Result<()> {
-        self.kernel_pin.map_or(Ok(()), |pin| pin())
-    }
-
-    /// Names a numeric library this binary's operators compute with (`libtorch 2.11.0`), for
-    /// the provenance of the actions whose bytes depend on it.
-    pub fn add_library(&mut self, name: &'static str) -> &mut Self {
-        self.libraries.push(name);
-        self
-    }
-
-    pub fn libraries(&self) -> &[&'static str] {
-        &self.libraries
-    }
-
-    /// Adds an operator. Panics if its kind is unknown or its name taken: both are programming
-    /// errors in the binary that builds the registry, caught by its first test.
-    pub fn add(&mut self, op: impl DynOperator + 'static) -> &mut Self {
-        let id = op.spec().name.to_owned();
-        self.insert(id, Box::new(op))
-    }
-
-    /// Adds one definition of an operator that serves several kinds, as `NAME@KIND`: a stage
-    /// names it by its name alone, its kind choosing the definition.
-    pub fn add_for_kind(&mut self, op: impl DynOperator + 'static) -> &mut Self {
-        let spec = op.spec();
-        self.insert(format!("{}@{}", spec.name, spec.kind), Box::new(op))
-    }
-
-    fn insert(&mut self, id: String, op: Box<dyn DynOperator>) -> &mut Self {
-        let spec = op.spec();
-        let kind = self.catalog.get(spec.kind).unwrap_or_else(|| panic!("operator `{}` implements unknown stage kind `{}`", spec.name, spec.kind));
-        for slot in spec.inputs.unwrap_or(&[]) {
-            assert!(kind.slot(slot).is_some(), "operator `{}` reads unknown slot `{slot}`", spec.name);
-        }
-        assert!(self.find(spec.kind, spec.name).is_none() && self.get(&id).is_none(), "operator `{id}` registered twice");
-        self.operators.push((id, op));
-        self
-    }
-
-    /// The operator of id `id` (as plans and keys name it).
-    pub fn get(&self, id: &str) -> Option<&dyn DynOperator> {
-        self.operators.iter().find(|(i, _)| i == id).map(|(_, o)| o.as_ref())
-    }
-
-    /// The id and definition of the operator a stage of `kind` names `name`.
-    pub fn find(&self, kind: &str, name: &str) -> Option<(&str, &dyn DynOperator)> {
-        self.operators.iter().find(|(_, o)| o.spec().kind == kind && o.spec().name == name).map(|(i, o)| (i.as_str(), o.as_ref()))
-    }
-
-    /// The first operator named `name`, of whichever kind (for a message when a stage names an
-    /// operator of another kind).
-    pub fn named(&self, name: &str) -> Option<&dyn DynOperator> {
-        self.operators.iter().find(|(_, o)| o.spec().name == name).map(|(_, o)| o.as_ref())
-    }
-
-    pub fn kind(&self, name: &str) -> Option<&StageKind> {
-        self.catalog.get(name)
-    }
-
-    /// Operators implementing a stage kind, in registration order.
-    pub fn operators_of(&self, kind: &str) -> impl Iterator<Item = &dyn DynOperator> {
-        self.operators.iter().filter(move |(_, o)| o.spec().kind == kind).map(|(_, o)| o.as_ref())
-    }
-
-    /// Every operator with its id, in registration order.
-    pub fn operators(&self) -> impl Iterator<Item = (&str, &dyn DynOperator)> {
-        self.operators.iter().map(|(i, o)| (i.as_str(), o.as_ref()))
+    fn run(&self, settings: &Parsed, ctx: &mut Context) -> anyhow::Result<Outcome> {
+        Operator::run(self, settings.typed(), ctx)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use serde::Deserialize;
 
     #[derive(Serialize, Deserialize, Default)]
     #[serde(default, deny_unknown_fields)]
@@ -769,6 +377,9 @@ mod tests {
         fn spec(&self) -> OperatorSpec {
             OperatorSpec { name: "demo", kind: "scenes", version: 1, inputs: None, summary: "" }
         }
+        fn resources(&self, s: &Demo) -> Resources {
+            Resources { threads: s.threads, ..Resources::default() }
+        }
         fn run(&self, _: &Demo, _: &mut Context) -> anyhow::Result<Outcome> {
             Ok(Outcome::default())
         }
@@ -790,14 +401,16 @@ mod tests {
         assert_eq!(e.valid, vec!["image"]);
     }
 
-    /// What an action needs comes from settings that parse; others are an error naming the key,
-    /// never the defaults' resources in silence.
+    /// Settings are parsed once: every later question reads the typed value, and never settings
+    /// another operator parsed.
     #[test]
-    fn resources_of_settings_that_do_not_parse_name_the_key() {
-        let valid = DemoOp.settings(serde_json::json!({"alpha": 1.0})).unwrap();
-        assert_eq!(DynOperator::resources(&DemoOp, &valid).unwrap(), Resources::default());
-        let e = DynOperator::resources(&DemoOp, &serde_json::json!({"alpha": "fast"})).unwrap_err();
-        assert_eq!(e.key, "alpha");
+    fn parsed_settings_answer_every_question_from_the_typed_value() {
+        let parsed = DemoOp.settings(serde_json::json!({"threads": 3})).unwrap();
+        assert_eq!(parsed.typed::<Demo>().threads, 3);
+        assert_eq!(DynOperator::resources(&DemoOp, &parsed).threads, 3);
+        assert_eq!(parsed, serde_json::json!({"alpha": 0.0, "threads": 3, "nested": {"image": 0}}));
+        let other = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| DynOperator::metrics(&GroupOp, &parsed)));
+        assert!(other.is_err(), "settings another operator parsed are never read as this one's");
     }
 
     #[test]

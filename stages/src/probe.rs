@@ -166,7 +166,7 @@ pub struct Summary {
 }
 
 pub fn read_summary(dir: &std::path::Path) -> anyhow::Result<Summary> {
-    crate::read_summary(dir, SUMMARY, crate::artifact::PROBE_REPORT, "probe", FORMAT)
+    crate::reading::read_summary(dir, SUMMARY, crate::artifact::PROBE_REPORT, "probe", FORMAT)
 }
 
 /// The figures a row's metrics hold, each as `ROW.FIGURE`, `ROW.bins.BIN.FIGURE` (the paper's

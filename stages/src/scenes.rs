@@ -166,7 +166,7 @@ pub struct Scenes {
 
 impl Scenes {
     pub fn open(dir: &Path) -> anyhow::Result<Scenes> {
-        let summary: Summary = crate::read_summary(dir, SUMMARY, crate::artifact::SCENES, "scenes", FORMAT)?;
+        let summary: Summary = crate::reading::read_summary(dir, SUMMARY, crate::artifact::SCENES, "scenes", FORMAT)?;
         let index_path = dir.join(INDEX);
         let bytes = std::fs::read(&index_path).with_context(|| format!("reading {}", index_path.display()))?;
         let index: Vec<u64> = bytes.chunks_exact(8).map(|b| u64::from_le_bytes(b.try_into().expect("chunks of 8"))).collect();

@@ -55,7 +55,7 @@ pub struct Summary {
 }
 
 pub fn read_summary(dir: &std::path::Path) -> anyhow::Result<Summary> {
-    crate::read_summary(dir, SUMMARY, crate::artifact::SEG_REPORT, "segment", FORMAT)
+    crate::reading::read_summary(dir, SUMMARY, crate::artifact::SEG_REPORT, "segment", FORMAT)
 }
 
 /// What a SegReport measures, by dotted path (claims name them): its test-split figures at

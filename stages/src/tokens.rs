@@ -57,7 +57,7 @@ pub struct Tokens {
 
 impl Tokens {
     pub fn open(dir: &Path) -> anyhow::Result<Tokens> {
-        let summary: Summary = crate::read_summary(dir, SUMMARY, crate::artifact::TOKENS, "tokens", FORMAT)?;
+        let summary: Summary = crate::reading::read_summary(dir, SUMMARY, crate::artifact::TOKENS, "tokens", FORMAT)?;
         let ids = Npy::open(&dir.join(IDS))?;
         if ids.shape != [summary.captions as usize, summary.context] {
             bail!("{}: shape {:?}, expected [{}, {}]", dir.join(IDS).display(), ids.shape, summary.captions, summary.context);

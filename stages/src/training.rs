@@ -7,8 +7,12 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::context::Device;
 use crate::numerics::Precision;
-use crate::{Device, InputOutlines, Kernels, Numerics, Outline, Resources, SettingError};
+use crate::numerics::{Kernels, Numerics};
+use crate::operator::Resources;
+use crate::outline::{InputOutlines, Outline};
+use crate::settings::SettingError;
 
 /// One training run's schedule, optimiser and placement.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use safetensors::SafeTensors;
 
-use crate::SettingError;
+use crate::settings::SettingError;
 
 /// The model an `init` setting must hold: any one of `names` marks it.
 pub struct Expected<'a> {

@@ -386,7 +386,7 @@ fn every_declared_metric_is_measured_by_the_artifact() {
         (&unet, serde_json::json!({}), "unet", "SegReport"),
     ];
     for (op, settings, label, artifact) in cases {
-        let declared = op.metrics(&op.settings(settings).unwrap()).unwrap();
+        let declared = op.metrics(&op.settings(settings).unwrap());
         let measured = (catalog.measures(artifact).unwrap().metrics)(&run.output(label)).unwrap();
         let paths = rlmflow_stages::measure::paths(&measured);
         assert!(!declared.is_empty(), "{label}");

@@ -57,7 +57,7 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
                 if !op.non_result_keys().is_empty() {
                     println!("    not part of the result (left out of the key): {}", op.non_result_keys().join(", "));
                 }
-                match (op.merge(), op.items(&defaults)) {
+                match (op.merge(), op.settings(defaults.clone()).ok().and_then(|s| op.items(&s))) {
                     (Some(merge), Some((ItemCount::Known(_), unit))) => {
                         println!("    shardable: `shards` or `shard_size` split its {unit} into parts, merged by `{merge}`")
                     }

@@ -214,7 +214,7 @@ impl Checker {
             None => &stage.variants[0],
         };
         let op = registry.get(&stage.operator).expect("validated operator");
-        let declared = op.metrics(&settings.settings).unwrap_or_default();
+        let declared = op.metrics(&settings.settings);
         if !declared.is_empty() && !declared.iter().any(|m| m == metric) {
             let candidates: Vec<&str> = declared.iter().map(String::as_str).collect();
             let nearest = suggest(metric, &candidates);
@@ -324,7 +324,7 @@ impl Checker {
             let op = registry.get(&stage.operator).expect("validated operator");
             let Some(key) = op.claims_key() else { continue };
             for variant in &mut stage.variants {
-                let mut settings = variant.settings.clone();
+                let mut settings = variant.settings.json().clone();
                 settings[key] = value.clone();
                 match op.settings(settings) {
                     Ok(s) => variant.settings = s,

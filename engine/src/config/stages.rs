@@ -6,7 +6,7 @@ use std::ops::Range;
 use std::path::Path;
 
 use rlmflow_cache::external::Source;
-use rlmflow_stages::{Arity, DynOperator, FilePattern, InputOutlines, ItemCount, Need, Outline, Part, Registry, Share, StageKind};
+use rlmflow_stages::{Arity, DynOperator, FilePattern, InputOutlines, ItemCount, Need, Outline, Parsed, Part, Registry, Share, StageKind};
 use serde_json::{Map, Value};
 
 use super::checker::Checker;
@@ -216,7 +216,7 @@ impl Checker {
     fn tracked(
         &mut self,
         op: &dyn DynOperator,
-        settings: &Value,
+        settings: &Parsed,
         path: &str,
         variant: &Named,
         dir: &Path,
@@ -226,13 +226,10 @@ impl Checker {
         let root = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
         for &key in op.tracked_keys() {
             let files = op.tracked_files(settings, key);
-            let what = if matches!(files, Ok(Some(_))) { "files or globs (`probes/*.py`)" } else { "a file or directory" };
+            let what = if files.is_some() { "files or globs (`probes/*.py`)" } else { "a file or directory" };
             let checked = match files {
-                Ok(Some(patterns)) => {
-                    chosen_files(dir, &patterns).map(|files| (!files.is_empty()).then(|| Source::Files { root: root.clone(), files }))
-                }
-                Ok(None) => tracked_path(op, settings, key, dir),
-                Err(e) => Err(e.message),
+                Some(patterns) => chosen_files(dir, &patterns).map(|files| (!files.is_empty()).then(|| Source::Files { root: root.clone(), files })),
+                None => tracked_path(op, settings, key, dir),
             };
             let message = match checked {
                 Ok(found) => {
@@ -479,7 +476,7 @@ impl Checker {
 
 /// The path tracked setting `key` names, absolute, once it is found to be something that can be
 /// tracked; `None` where the setting is empty.
-fn tracked_path(op: &dyn DynOperator, settings: &Value, key: &str, dir: &Path) -> Result<Option<Source>, String> {
+fn tracked_path(op: &dyn DynOperator, settings: &Parsed, key: &str, dir: &Path) -> Result<Option<Source>, String> {
     let given = settings.get(key).and_then(Value::as_str).unwrap_or_default();
     if given.is_empty() {
         return Ok(None);

@@ -256,7 +256,7 @@ impl Scheduler<'_> {
             let i = self.start_order[k];
             let State::Ready { key } = self.instances[i].state else { continue };
             let op = self.registry.get(&self.plan.instances[i].operator).expect("validated operator");
-            let Some(grant) = self.budget.grant(&op.resources(&self.plan.instances[i].settings)?) else { continue };
+            let Some(grant) = self.budget.grant(&op.resources(&self.plan.instances[i].settings)) else { continue };
             let exe = match crate::exec::executable(op) {
                 Ok(exe) => exe,
                 Err(e) => {
