@@ -21,7 +21,7 @@ fn registry() -> Registry {
     registry.add(rlmflow_probe::embed().running(rlmflow_probe_torch::embed));
     registry.add(rlmflow_segment::pup().running(rlmflow_segment_torch::pup));
     registry.add(rlmflow_segment::unet().running(rlmflow_segment_torch::unet));
-    // tch 0.24's build accepts exactly this libtorch (python/libtorch.lock pins its wheel;
+    // tch 0.24's build accepts exactly this libtorch (libs/python/libtorch.lock pins its wheel;
     // `rlmflow_python::libtorch::TORCH_VERSION` lists what to re-check on an upgrade).
     registry.add_library("libtorch 2.11.0");
     // The chain GEMM is installed once, before the operator makes its first tensor.

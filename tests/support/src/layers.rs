@@ -40,19 +40,15 @@ pub fn members(root: &Path) -> Vec<(String, PathBuf, Vec<String>)> {
 mod tests {
     use super::*;
 
-    /// Operator directories that hold libraries every family may use, not a family of their own.
-    const SHARED: [&str; 2] = ["nn", "radar"];
-
     /// The operator family a crate belongs to (`operators/<family>/...`), `None` for a crate outside
-    /// `operators/` or in a shared library there.
+    /// `operators/` (the shared libraries are all under `libs/`).
     fn family(operators: &Path, dir: &Path) -> Option<String> {
-        let family = dir.strip_prefix(operators).ok()?.components().next()?.as_os_str().to_str()?.to_owned();
-        (!SHARED.contains(&family.as_str())).then_some(family)
+        Some(dir.strip_prefix(operators).ok()?.components().next()?.as_os_str().to_str()?.to_owned())
     }
 
     /// `rlmflow` never links libtorch and `rlmflow-torch` never embeds Python; the engine depends
-    /// on no operator crate; an operator family depends on `stages` and the shared libraries,
-    /// never on another family; the store depends on no other crate of the workspace and never
+    /// on no operator crate; an operator family depends on `stages` and the shared libraries
+    /// (`libs/`), never on another family, and a shared library on no family; the store depends on no other crate of the workspace and never
     /// prints.
     #[test]
     fn each_binary_and_crate_depends_only_on_its_layers() {
@@ -87,6 +83,12 @@ mod tests {
             }
         }
         assert!(families >= 11, "every family crate checked: {families}");
+        // A shared library serves the families and depends on none.
+        let libs = root.join("libs");
+        for (name, dir, deps) in members.iter().filter(|(_, dir, _)| dir.starts_with(&libs)) {
+            let reaches: Vec<&String> = deps.iter().filter(|d| family_of.get(d.as_str()).is_some_and(Option::is_some)).collect();
+            assert!(reaches.is_empty(), "{name} ({}) depends on operator families {reaches:?}", dir.display());
+        }
 
         // The store knows no stage or operator and never prints: its warnings are data.
         let (_, cache_dir, cache) = members.iter().find(|(name, ..)| name == "rlmflow-cache").unwrap();

@@ -30,7 +30,7 @@ fn pinned(lock: &str) -> impl Iterator<Item = &str> {
     lock.lines().filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
 }
 
-/// The `rlmflow` Python package (`python/package`: reads a store's artifacts), each file as
+/// The `rlmflow` Python package (`libs/python/package`: reads a store's artifacts), each file as
 /// `(path under site-packages, content)`: written into the environment after the lock, and part
 /// of the environment's name, so a changed package gets a new environment.
 pub const PACKAGE: &[(&str, &str)] =

@@ -29,7 +29,7 @@ const CUDA_READY: &str = "rlmflow-libtorch-cuda.json";
 /// The libtorch version tch needs.
 ///
 /// Upgrading it (with tch, which accepts exactly one libtorch, and `libtorch.lock`): the portable
-/// numerics lean on ATen internals that `operators/nn/cpp` compiles against. Re-check each:
+/// numerics lean on ATen internals that `libs/nn/cpp` compiles against. Re-check each:
 /// 1. `chain_gemm.cpp` registers over `aten::mm`, `mm.out`, `addmm`, `addmm.out`, `addmm_`,
 ///    `bmm`, `bmm.out`, `baddbmm`, `baddbmm.out` and `baddbmm_` for `DispatchKey::CPU`: each
 ///    schema still exists with these signatures (a mismatch fails the registration when a model
@@ -41,7 +41,7 @@ const CUDA_READY: &str = "rlmflow-libtorch-cuda.json";
 ///    ATen's own kernels do.
 /// 4. `torch_settings.cpp`'s `_fused_adamw`, `_foreach_norm`, `_foreach_mul`, autocast and
 ///    `Context` calls keep their signatures; both files build warning-free (`-Werror`,
-///    `operators/nn/build.rs`).
+///    `libs/nn/build.rs`).
 ///
 /// Then `cargo xtask test -p rlmflow-nn --test chain_gemm` (an installed `mm` is the chain
 /// kernel; every product of a model step gives the same bits at every width and thread count;

@@ -13,8 +13,8 @@ const HOST_CONSTRUCTORS: &[&str] = &["Tensor::from_slice(", "Tensor::from(", "Te
 
 /// The model code's source files, each with its text up to its `#[cfg(test)]` module.
 fn model_sources() -> Vec<(PathBuf, String)> {
-    let operators = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let roots = ["nn/src", "pretrain/torch/src", "probe/torch/src", "segment/torch/src"].map(|r| operators.join(r));
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let roots = ["libs/nn/src", "operators/pretrain/torch/src", "operators/probe/torch/src", "operators/segment/torch/src"].map(|r| root.join(r));
     let mut files = Vec::new();
     let mut pending: Vec<PathBuf> = roots.to_vec();
     while let Some(dir) = pending.pop() {
