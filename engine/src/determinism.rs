@@ -27,10 +27,44 @@ use crate::plan::{Freshness, Plan, assess};
 use crate::protocol::{Message, PREFIX};
 use crate::run::{RunOptions, run};
 
-/// Checks every instance of `stages`; returns whether all were deterministic.
-pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String], opts: &RunOptions) -> anyhow::Result<bool> {
+/// What a check or a recomputation finds, as it goes: data, put into words by `ui`.
+pub enum Finding<'a> {
+    /// An instance's check begins.
+    Checking { label: &'a str, key: Digest },
+    /// One attempt in a fresh process, with `env` asking for other kernels where not empty.
+    Attempt { number: usize, threads: usize, env: &'a [(&'a str, &'a str)], output: Digest, seconds: f64 },
+    /// Both attempts gave the same bytes; `stored`: the stored output, where it is other bytes.
+    Same { stored: Option<Digest> },
+    /// The attempts differ: the files that do, of how many, where the first differs, and where
+    /// the two outputs are kept.
+    Differs { files: Vec<String>, of: u64, first: Option<String>, kept: [PathBuf; 2] },
+    /// A recomputed action's output is the one its record names.
+    Agrees { label: &'a str, output: Digest },
+    /// It is not: what the record names and who signed it, what was recomputed, and where.
+    Disagrees { label: &'a str, recorded: Digest, signers: String, recomputed: Digest, kept: PathBuf },
+}
+
+/// The instances `names` name (stages or labels, [`Plan::instances_named`]).
+fn named(plan: &Plan, names: &[String]) -> anyhow::Result<Vec<bool>> {
+    let mut named = vec![false; plan.instances.len()];
+    for name in names {
+        plan.instances_named(name)?.into_iter().for_each(|i| named[i] = true);
+    }
+    Ok(named)
+}
+
+/// Checks every instance `stages` names (stages or labels), telling `found` what each attempt
+/// finds; returns whether all were deterministic.
+pub fn check(
+    plan: &Plan,
+    registry: &Registry,
+    store: &Store,
+    stages: &[String],
+    opts: &RunOptions,
+    found: &mut dyn FnMut(Finding),
+) -> anyhow::Result<bool> {
     let wanted = plan.select(stages)?;
-    let targets: Vec<bool> = plan.instances.iter().map(|inst| stages.iter().any(|s| plan.pipeline.stages[inst.stage].name == *s)).collect();
+    let targets = named(plan, stages)?;
     let upstream: Vec<bool> = wanted.iter().zip(&targets).map(|(w, t)| *w && !t).collect();
     if upstream.iter().any(|u| *u) {
         let summary = run(plan, registry, store, &upstream, Vec::new(), opts)?;
@@ -51,7 +85,7 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
         };
         store.write_request(&plan.request(i, key, preimage))?;
         plan.snapshot_tracked(i, store)?;
-        println!("check-determinism {} (key {})", inst.label, key.short());
+        found(Finding::Checking { label: &inst.label, key });
         let exe = crate::exec::executable(registry.get(&inst.operator).expect("validated operator"))?;
         let mut attempts: Vec<(PathBuf, Digest)> = Vec::new();
         for (attempt, (&n, env)) in threads.iter().zip(environments).enumerate() {
@@ -62,25 +96,12 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
             // The attempt reports its output's tree digest; manifests are read only to explain a difference.
             let digest = attempt_in_fresh_process(&exe, store, &key, n, env, opts, &scratch)
                 .with_context(|| format!("{}: attempt {}", inst.label, attempt + 1))?;
-            let threads = if n == 1 { "1 thread".to_owned() } else { format!("{n} threads") };
-            let kernels = match env.is_empty() {
-                true => String::new(),
-                false => format!(", asking for other kernels: {}", env.iter().map(|(k, v)| format!("{k}={v}")).collect::<Vec<_>>().join(" ")),
-            };
-            println!(
-                "  attempt {} (fresh process, {threads}{kernels}): output {} in {:.1}s",
-                attempt + 1,
-                digest.short(),
-                clock.elapsed().as_secs_f64()
-            );
+            found(Finding::Attempt { number: attempt + 1, threads: n, env, output: digest, seconds: clock.elapsed().as_secs_f64() });
             attempts.push((scratch, digest));
         }
         let [(dir_a, a), (dir_b, b)] = <[_; 2]>::try_from(attempts).expect("two attempts");
         if a == b {
-            println!("  same bytes");
-            if let Some(stored) = stored.filter(|s| *s != a) {
-                println!("  but the stored output {} differs: it was computed by another build or before a fix", stored.short());
-            }
+            found(Finding::Same { stored: stored.filter(|s| *s != a) });
             std::fs::remove_dir_all(&dir_a)?;
             std::fs::remove_dir_all(&dir_b)?;
             continue;
@@ -88,19 +109,17 @@ pub fn check(plan: &Plan, registry: &Registry, store: &Store, stages: &[String],
         let (a, b) = (hash_tree(&dir_a.join("out"))?, hash_tree(&dir_b.join("out"))?);
         all_same = false;
         let files = differing_files(&b.manifest, &a.manifest);
-        println!("  NOT DETERMINISTIC: {} of {} files differ: {}", files.len(), a.files.max(b.files), files.join(", "));
-        if let Some(first) = files.first() {
-            println!("  first difference: {}", first_difference(&dir_a.join("out").join(first), &dir_b.join("out").join(first))?);
-        }
-        println!("  outputs kept for inspection: {} and {}", dir_a.join("out").display(), dir_b.join("out").display());
+        let first = files.first().map(|f| first_difference(&dir_a.join("out").join(f), &dir_b.join("out").join(f))).transpose()?;
+        found(Finding::Differs { of: a.files.max(b.files), first, kept: [dir_a.join("out"), dir_b.join("out")], files });
     }
     Ok(all_same)
 }
 
-/// `rlmflow verify PIPELINE --recompute`: recomputes cached actions (of `stages`, or all) in
-/// fresh processes and compares each output with the one its record names, so a team can audit
-/// a cache it pulled from (a forged or foreign record shows as a disagreement). `sample` keeps
-/// that many, chosen by key (a fixed, unbiased choice). Returns how many disagree.
+/// `rlmflow verify PIPELINE --recompute`: recomputes cached actions (of those `stages` names, or
+/// all) in fresh processes and compares each output with the one its record names, so a team
+/// can audit a cache it pulled from (a forged or foreign record shows as a disagreement).
+/// `sample` keeps that many, chosen by key (a fixed, unbiased choice); `found` hears each.
+/// Returns how many disagree.
 pub fn recompute(
     plan: &Plan,
     registry: &Registry,
@@ -108,13 +127,14 @@ pub fn recompute(
     stages: &[String],
     sample: Option<usize>,
     opts: &RunOptions,
+    found: &mut dyn FnMut(Finding),
 ) -> anyhow::Result<usize> {
-    let wanted = plan.select(stages)?;
+    let wanted = if stages.is_empty() { vec![true; plan.instances.len()] } else { named(plan, stages)? };
     let states = assess(plan, registry, Some(store))?;
     let mut cached: Vec<(usize, rlmflow_cache::ActionRecord)> = states
         .iter()
         .enumerate()
-        .filter(|(i, _)| wanted[*i] && (stages.is_empty() || stages.iter().any(|s| plan.pipeline.stages[plan.instances[*i].stage].name == *s)))
+        .filter(|(i, _)| wanted[*i])
         .filter_map(|(i, state)| match state {
             Freshness::Cached(record) => Some((i, (**record).clone())),
             _ => None,
@@ -137,19 +157,13 @@ pub fn recompute(
         let digest = attempt_in_fresh_process(&exe, store, &record.key, opts.jobs, &[], opts, &scratch)
             .with_context(|| format!("recomputing {}", inst.label))?;
         if digest == record.output {
-            println!("  agrees     {}  {}", inst.label, digest.short());
+            found(Finding::Agrees { label: &inst.label, output: digest });
             std::fs::remove_dir_all(&scratch)?;
             continue;
         }
         disagree += 1;
         let signers = rlmflow_remote::signing::signers(&record);
-        println!(
-            "  DISAGREES  {}  its record names {} ({signers}), recomputed {}; the recomputed output is kept in {}",
-            inst.label,
-            record.output.short(),
-            digest.short(),
-            scratch.join("out").display()
-        );
+        found(Finding::Disagrees { label: &inst.label, recorded: record.output, signers, recomputed: digest, kept: scratch.join("out") });
     }
     Ok(disagree)
 }

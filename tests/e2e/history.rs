@@ -196,8 +196,8 @@ fn results_link_each_instance_to_its_current_output_and_say_so_when_gc_collected
 }
 
 /// A label as the run prints it (`map[loud]`, or its long form `map[map=loud]`) is taken
-/// wherever a stage is: `run --only`, `status --only`, `show`, `explain`, `pin --only`; a typo
-/// is answered with the nearest label.
+/// wherever a stage is: `run --only`, `status --only`, `show`, `explain`, `pin --only`,
+/// `--check-determinism`, `verify --recompute --only`; a typo is answered with the nearest label.
 #[test]
 fn every_command_that_takes_a_stage_takes_the_label_a_run_prints() {
     let s = Scratch::new("labels");
@@ -221,6 +221,11 @@ fn every_command_that_takes_a_stage_takes_the_label_a_run_prints() {
         assert!(both.contains("map[loud]") && both.contains("map[quiet]"), "{command}: {both}");
     }
     assert!(stdout_of(&s, &["pin", "p.toml", "loud", "--only", "map[loud]"]).starts_with("pinned 2 cached stage instances"));
+    let checked = stdout_of(&s, &["run", "p.toml", "--check-determinism", "map[loud]"]);
+    assert!(checked.contains("check-determinism map[loud] (key ") && !checked.contains("check-determinism map[quiet]"), "{checked}");
+    let recomputed = stdout_of(&s, &["verify", "p.toml", "--recompute", "--only", "map[loud]"]);
+    let agrees: Vec<&str> = recomputed.lines().filter(|l| l.trim_start().starts_with("agrees")).collect();
+    assert!(agrees.len() == 1 && agrees[0].contains("map[loud]"), "{recomputed}");
 
     for (args, nearest) in [
         (vec!["show", "p.toml", "map[lod]"], "did you mean `map[loud]`?"),

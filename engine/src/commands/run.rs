@@ -93,7 +93,9 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
         pre.refuse_cuda_stages(registry, device)?;
         pre.refuse_oversized()?;
         let store = Store::open(&root)?;
-        let same = crate::determinism::check(&pre.plan, registry, &store, &check_determinism, &opts)?;
+        let same = crate::determinism::check(&pre.plan, registry, &store, &check_determinism, &opts, &mut |found| {
+            println!("{}", crate::ui::finding(&found))
+        })?;
         return Ok(if same { ExitCode::SUCCESS } else { ExitCode::FAILURE });
     }
     // Seeds until decided: each look computes what its claims read, and the next is asked.

@@ -19,7 +19,7 @@ pub(crate) struct Args {
     /// records' (needs the pipeline): an audit of a cache this store pulled from.
     #[arg(long)]
     recompute: bool,
-    /// With --recompute: only these stages (repeatable).
+    /// With --recompute: only these stages, or instances as a run prints them (repeatable).
     #[arg(long, value_name = "STAGE")]
     only: Vec<String>,
     /// With --recompute: at most N actions, chosen by key.
@@ -65,7 +65,9 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
             let plan = planned(p, Some(&store), Device::Cpu)?;
             let jobs = std::thread::available_parallelism().map_or(1, |n| n.get());
             let opts = RunOptions { jobs, json: false, device: Device::Cpu, verify_inputs: false, remote: None };
-            let disagree = crate::determinism::recompute(&plan, registry, &store, &only, sample, &opts)?;
+            let disagree = crate::determinism::recompute(&plan, registry, &store, &only, sample, &opts, &mut |found| {
+                println!("{}", crate::ui::finding(&found))
+            })?;
             println!("verify --recompute: {disagree} disagree");
             disagree
         }
