@@ -9,6 +9,7 @@ use std::fmt::Write as _;
 use rlmflow_remote::Remote;
 
 use crate::plan::{Freshness, Plan};
+use crate::preflight::Checked;
 use crate::ui::words;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -47,14 +48,14 @@ fn edges(plan: &Plan) -> Vec<(usize, &'static str, usize)> {
 
 /// The plan with every instance's freshness (`states`, in plan order) in `format`; with a
 /// `remote`, what it holds shows as pulled.
-pub fn draw(plan: &Plan, states: &[Freshness], remote: Option<&Remote>, format: Format) -> String {
+pub fn draw(plan: &Plan, checked: &[Checked], remote: Option<&Remote>, format: Format) -> String {
     match format {
-        Format::Mermaid => mermaid(plan, states, remote),
-        Format::Dot => dot(plan, states, remote),
+        Format::Mermaid => mermaid(plan, checked, remote),
+        Format::Dot => dot(plan, checked, remote),
     }
 }
 
-fn mermaid(plan: &Plan, states: &[Freshness], remote: Option<&Remote>) -> String {
+fn mermaid(plan: &Plan, checked: &[Checked], remote: Option<&Remote>) -> String {
     // Mermaid has no escape for `"` inside a quoted label but its `#quot;` entity; `<` and `>`
     // become entities too, so a reason's `->` is not read as markup.
     let text = |s: &str| s.replace('"', "#quot;").replace('<', "#lt;").replace('>', "#gt;");
@@ -63,7 +64,7 @@ fn mermaid(plan: &Plan, states: &[Freshness], remote: Option<&Remote>) -> String
         let _ = writeln!(out, "  classDef {name} fill:{fill},stroke:{stroke}");
     }
     for (i, inst) in plan.instances.iter().enumerate() {
-        let (class, tooltip) = state(&states[i], remote);
+        let (class, tooltip) = state(&checked[i].state, remote);
         let produces = plan.pipeline.stages[inst.stage].kind.produces;
         // The state's words under the label: GitHub renders no tooltip (`click` is disabled there).
         let _ = writeln!(out, "  s{i}[\"{}<br>{}\"]:::{class}", text(&inst.label), text(&tooltip));
@@ -76,11 +77,11 @@ fn mermaid(plan: &Plan, states: &[Freshness], remote: Option<&Remote>) -> String
     out
 }
 
-fn dot(plan: &Plan, states: &[Freshness], remote: Option<&Remote>) -> String {
+fn dot(plan: &Plan, checked: &[Checked], remote: Option<&Remote>) -> String {
     let text = |s: &str| s.replace('\\', "\\\\").replace('"', "\\\"");
     let mut out = format!("digraph \"{}\" {{\n  rankdir=LR;\n  node [fontname=\"sans-serif\"];\n", text(&plan.pipeline.name));
     for (i, inst) in plan.instances.iter().enumerate() {
-        let (class, tooltip) = state(&states[i], remote);
+        let (class, tooltip) = state(&checked[i].state, remote);
         let (_, fill, stroke) = STATES.iter().find(|(name, ..)| *name == class).expect("every state has colours");
         let produces = plan.pipeline.stages[inst.stage].kind.produces;
         let _ = writeln!(

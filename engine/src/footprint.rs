@@ -102,10 +102,10 @@ fn cuda_memory(index: usize) -> Option<u64> {
 }
 
 /// Refuses, before anything starts, the instances that will run and whose estimate exceeds their device's memory: a config error per stage, with the settings to change.
-pub fn refuse_oversized(plan: &Plan, fits: &[Option<Fit>]) -> anyhow::Result<()> {
+pub fn refuse_oversized(plan: &Plan, fits: &[Option<&Fit>]) -> anyhow::Result<()> {
     let mut diagnostics: Vec<Diagnostic> = Vec::new();
     for (i, fit) in fits.iter().enumerate() {
-        let Some(fit) = fit.as_ref().filter(|f| f.exceeds()) else { continue };
+        let Some(fit) = fit.filter(|f| f.exceeds()) else { continue };
         let inst = &plan.instances[i];
         let stage = &plan.pipeline.stages[inst.stage];
         let key = format!("stages.{}", stage.name);

@@ -23,6 +23,7 @@ pub mod digests;
 pub mod dispatch;
 pub mod event;
 pub mod exec;
+mod finding;
 pub mod footprint;
 pub mod history;
 pub mod plan;

@@ -18,12 +18,24 @@ pub struct Preflight<'p> {
     pub plan: Plan<'p>,
     /// The store, where the pipeline has one yet (a preflight creates none).
     pub store: Option<Store>,
-    pub states: Vec<Freshness>,
-    /// The instances `--only` selects (all without it).
-    pub selected: Vec<bool>,
+    /// What it found of each of the plan's instances, in plan order.
+    pub instances: Vec<Checked>,
+}
+
+/// What the preflight found of one instance.
+pub struct Checked {
+    pub state: Freshness,
+    /// `--only` selects it (every instance is selected without it).
+    pub selected: bool,
+    /// Its memory estimate against its device, where it will run and has one.
+    pub fit: Option<Fit>,
+}
+
+impl Checked {
     /// Selected and not reused from the store.
-    pub runs: Vec<bool>,
-    pub fits: Vec<Option<Fit>>,
+    pub fn runs(&self) -> bool {
+        self.selected && !matches!(self.state, Freshness::Cached(_))
+    }
 }
 
 impl<'p> Preflight<'p> {
@@ -34,9 +46,12 @@ impl<'p> Preflight<'p> {
         let plan = planned(pipeline, store.as_ref(), device)?;
         let selected = plan.select(only)?;
         let states = assess(&plan, registry, store.as_ref())?;
-        let runs = will_run(&states, &selected);
-        let fits = fits(&plan, registry, device, &runs)?;
-        Ok(Preflight { plan, store, states, selected, runs, fits })
+        let mut instances: Vec<Checked> = states.into_iter().zip(selected).map(|(state, selected)| Checked { state, selected, fit: None }).collect();
+        let runs: Vec<bool> = instances.iter().map(Checked::runs).collect();
+        for (checked, fit) in instances.iter_mut().zip(fits(&plan, registry, device, &runs)?) {
+            checked.fit = fit;
+        }
+        Ok(Preflight { plan, store, instances })
     }
 
     /// Refuses, on the local executor, a run with an instance larger than this machine holds.
@@ -44,7 +59,8 @@ impl<'p> Preflight<'p> {
         if self.plan.pipeline.executor != Executor::Local {
             return Ok(());
         }
-        refuse_oversized(&self.plan, &self.fits)
+        let fits: Vec<Option<&Fit>> = self.instances.iter().map(|c| c.fit.as_ref()).collect();
+        refuse_oversized(&self.plan, &fits)
     }
 
     /// Refuses, on the local executor, a run on `device` in which a stage that must run needs a
@@ -53,7 +69,7 @@ impl<'p> Preflight<'p> {
         if self.plan.pipeline.executor != Executor::Local || Local::new(device).cuda_possible() {
             return Ok(());
         }
-        refuse_cuda_stages(&self.plan, registry, &self.runs)
+        refuse_cuda_stages(&self.plan, registry, &self.instances)
     }
 }
 
@@ -65,18 +81,13 @@ pub fn planned<'p>(pipeline: &'p Pipeline, store: Option<&Store>, device: Device
     Ok(plan)
 }
 
-/// Which instances are selected and will run (not reused from the store).
-fn will_run(states: &[Freshness], selected: &[bool]) -> Vec<bool> {
-    states.iter().zip(selected).map(|(state, &s)| s && !matches!(state, Freshness::Cached(_))).collect()
-}
-
 /// Refuses a local run, before anything starts, in which a stage that must run needs a CUDA
 /// device this machine does not have: a config error with the stage's line and what is valid.
-fn refuse_cuda_stages(plan: &Plan, registry: &Registry, runs: &[bool]) -> anyhow::Result<()> {
+fn refuse_cuda_stages(plan: &Plan, registry: &Registry, instances: &[Checked]) -> anyhow::Result<()> {
     let mut stages = std::collections::BTreeSet::new();
-    for (i, inst) in plan.instances.iter().enumerate() {
+    for (inst, checked) in plan.instances.iter().zip(instances) {
         let op = registry.get(&inst.operator).expect("validated operator");
-        if runs[i] && op.resources(&inst.settings).needs_cuda {
+        if checked.runs() && op.resources(&inst.settings).needs_cuda {
             stages.insert(inst.stage);
         }
     }

@@ -9,9 +9,9 @@ use rlmflow_cache::Change;
 use rlmflow_remote::Remote;
 use serde_json::json;
 
-use crate::determinism::Finding;
-use crate::footprint::Fit;
+use crate::finding::Finding;
 use crate::plan::{Freshness, Plan};
+use crate::preflight::Checked;
 use crate::reason::{RunReason, Waiting};
 
 /// Progress bars on a terminal; plain lines otherwise.
@@ -101,15 +101,15 @@ pub(crate) fn print_store_warnings() {
 
 /// Prints where each selected instance stands (`status`, `run --dry-run`), with the memory
 /// estimate of each that will run.
-pub(crate) fn print_status(plan: &Plan, states: &[Freshness], selected: &[bool], fits: &[Option<Fit>], remote: Option<&Remote>, json: bool) {
+pub(crate) fn print_status(plan: &Plan, instances: &[Checked], remote: Option<&Remote>, json: bool) {
     let width = plan.instances.iter().map(|i| i.label.len()).max().unwrap_or(0);
     if let Some(remote) = remote.filter(|r| !r.verified() && !json) {
         println!("  note      remote cache {}: its records are used unverified (no `remote_trusted_keys`)", remote.url());
     }
-    for (i, state) in states.iter().enumerate().filter(|(i, _)| selected[*i]) {
+    for (i, Checked { state, fit, .. }) in instances.iter().enumerate().filter(|(_, c)| c.selected) {
         let label = &plan.instances[i].label;
         if json {
-            let memory = fits[i].as_ref().map(|f| {
+            let memory = fit.as_ref().map(|f| {
                 json!({"parameters": f.footprint.parameters, "peak_bytes": f.footprint.peak_bytes, "capacity_bytes": f.capacity, "fits": !f.exceeds()})
             });
             let line = match state {
@@ -131,7 +131,7 @@ pub(crate) fn print_status(plan: &Plan, states: &[Freshness], selected: &[bool],
             }
             Freshness::Pending(waiting) => println!("  pending   {label:width$}  {waiting}"),
         }
-        if let (false, Some(fit)) = (matches!(state, Freshness::Cached(_)), &fits[i]) {
+        if let (false, Some(fit)) = (matches!(state, Freshness::Cached(_)), fit) {
             let verdict = if fit.exceeds() { "  DOES NOT FIT" } else { "" };
             println!("            {:width$}  {}{verdict}", "", fit.describe());
         }

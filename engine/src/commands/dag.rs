@@ -26,7 +26,7 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
     let p = set.load_at_look(&pipeline, registry, &store)?;
     let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &[])?;
     let remote = remote.open(&p)?;
-    print!("{}", crate::dag::draw(&pre.plan, &pre.states, remote.as_ref(), format));
+    print!("{}", crate::dag::draw(&pre.plan, &pre.instances, remote.as_ref(), format));
     warn_unasked(remote.as_ref());
     Ok(ExitCode::SUCCESS)
 }

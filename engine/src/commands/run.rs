@@ -70,7 +70,7 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
     }
     if dry_run {
         let pre = Preflight::new(&p, registry, &root, device, &only)?;
-        print_status(&pre.plan, &pre.states, &pre.selected, &pre.fits, None, json);
+        print_status(&pre.plan, &pre.instances, None, json);
         if let (Some(rule), false) = (p.seed_rule, json) {
             println!("  claims    at {} seeds now; a run adds seeds one at a time, up to {}, until every claim is decided", p.seeds.len(), rule.max);
         }
@@ -146,8 +146,9 @@ fn run_selected(p: &config::Pipeline, registry: &Registry, root: &std::path::Pat
     let pre = Preflight::new(p, registry, root, opts.device, only)?;
     pre.refuse_cuda_stages(registry, opts.device)?;
     pre.refuse_oversized()?;
-    let known = pre.states.into_iter().map(|s| if let Freshness::Cached(record) = s { Some(record) } else { None }).collect();
+    let (selected, known): (Vec<bool>, Vec<_>) =
+        pre.instances.into_iter().map(|c| (c.selected, if let Freshness::Cached(record) = c.state { Some(record) } else { None })).unzip();
     let store = Store::open(root)?;
-    let summary = run(&pre.plan, registry, &store, &pre.selected, known, opts)?;
+    let summary = run(&pre.plan, registry, &store, &selected, known, opts)?;
     Ok(summary.failed == 0)
 }

@@ -31,7 +31,7 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
     let p = set.load_at_look(&pipeline, registry, &store)?;
     let pre = Preflight::new(&p, registry, &store_root(&p, &store), Device::Cpu, &only)?;
     let remote = remote.open(&p)?;
-    print_status(&pre.plan, &pre.states, &pre.selected, &pre.fits, remote.as_ref(), json);
+    print_status(&pre.plan, &pre.instances, remote.as_ref(), json);
     warn_unasked(remote.as_ref());
     Ok(ExitCode::SUCCESS)
 }
