@@ -11,9 +11,9 @@ pub struct Budget {
     max_threads: Option<usize>,
     /// Whether GPU stages run one at a time (locally; a cluster schedules GPUs itself).
     serialises_gpu: bool,
+    /// Every granted stage holds at least one thread: none in use is none running.
     threads_in_use: usize,
     gpu_in_use: bool,
-    running: usize,
 }
 
 /// What a started stage was given, returned to the budget when it ends.
@@ -25,7 +25,7 @@ pub struct Grant {
 
 impl Budget {
     pub fn new(jobs: usize, max_threads: Option<usize>, serialises_gpu: bool) -> Budget {
-        Budget { jobs: jobs.max(1), max_threads, serialises_gpu, threads_in_use: 0, gpu_in_use: false, running: 0 }
+        Budget { jobs: jobs.max(1), max_threads, serialises_gpu, threads_in_use: 0, gpu_in_use: false }
     }
 
     /// What a stage wanting `wants` would be given now, or `None` when it must wait for a running
@@ -39,19 +39,17 @@ impl Budget {
             threads = threads.min(self.jobs.saturating_sub(self.threads_in_use)).max(1);
         }
         let fits = self.threads_in_use + threads <= self.jobs && !(wants.gpu && self.gpu_in_use && self.serialises_gpu);
-        (fits || self.running == 0).then_some(Grant { threads, gpu: wants.gpu })
+        (fits || self.threads_in_use == 0).then_some(Grant { threads, gpu: wants.gpu })
     }
 
     pub fn take(&mut self, grant: Grant) {
         self.threads_in_use += grant.threads;
         self.gpu_in_use |= grant.gpu;
-        self.running += 1;
     }
 
     pub fn release(&mut self, grant: Grant) {
         self.threads_in_use -= grant.threads;
         self.gpu_in_use &= !grant.gpu;
-        self.running -= 1;
     }
 }
 
