@@ -163,7 +163,11 @@ impl Operator for WriteText {
         progress.set_position(start as u64);
         for step in start..s.steps {
             std::thread::sleep(Duration::from_millis(s.step_ms));
-            fs::write(&done_file, (step + 1).to_string())?;
+            // Written beside and renamed over, as a real checkpoint is: a kill between the
+            // truncation and the write of a plain `fs::write` (long on a busy ext4) loses it.
+            let part = done_file.with_extension("part");
+            fs::write(&part, (step + 1).to_string())?;
+            fs::rename(&part, &done_file)?;
             trace(format!("step write-text {} {}", ctx.stage, step + 1));
             progress.inc(1);
         }
