@@ -265,7 +265,7 @@ fn the_radiate_fixture_has_the_published_layout() {
     };
     assert_eq!(png_header(&fixture.join("Navtech_Polar/000001.png")), png_header(&sample.join("Navtech_Polar/000001.png")));
     assert_eq!(png_header(&sample.join("Navtech_Polar/000001.png")).0, 400, "published: 400 wide (azimuths)");
-    let line_shape = |line: &str| -> Vec<usize> { line.split(|c: char| c == ' ' || c == '.').map(str::len).collect() };
+    let line_shape = |line: &str| -> Vec<usize> { line.split([' ', '.']).map(str::len).collect() };
     let stamps = |dir: &Path| std::fs::read_to_string(dir.join("Navtech_Polar.txt")).unwrap();
     let (ours, theirs) = (stamps(&fixture), stamps(&sample));
     assert!(ours.lines().chain(theirs.lines()).all(|l| l.starts_with("Frame: ") && l.contains(" Time: ")));

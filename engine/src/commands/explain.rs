@@ -44,45 +44,19 @@ fn explain(registry: &Registry, file: &Path, set: &SetArg, stage: &str, arg: &St
         None => Default::default(),
     };
     for i in plan.instances_named(stage)? {
-        let label = &plan.instances[i].label;
-        println!("{label}");
-        match &states[i] {
-            Freshness::Cached(r) => {
-                println!("  cached: key {} (ran {:.1}s, {})", r.key, r.duration_s, r.started);
-                if last.get(label) != Some(&r.key) {
-                    println!("  (the last run used another key: {})", last.get(label).map_or("none".into(), |k| k.to_string()));
-                }
-                println!("  preimage:\n{}", indent(&serde_json::to_string_pretty(&r.preimage)?));
-            }
-            Freshness::Stale { key, reasons, preimage } => {
-                println!("  will run: key {key}");
-                println!("  last run: {}", last.get(label).map_or("none".into(), |k| k.to_string()));
-                for r in reasons {
-                    println!("    {r}");
-                }
-                println!("  preimage:\n{}", indent(&serde_json::to_string_pretty(preimage)?));
-            }
-            Freshness::Pending(waiting) => {
-                println!("  pending: {waiting}; its key is known once that input is");
-                if let (Some(s), Some(old)) = (&store, last.get(label))
-                    && let Some(before) = crate::reason::previous_preimage(s, old)?
-                {
-                    let unknown = rlmflow_cache::Digest([0; 32]);
-                    let outputs: Vec<Option<Digest>> =
-                        states.iter().map(|st| Some(if let Freshness::Cached(r) = st { r.output } else { unknown })).collect();
-                    let now = plan.preimage(i, registry, &outputs)?.context("a cached instance's inputs are known")?;
-                    for change in now.diff(&before) {
-                        if !matches!(&change, rlmflow_cache::Change::InputChanged { .. }) {
-                            println!("    {}", crate::ui::describe(&p.stages[plan.instances[i].stage].name, &change));
-                        }
-                    }
-                }
-            }
+        let inst = &plan.instances[i];
+        let stage = &p.stages[inst.stage].name;
+        let last = last.get(&inst.label).copied();
+        let mut changes = Vec::new();
+        if let (Freshness::Pending(_), Some(s), Some(old)) = (&states[i], &store, last)
+            && let Some(before) = crate::reason::previous_preimage(s, &old)?
+        {
+            let unknown = Digest([0; 32]);
+            let outputs: Vec<Option<Digest>> = states.iter().map(|st| Some(if let Freshness::Cached(r) = st { r.output } else { unknown })).collect();
+            let now = plan.preimage(i, registry, &outputs)?.context("a cached instance's inputs are known")?;
+            changes = now.diff(&before).into_iter().filter(|c| !matches!(c, rlmflow_cache::Change::InputChanged { .. })).collect();
         }
+        print!("{}", crate::ui::explained(&crate::ui::Explained { label: &inst.label, stage, state: &states[i], last, changes }));
     }
     Ok(ExitCode::SUCCESS)
-}
-
-fn indent(text: &str) -> String {
-    text.lines().map(|l| format!("    {l}")).collect::<Vec<_>>().join("\n")
 }

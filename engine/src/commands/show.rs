@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use rlmflow_cache::{ActionRecord, Store, canonical_json};
+use rlmflow_cache::Store;
 use rlmflow_stages::{Device, Registry};
 use serde_json::{Value, json};
 
@@ -41,13 +41,7 @@ fn show(registry: &Registry, file: &Path, stage: &str, json: bool, arg: &StoreAr
         return Ok(ExitCode::SUCCESS);
     }
     for i in shown {
-        let label = &plan.instances[i].label;
-        match (&states[i], &store) {
-            (Freshness::Cached(r), Some(s)) => print_record(label, r, s),
-            (Freshness::Stale { reasons, .. }, _) => println!("{label}: not computed yet ({})", crate::ui::words(reasons)),
-            (Freshness::Pending(waiting), _) => println!("{label}: not computed yet ({waiting})"),
-            (Freshness::Cached(_), None) => unreachable!("cached without a store"),
-        }
+        print!("{}", crate::ui::shown(&plan.instances[i].label, &states[i], store.as_ref()));
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -81,30 +75,4 @@ fn instance_json(plan: &Plan, i: usize, state: &Freshness, store: Option<&Store>
         out.extend(fields);
     }
     out
-}
-
-fn print_record(label: &str, r: &ActionRecord, s: &Store) {
-    println!("{label}: cached");
-    println!("  output:  {}", s.object_dir(&r.output).display());
-    println!("  files:   {} ({:.1} MB)", r.files, r.bytes as f64 / 1e6);
-    println!("  key:     {}", r.key);
-    println!("  ran:     {} for {:.1}s", r.started, r.duration_s);
-    match &r.pulled {
-        None => println!("  origin:  computed here"),
-        Some(rlmflow_cache::PulledFrom { remote, signed_by: Some(key) }) => println!("  origin:  pulled from {remote}, signed by {key}"),
-        Some(rlmflow_cache::PulledFrom { remote, signed_by: None }) => {
-            println!("  origin:  pulled from {remote} UNVERIFIED (no trusted keys): its summary and metrics are the remote's word")
-        }
-    }
-    let unverified = if r.unverified_origin().is_some() { " (unverified)" } else { "" };
-    if !r.summary.is_empty() {
-        println!("  summary{unverified}: {}", r.summary);
-    }
-    if !r.metrics.is_null() {
-        println!("  metrics{unverified}: {}", canonical_json(&r.metrics));
-    }
-    // A record from before its operator kept one, or a damaged one, shows none.
-    if let Some(platform) = r.platform.clone().and_then(|p| serde_json::from_value::<rlmflow_stages::numerics::PlatformRecord>(p).ok()) {
-        platform.to_string().lines().for_each(|line| println!("  {line}"));
-    }
 }

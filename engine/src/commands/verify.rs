@@ -11,6 +11,7 @@ use super::{StoreArg, existing_store};
 use crate::config;
 use crate::preflight::planned;
 use crate::run::RunOptions;
+use crate::ui::Rejected;
 
 #[derive(clap::Args)]
 pub(crate) struct Args {
@@ -39,25 +40,12 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
     let store = existing_store(registry, pipeline.as_deref(), &store)?;
     let mut n = 0;
     let report = store.verify(|_| n += 1)?;
-    for c in &report.objects {
-        println!("  corrupt object {}: {} (quarantined; stages using it will recompute)", c.digest, c.files.join(", "));
-    }
-    for f in &report.files {
-        println!("  damaged {}: {} (quarantined to {})", f.path.display(), f.problem, f.quarantined.display());
-    }
-    for (key, output) in &report.records_without_output {
-        println!("  record {} needs object {}, which is gone: its action reruns when needed", key.short(), output.short());
-    }
     let p = pipeline.as_deref().map(|file| config::load(file, registry)).transpose()?;
-    let forged = match &p {
+    let rejected = match &p {
         Some(p) => verify_signatures(&store, &p.remote)?,
-        None => 0,
+        None => Vec::new(),
     };
-    println!(
-        "verify: {n} objects, {} damaged; {} damaged store files; {forged} records with a bad signature",
-        report.objects.len(),
-        report.files.len()
-    );
+    print!("{}", crate::ui::store_check(&report, n, &rejected));
     let disagree = match (recompute, &p) {
         (false, _) => 0,
         (true, None) => anyhow::bail!("--recompute needs the pipeline file"),
@@ -76,57 +64,41 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
         Some(file) => verify_against(&store, &file)?,
         None => 0,
     };
-    Ok(if report.is_clean() && forged == 0 && disagree == 0 && unlike == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+    Ok(if report.is_clean() && rejected.is_empty() && disagree == 0 && unlike == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
 }
 
 /// Checks every signed record of `store` (pulled from a remote cache, the signatures kept)
 /// against the pipeline's trusted keys: one whose signature does not match it, or that only
-/// untrusted keys signed, is quarantined and named. Returns how many.
-fn verify_signatures(store: &Store, remote: &config::RemoteSettings) -> anyhow::Result<usize> {
+/// untrusted keys signed, is quarantined. Returns those.
+fn verify_signatures(store: &Store, remote: &config::RemoteSettings) -> anyhow::Result<Vec<Rejected>> {
     let trusted = rlmflow_remote::signing::TrustedKeys::parse(&remote.trusted_keys)?;
+    let mut rejected = Vec::new();
     if trusted.is_empty() {
-        return Ok(0);
+        return Ok(rejected);
     }
-    let mut bad = 0;
     for key in store.record_keys()? {
         let Some(record) = store.record(&key)?.filter(|r| !r.signatures.is_empty()) else { continue };
         match trusted.check(&record) {
             rlmflow_remote::signing::Trust::Signed { .. } => {}
-            other => {
-                let to = store.quarantine_record(&key)?;
-                println!("  record {} is {other}: quarantined to {} (its action reruns when needed)", key.short(), to.display());
-                bad += 1;
+            trust => {
+                let quarantined = store.quarantine_record(&key)?;
+                rejected.push(Rejected { key, trust, quarantined });
             }
         }
     }
-    Ok(bad)
+    Ok(rejected)
 }
 
 /// `verify --against FILE`: each row's verdict, a summary line; how many rows failed (each that
 /// differs, or one when none was here to compare).
 fn verify_against(store: &Store, file: &Path) -> anyhow::Result<usize> {
-    use crate::digests::Verdict;
     let rows = crate::digests::read(file)?;
     let verdicts = crate::digests::compare(store, &rows)?;
-    let width = rows.iter().map(|r| r.instance.len()).max().unwrap_or(0);
-    for (row, verdict) in rows.iter().zip(&verdicts) {
-        match verdict {
-            Verdict::Same => println!("  same      {:width$}  key {}", row.instance, row.key.short()),
-            Verdict::Differs(here) => {
-                println!("  DIFFERS   {:width$}  key {}: there {}, here {}", row.instance, row.key.short(), row.output.short(), here.short())
-            }
-            Verdict::Absent => println!("  absent    {:width$}  key {} is not in this store", row.instance, row.key.short()),
-        }
-    }
-    let count = |f: fn(&Verdict) -> bool| verdicts.iter().filter(|v| f(v)).count();
-    let (same, differ, absent) = (count(|v| *v == Verdict::Same), count(|v| matches!(v, Verdict::Differs(_))), count(|v| *v == Verdict::Absent));
-    println!(
-        "verify --against {}: {same} the same, {differ} differ, {absent} not in this store (not computed here, or other settings or versions: other keys)",
-        file.display()
-    );
-    if same + differ == 0 {
-        eprintln!("error: none of the {} keys of {} is in this store: nothing was compared", rows.len(), file.display());
+    let (lines, nothing_compared) = crate::ui::against(file, &rows, &verdicts);
+    print!("{lines}");
+    if let Some(error) = nothing_compared {
+        eprintln!("error: {error}");
         return Ok(1);
     }
-    Ok(differ)
+    Ok(verdicts.iter().filter(|v| matches!(v, crate::digests::Verdict::Differs(_))).count())
 }

@@ -102,8 +102,6 @@ impl Scheduler<'_> {
         Ok(())
     }
 
-    /// Asks the remote cache for `key` after a local miss, on a thread of its own (stages that
-
     /// With `verify_inputs`, re-hashes a reused output once per run; a damaged one is
     /// quarantined, so its action reruns.
     fn intact(&mut self, label: &str, output: &Digest) -> anyhow::Result<bool> {

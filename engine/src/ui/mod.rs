@@ -1,6 +1,13 @@
 //! What a run shows on a terminal: one line per event, a bar per running stage and per artifact
 //! moving to or from the remote cache; plain lines when stdout is not a terminal, nothing but the
-//! event log with `--json`. The one place where what the engine knows is put into words.
+//! event log with `--json`. The one place where what the engine knows is put into words: an
+//! instance's record or why it would run (`inspect`), and what a check found (`checks`).
+
+mod checks;
+mod inspect;
+
+pub(crate) use checks::{Rejected, against, finding, store_check};
+pub(crate) use inspect::{Explained, explained, shown};
 
 use std::fmt;
 
@@ -9,7 +16,6 @@ use rlmflow_cache::Change;
 use rlmflow_remote::Remote;
 use serde_json::json;
 
-use crate::finding::Finding;
 use crate::plan::{Freshness, Plan};
 use crate::preflight::Checked;
 use crate::reason::{RunReason, Waiting};
@@ -248,39 +254,6 @@ pub(crate) fn describe(stage: &str, change: &Change) -> String {
     match change {
         Change::Setting { .. } => format!("{stage}.{change}"),
         _ => change.to_string(),
-    }
-}
-
-/// What `run --check-determinism` and `verify --recompute` find, one line (or a few) each.
-pub(crate) fn finding(found: &Finding) -> String {
-    match found {
-        Finding::Checking { label, key } => format!("check-determinism {label} (key {})", key.short()),
-        Finding::Attempt { number, threads, env, output, seconds } => {
-            let threads = if *threads == 1 { "1 thread".to_owned() } else { format!("{threads} threads") };
-            let kernels = match env.is_empty() {
-                true => String::new(),
-                false => format!(", asking for other kernels: {}", env.iter().map(|(k, v)| format!("{k}={v}")).collect::<Vec<_>>().join(" ")),
-            };
-            format!("  attempt {number} (fresh process, {threads}{kernels}): output {} in {seconds:.1}s", output.short())
-        }
-        Finding::Same { stored: None } => "  same bytes".to_owned(),
-        Finding::Same { stored: Some(stored) } => {
-            format!("  same bytes\n  but the stored output {} differs: it was computed by another build or before a fix", stored.short())
-        }
-        Finding::Differs { files, of, first, kept: [a, b] } => {
-            let mut text = format!("  NOT DETERMINISTIC: {} of {of} files differ: {}", files.len(), files.join(", "));
-            if let Some(first) = first {
-                text += &format!("\n  first difference: {first}");
-            }
-            text + &format!("\n  outputs kept for inspection: {} and {}", a.display(), b.display())
-        }
-        Finding::Agrees { label, output } => format!("  agrees     {label}  {}", output.short()),
-        Finding::Disagrees { label, recorded, signers, recomputed, kept } => format!(
-            "  DISAGREES  {label}  its record names {} ({signers}), recomputed {}; the recomputed output is kept in {}",
-            recorded.short(),
-            recomputed.short(),
-            kept.display()
-        ),
     }
 }
 
