@@ -38,10 +38,7 @@ impl Store {
         let (old_runs, kept_runs) = runs.split_at(runs.len().saturating_sub(keep_runs));
 
         let mut live_keys: BTreeSet<Digest> = BTreeSet::new();
-        for file in self.ref_files()? {
-            let keys: Option<std::collections::BTreeMap<String, Digest>> = self.read_json(&file)?;
-            live_keys.extend(keys.into_iter().flat_map(|k| k.into_values()));
-        }
+        live_keys.extend(self.ref_keys()?);
         for run in kept_runs {
             if let Some(plan) = self.plan(run)? {
                 live_keys.extend(plan.instances.iter().filter_map(|i| i.key));
@@ -137,7 +134,6 @@ fn size_of(path: &Path) -> u64 {
 
 #[cfg(test)]
 mod tests {
-    use std::collections::BTreeMap;
 
     use super::*;
     use crate::store::tests::record_for;
@@ -148,7 +144,8 @@ mod tests {
         let store = Store::open(&tempdir("gc")).unwrap();
         let kept = record_for(&store, 1, b"kept");
         let dropped = record_for(&store, 2, b"dropped");
-        store.update_last_keys("p", &BTreeMap::from([("s".to_owned(), kept.key)])).unwrap();
+        let s = crate::InstanceRef { stage: "s".into(), ..Default::default() };
+        store.update_last_keys("p", &[(s, "s", kept.key)]).unwrap();
 
         let dry = store.gc(10, true, false).unwrap();
         assert!(dry.removed.iter().any(|r| r.0 == "object"));

@@ -46,9 +46,11 @@
 mod digest;
 pub mod external;
 mod gc;
+mod instance;
 mod links;
 mod lock;
 mod preimage;
+mod refs;
 mod store;
 mod tree;
 mod verify;
@@ -57,6 +59,8 @@ pub use digest::{Digest, NotADigest};
 pub use gc::GcReport;
 pub use links::Links;
 pub use lock::Lock;
+pub use instance::InstanceRef;
+pub use refs::Refs;
 pub use preimage::{Change, InputDigest, Preimage, canonical_json};
 pub use store::{
     ActionRecord, ActionRequest, GitState, PlanEntry, PulledFrom, RecordSignature, RunPlan, SIGNED_FORMAT, Store, file_safe, now_rfc3339, run_id,

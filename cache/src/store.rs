@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::digest::Digest;
+use crate::instance::InstanceRef;
 use crate::lock::Lock;
 use crate::preimage::Preimage;
 use crate::tree::{TreeInfo, hash_tree};
@@ -116,13 +117,26 @@ pub struct ActionRequest {
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct PlanEntry {
     pub label: String,
-    pub stage: String,
-    /// Its variant per dimension (`pretrain` -> `alpha4`, `seed` -> `2`), absent for a stage
-    /// without variants or seeds: how `compare` groups seeds and sets variants side by side.
-    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
-    pub assignment: BTreeMap<String, String>,
+    /// What it is: how `compare` groups seeds and sets variants side by side.
+    #[serde(flatten)]
+    pub instance: InstanceRef,
     /// Unknown until its inputs exist; filled in as the run goes.
     pub key: Option<Digest>,
+}
+
+impl PlanEntry {
+    /// An entry of a plan written while seeds were a variant named `seed` (`"assignment":
+    /// {"seed": "2"}`) gets its seed field (variant names are not numbers there: no stage was
+    /// named `seed` beside seeds).
+    fn with_seed_field(mut self) -> PlanEntry {
+        if self.instance.seed.is_none()
+            && let Some(seed) = self.instance.variants.get("seed").and_then(|s| s.parse().ok())
+        {
+            self.instance.variants.remove("seed");
+            self.instance.seed = Some(seed);
+        }
+        self
+    }
 }
 
 /// The git commit a run's pipeline file was at, and whether tracked files had changed since.
@@ -449,41 +463,11 @@ impl Store {
     }
 
     pub fn plan(&self, run: &str) -> anyhow::Result<Option<RunPlan>> {
-        self.read_json(&self.run_dir(run).join("plan.json"))
-    }
-
-    fn pipeline_ref(&self, pipeline: &str) -> PathBuf {
-        self.root.join("refs/pipelines").join(format!("{}.json", file_safe(pipeline)))
-    }
-
-    /// The key each stage instance of `pipeline` had in its latest run.
-    pub fn last_keys(&self, pipeline: &str) -> anyhow::Result<BTreeMap<String, Digest>> {
-        Ok(self.read_json(&self.pipeline_ref(pipeline))?.unwrap_or_default())
-    }
-
-    /// Records the keys a run resolved, keeping entries for instances it did not touch.
-    pub fn update_last_keys(&self, pipeline: &str, keys: &BTreeMap<String, Digest>) -> anyhow::Result<()> {
-        let before = self.last_keys(pipeline)?;
-        let mut all = before.clone();
-        all.extend(keys.iter().map(|(k, v)| (k.clone(), *v)));
-        // A rerun with the same keys (a no-op run) leaves the file as it is: no write, no sync.
-        if all == before {
-            return Ok(());
-        }
-        atomic_write(self, &self.pipeline_ref(pipeline), &serde_json::to_vec_pretty(&all)?)
-    }
-
-    /// Pins keys under a name, so `gc` keeps them and everything they used.
-    pub fn pin(&self, name: &str, keys: &BTreeMap<String, Digest>) -> anyhow::Result<PathBuf> {
-        let path = self.root.join("refs/pins").join(format!("{}.json", file_safe(name)));
-        atomic_write(self, &path, &serde_json::to_vec_pretty(keys)?)?;
-        Ok(path)
-    }
-
-    pub(crate) fn ref_files(&self) -> anyhow::Result<Vec<PathBuf>> {
-        let mut files = read_dir_sorted(&self.root.join("refs/pipelines"))?;
-        files.extend(read_dir_sorted(&self.root.join("refs/pins"))?);
-        Ok(files)
+        let plan: Option<RunPlan> = self.read_json(&self.run_dir(run).join("plan.json"))?;
+        Ok(plan.map(|mut p| {
+            p.instances = p.instances.into_iter().map(PlanEntry::with_seed_field).collect();
+            p
+        }))
     }
 }
 
@@ -629,6 +613,26 @@ pub(crate) mod tests {
         };
         store.write_record(&record).unwrap();
         record
+    }
+
+    #[test]
+    fn a_plan_written_while_seeds_were_a_variant_reads_with_its_seed_field() {
+        let store = Store::open(&tempdir("old-plan")).unwrap();
+        let entry = |assignment: Value| serde_json::json!({"label": "l", "stage": "c", "assignment": assignment, "key": null});
+        let old = serde_json::json!({
+            "run": "r1", "pipeline": "p", "started": "2026-01-01T00:00:00Z",
+            "instances": [entry(serde_json::json!({"pretrain": "alpha4", "seed": "2"})), entry(serde_json::json!({"pretrain": "x"}))],
+        });
+        fs::create_dir_all(store.run_dir("r1")).unwrap();
+        fs::write(store.run_dir("r1").join("plan.json"), serde_json::to_vec(&old).unwrap()).unwrap();
+        let plan = store.plan("r1").unwrap().unwrap();
+        let seeded = &plan.instances[0].instance;
+        assert_eq!((seeded.seed, seeded.variants.len(), &seeded.variants["pretrain"]), (Some(2), 1, &"alpha4".to_owned()));
+        assert_eq!(plan.instances[1].instance.seed, None);
+        // Written again, the seed is its own field.
+        store.write_plan(&plan).unwrap();
+        let text: Value = serde_json::from_slice(&fs::read(store.run_dir("r1").join("plan.json")).unwrap()).unwrap();
+        assert_eq!(text["instances"][0], serde_json::json!({"label": "l", "stage": "c", "assignment": {"pretrain": "alpha4"}, "seed": 2, "key": null}));
     }
 
     #[test]

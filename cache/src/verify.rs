@@ -1,7 +1,6 @@
 //! `verify` and quarantine: re-hashing what the store holds and moving what is damaged out of
 //! the way, so a damaged object or record is a miss and never served.
 
-use std::collections::BTreeMap;
 use std::fs;
 use std::path::{Path, PathBuf};
 
@@ -124,7 +123,7 @@ impl Store {
             check(path, map_read(read, |r| of_key(key, r.key).and_then(|()| of_key(key, r.preimage.key()))));
         }
         for path in self.ref_files()? {
-            let read = read_json_checked::<BTreeMap<String, Digest>>(&path)?;
+            let read = read_json_checked::<crate::refs::Refs>(&path)?;
             check(path, map_read(read, |_| Ok(())));
         }
         for run in self.runs()? {

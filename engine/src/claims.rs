@@ -11,7 +11,7 @@ use rlmflow_stages::claims::{Metric, Values, Verdict, decide};
 use rlmflow_stages::{Device, Registry};
 use serde::Serialize;
 
-use crate::config::{Pipeline, SEED_DIMENSION, suggest};
+use crate::config::{Pipeline, suggest};
 use crate::plan::{Freshness, assess};
 use crate::preflight::planned;
 
@@ -20,6 +20,7 @@ use crate::preflight::planned;
 pub struct Measured<'a> {
     pub stage: &'a str,
     pub assignment: &'a BTreeMap<String, String>,
+    pub seed: Option<u64>,
     pub output: Option<Digest>,
     pub label: &'a str,
 }
@@ -79,9 +80,9 @@ pub fn evaluate(p: &Pipeline, registry: &Registry, store: &Store, instances: &[M
                         let names: Vec<&str> = paths.iter().map(String::as_str).collect();
                         bail!("{}: {} measures no `{}`{}", at(), m.label, metric.path, suggest(&metric.path, &names));
                     };
-                    match m.assignment.get(SEED_DIMENSION) {
+                    match m.seed {
                         Some(seed) => {
-                            seeded.insert(seed.parse::<u64>().context("a seed")?, value);
+                            seeded.insert(seed, value);
                         }
                         None => fixed = Some(value),
                     }
@@ -104,9 +105,7 @@ pub fn evaluate(p: &Pipeline, registry: &Registry, store: &Store, instances: &[M
 
 /// Whether instance `m` is one of those `metric` pools over seeds.
 fn reads(metric: &Metric, m: &Measured) -> bool {
-    let mut variant = m.assignment.clone();
-    variant.remove(SEED_DIMENSION);
-    m.stage == metric.stage && variant == metric.variant
+    m.stage == metric.stage && *m.assignment == metric.variant
 }
 
 /// The look `store` has reached for `p`, on `device`'s keys: under a seed rule, from `min`
@@ -142,6 +141,7 @@ fn look(p: &Pipeline, registry: &Registry, store: Option<&Store>, device: Device
         .map(|(inst, state)| Measured {
             stage: &p.stages[inst.stage].name,
             assignment: &inst.assignment,
+            seed: inst.seed,
             output: if let Freshness::Cached(r) = state { Some(r.output) } else { None },
             label: &inst.label,
         })
@@ -196,7 +196,13 @@ pub fn flip(p: &Pipeline, registry: &Registry, store: &Store, claim: &str) -> an
         let records = run.records(store)?;
         let instances: Vec<Measured> = records
             .iter()
-            .map(|(e, r)| Measured { stage: &e.stage, assignment: &e.assignment, output: r.as_ref().map(|r| r.output), label: &e.label })
+            .map(|(e, r)| Measured {
+                stage: &e.instance.stage,
+                assignment: &e.instance.variants,
+                seed: e.instance.seed,
+                output: r.as_ref().map(|r| r.output),
+                label: &e.label,
+            })
             .collect();
         let (all, missing) = evaluate(p, registry, store, &instances)?;
         let verdict = all.into_iter().find(|v| v.claim == claim).context("the claim")?;
@@ -226,7 +232,7 @@ pub fn flip(p: &Pipeline, registry: &Registry, store: &Store, claim: &str) -> an
                 }
                 _ => None,
             };
-            changed.push(Changed { label: entry.label.clone(), stage: entry.stage.clone(), changes });
+            changed.push(Changed { label: entry.label.clone(), stage: entry.instance.stage.clone(), changes });
         }
         (run.id().to_owned(), v.clone(), changed)
     });

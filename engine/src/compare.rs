@@ -11,7 +11,7 @@ use serde_json::Value;
 
 use rlmflow_stages::Registry;
 
-use crate::config::{Pipeline, SEED_DIMENSION};
+use crate::config::Pipeline;
 use crate::history::PastRun;
 
 /// A metric over an instance's seeds (one value without seeds).
@@ -83,12 +83,12 @@ pub struct Table {
 }
 
 /// One metric of an instance: each member's seed (`None` without seeds) and value.
-type SeedValues = Vec<(Option<String>, f64)>;
+type SeedValues = Vec<(Option<u64>, f64)>;
 
 /// An instance with its seeds pooled: each member's seed (`None` without seeds) and record.
 struct Group<'r> {
     label: String,
-    members: Vec<(Option<String>, &'r PlanEntry, Option<ActionRecord>)>,
+    members: Vec<(Option<u64>, &'r PlanEntry, Option<ActionRecord>)>,
     /// The preimage of the first member: from its record, else from its request.
     preimage: Option<Preimage>,
 }
@@ -100,8 +100,8 @@ impl Group<'_> {
         Some(format!("{} in run {run} (from {from})", self.label))
     }
 
-    fn keys(&self) -> Vec<(Option<&String>, Option<Digest>)> {
-        self.members.iter().map(|(seed, entry, _)| (seed.as_ref(), entry.key)).collect()
+    fn keys(&self) -> Vec<(Option<u64>, Option<Digest>)> {
+        self.members.iter().map(|(seed, entry, _)| (*seed, entry.key)).collect()
     }
 
     /// Each numeric leaf of the members' metrics, by dotted path: (seed, value) per member.
@@ -112,7 +112,7 @@ impl Group<'_> {
             let mut leaves = Vec::new();
             numeric_leaves("", &record.metrics, &mut leaves);
             for (path, value) in leaves {
-                out.entry(path).or_default().push((seed.clone(), value));
+                out.entry(path).or_default().push((*seed, value));
             }
         }
         out
@@ -122,9 +122,7 @@ impl Group<'_> {
 /// The label of an instance with the seed left out of its variants (`clipcap[alpha4]` for
 /// `clipcap[pretrain=alpha4,seed=2]`).
 fn pooled_label(entry: &PlanEntry) -> String {
-    let mut rest = entry.assignment.clone();
-    rest.remove(SEED_DIMENSION);
-    crate::plan::label(&entry.stage, &rest)
+    crate::plan::label(&entry.instance.stage, &entry.instance.variants, None)
 }
 
 /// The run's instances grouped over seeds, in plan order.
@@ -132,7 +130,7 @@ fn groups<'r>(store: &Store, run: &'r PastRun) -> anyhow::Result<Vec<Group<'r>>>
     let mut out: Vec<Group> = Vec::new();
     for (entry, record) in run.records(store)? {
         let label = pooled_label(entry);
-        let seed = entry.assignment.get(SEED_DIMENSION).cloned();
+        let seed = entry.instance.seed;
         match out.iter_mut().find(|g| g.label == label) {
             Some(group) => group.members.push((seed, entry, record)),
             None => {
@@ -185,14 +183,14 @@ pub fn variants(store: &Store, run: &PastRun, all: bool) -> anyhow::Result<Vec<T
     let groups = groups(store, run)?;
     let mut stages: Vec<&str> = Vec::new();
     for g in &groups {
-        let stage = g.members[0].1.stage.as_str();
+        let stage = g.members[0].1.instance.stage.as_str();
         if !stages.contains(&stage) {
             stages.push(stage);
         }
     }
     let mut tables = Vec::new();
     for stage in stages {
-        let columns: Vec<&Group> = groups.iter().filter(|g| g.members[0].1.stage == stage).collect();
+        let columns: Vec<&Group> = groups.iter().filter(|g| g.members[0].1.instance.stage == stage).collect();
         if columns.len() < 2 && columns[0].members.len() < 2 && !all {
             continue;
         }
@@ -272,7 +270,7 @@ fn metric_rows(instance: &str, sides: &[Option<&Group>], all: bool, change: bool
     names.dedup();
     let mut rows = Vec::new();
     for name in names {
-        let series: Vec<&[(Option<String>, f64)]> = metrics.iter().map(|m| m.get(name).map(Vec::as_slice).unwrap_or_default()).collect();
+        let series: Vec<&[(Option<u64>, f64)]> = metrics.iter().map(|m| m.get(name).map(Vec::as_slice).unwrap_or_default()).collect();
         let differs = series.iter().any(|s| *s != series[0]);
         if !differs && !all {
             continue;
@@ -281,7 +279,7 @@ fn metric_rows(instance: &str, sides: &[Option<&Group>], all: bool, change: bool
         let values = stats.iter().map(|s| s.clone().map_or(Cell::Absent, Cell::Stat)).collect();
         let delta = match (change, series.as_slice(), stats.as_slice()) {
             (true, [a, b], [Some(sa), Some(sb)]) => {
-                let seeds = |s: &[(Option<String>, f64)]| s.iter().map(|(seed, _)| seed.clone()).collect::<Vec<_>>();
+                let seeds = |s: &[(Option<u64>, f64)]| s.iter().map(|(seed, _)| *seed).collect::<Vec<_>>();
                 if seeds(a) == seeds(b) && a.len() > 1 {
                     Stat::of(&a.iter().zip(b.iter()).map(|((_, x), (_, y))| y - x).collect::<Vec<_>>())
                 } else {

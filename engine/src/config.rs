@@ -18,7 +18,7 @@ mod stages;
 
 pub use checker::ConfigError;
 pub use diagnostic::Diagnostic;
-pub use graph::dimensions;
+pub use graph::{Dims, dimensions};
 use header::Header;
 pub use header::{Executor, RemoteSettings, SIGNING_KEY_VARIABLE, SeedRule, resolve_remote};
 pub use hyperqueue::{HyperQueueSettings, WorkerStore};
@@ -175,8 +175,8 @@ impl Pipeline {
     }
 }
 
-/// The variant dimension seeds fan out on; no stage may take its name.
-pub const SEED_DIMENSION: &str = "seed";
+/// How a label names an instance's seed: `pretrain[alpha4,seed=2]`.
+pub const SEED_LABEL: &str = "seed";
 /// The default of `[pipeline] max_instances`: the most instances (variants, seeds and shards
 /// fanned out) a plan may have, checked before it is expanded. The paper's pipelines have tens.
 pub const MAX_INSTANCES: u64 = 10_000;
@@ -307,7 +307,7 @@ impl Checker {
         if !self.errors.is_empty() {
             return None;
         }
-        self.no_stage_named_seed(&stages, &header.seeds)?;
+        self.no_varied_stage_named_seed(&stages, &header.seeds)?;
         let mut stages = self.topological(stages)?;
         self.bounded(&stages, header.seed_rule.map_or(header.seeds.len(), |r| r.max), header.max_instances);
         if !self.errors.is_empty() {
@@ -390,12 +390,14 @@ impl Checker {
         (stages.len() == table.len()).then_some((stages, explicit_inputs))
     }
 
-    /// Seeds fan out on a dimension named `seed`, so no stage may take that name beside them.
-    fn no_stage_named_seed(&mut self, stages: &[Stage], seeds: &[u64]) -> Option<()> {
-        if !seeds.is_empty() && stages.iter().any(|s| s.name == SEED_DIMENSION) {
-            let path = format!("stages.{SEED_DIMENSION}");
-            let msg = "a stage may not be named `seed` when [pipeline] seeds is set: seeds fan out on a dimension of that name".into();
-            self.error(self.line(&path), &path, msg, None);
+    /// A stage named `seed` with variants, beside seeds, would give labels two `seed=` items
+    /// (`probe[seed=a,seed=2]`) that a reader could not tell apart.
+    fn no_varied_stage_named_seed(&mut self, stages: &[Stage], seeds: &[u64]) -> Option<()> {
+        let varied = |s: &Stage| s.variants.len() > 1 || s.variants[0].name.is_some();
+        if !seeds.is_empty() && stages.iter().any(|s| s.name == SEED_LABEL && varied(s)) {
+            let path = format!("stages.{SEED_LABEL}");
+            let msg = "a stage named `seed` may not have variants when [pipeline] seeds is set: labels name the seed `seed=N`, and its variants would read the same".into();
+            self.error(self.line(&path), &path, msg, Some("rename the stage".into()));
             return None;
         }
         Some(())

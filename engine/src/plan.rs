@@ -5,11 +5,11 @@ use std::collections::{BTreeMap, HashMap};
 
 use anyhow::{Context as _, bail};
 use rlmflow_cache::external::Source;
-use rlmflow_cache::{ActionRecord, ActionRequest, Digest, InputDigest, Preimage, Store};
+use rlmflow_cache::{ActionRecord, ActionRequest, Digest, InputDigest, InstanceRef, Preimage, Store};
 use rlmflow_stages::{Arity, InstanceId, Parsed, Part, Registry, SettingError};
 use serde_json::Value;
 
-use crate::config::{Pipeline, SEED_DIMENSION, suggest};
+use crate::config::{Pipeline, SEED_LABEL, suggest};
 use crate::platform::Platform;
 use crate::reason::{RunReason, Waiting, why};
 
@@ -22,13 +22,15 @@ pub struct Instance {
     pub label: String,
     /// Variant dimension (the stage that declared the variants) -> variant name.
     pub assignment: BTreeMap<String, String>,
+    /// Its seed, where it runs per seed (else the pipeline's `seed` is in its key).
+    pub seed: Option<u64>,
     /// The operator it runs: the stage's, or the merge operator of a sharded stage.
     pub operator: String,
     /// Every setting of this instance, parsed once when the pipeline was read.
     pub settings: Parsed,
     pub inputs: Vec<InstanceInput>,
-    /// The items a shard computes (`None`: not a shard).
-    pub shard: Option<Part>,
+    /// Which shard it is, and the items it computes (`None`: not a shard).
+    pub shard: Option<(usize, Part)>,
     /// Files or directories outside the store it reads: input slot -> path.
     pub tracked: Vec<(String, Source)>,
 }
@@ -63,29 +65,32 @@ pub fn plan_on(pipeline: &Pipeline, platform: Platform) -> Plan<'_> {
     let dims_of = crate::config::dimensions(&pipeline.stages, !pipeline.seeds.is_empty());
     // The whole (not shard) instances of each stage so far, for inputs that gather them all.
     let mut whole_of: Vec<Vec<usize>> = vec![Vec::new(); pipeline.stages.len()];
-    let mut by_assignment: HashMap<(usize, String), usize> = HashMap::new();
+    let mut by_assignment: HashMap<(usize, BTreeMap<String, String>, Option<u64>), usize> = HashMap::new();
     for (s, stage) in pipeline.stages.iter().enumerate() {
         let dims = &dims_of[s];
-        let mut assignments = vec![BTreeMap::new()];
-        for dim in dims {
-            let names: Vec<String> = if dim == SEED_DIMENSION {
-                pipeline.seeds.iter().map(u64::to_string).collect()
-            } else {
-                let owner = &pipeline.stages[pipeline.stage(dim).unwrap()];
-                owner.variants.iter().filter_map(|v| v.name.clone()).collect()
-            };
+        let mut assignments: Vec<(BTreeMap<String, String>, Option<u64>)> = vec![(BTreeMap::new(), None)];
+        // In label order, which is plan order: by name, the seed as `seed`.
+        let mut axes: Vec<Option<&String>> = dims.variants.iter().map(Some).collect();
+        if dims.seeded {
+            axes.push(None);
+        }
+        axes.sort_by_key(|axis| axis.map_or(SEED_LABEL, |d| d.as_str()));
+        for axis in axes {
             assignments = assignments
                 .into_iter()
-                .flat_map(|a: BTreeMap<String, String>| {
-                    names.iter().map(move |n| {
-                        let mut a = a.clone();
-                        a.insert(dim.clone(), (*n).clone());
-                        a
-                    })
+                .flat_map(|(a, seed)| -> Vec<(BTreeMap<String, String>, Option<u64>)> {
+                    match axis {
+                        None => pipeline.seeds.iter().map(|&n| (a.clone(), Some(n))).collect(),
+                        Some(dim) => {
+                            let owner = &pipeline.stages[pipeline.stage(dim).unwrap()];
+                            let names = owner.variants.iter().filter_map(|v| v.name.clone());
+                            names.map(|n| (a.clone().into_iter().chain([(dim.clone(), n)]).collect(), seed)).collect()
+                        }
+                    }
                 })
                 .collect();
         }
-        for assignment in assignments {
+        for (assignment, seed) in assignments {
             let variant = match assignment.get(&stage.name) {
                 Some(v) => stage.variants.iter().find(|x| x.name.as_ref() == Some(v)).unwrap(),
                 None => &stage.variants[0],
@@ -97,8 +102,8 @@ pub fn plan_on(pipeline: &Pipeline, platform: Platform) -> Plan<'_> {
                     let providers = match b.arity {
                         Arity::One => {
                             let p = b.providers[0];
-                            let key = assignment_key(&restrict(&assignment, &dims_of[p]));
-                            vec![by_assignment[&(p, key)]]
+                            let seed = seed.filter(|_| dims_of[p].seeded);
+                            vec![by_assignment[&(p, restrict(&assignment, &dims_of[p].variants), seed)]]
                         }
                         Arity::All => {
                             let mut all: Vec<usize> = b.providers.iter().flat_map(|&p| whole_of[p].iter().copied()).collect();
@@ -110,12 +115,13 @@ pub fn plan_on(pipeline: &Pipeline, platform: Platform) -> Plan<'_> {
                     InstanceInput { slot: b.slot, arity: b.arity, providers }
                 })
                 .collect();
-            let label = label(&stage.name, &assignment);
+            let label = label(&stage.name, &assignment, seed);
             let whole = match &stage.merge {
                 None => Instance {
                     stage: s,
                     label,
                     assignment: assignment.clone(),
+                    seed,
                     operator: stage.operator.clone(),
                     settings: variant.settings.clone(),
                     inputs,
@@ -130,10 +136,11 @@ pub fn plan_on(pipeline: &Pipeline, platform: Platform) -> Plan<'_> {
                             stage: s,
                             label: format!("{label}#{j}"),
                             assignment: assignment.clone(),
+                            seed,
                             operator: stage.operator.clone(),
                             settings: settings.clone(),
                             inputs: inputs.clone(),
-                            shard: Some(part.clone()),
+                            shard: Some((j, part.clone())),
                             tracked: variant.tracked.clone(),
                         });
                     }
@@ -142,6 +149,7 @@ pub fn plan_on(pipeline: &Pipeline, platform: Platform) -> Plan<'_> {
                         stage: s,
                         label,
                         assignment: assignment.clone(),
+                        seed,
                         operator: merge.operator.clone(),
                         settings: merge.settings.clone(),
                         inputs,
@@ -150,7 +158,7 @@ pub fn plan_on(pipeline: &Pipeline, platform: Platform) -> Plan<'_> {
                     }
                 }
             };
-            by_assignment.insert((s, assignment_key(&assignment)), instances.len());
+            by_assignment.insert((s, assignment, seed), instances.len());
             whole_of[s].push(instances.len());
             instances.push(whole);
         }
@@ -162,27 +170,29 @@ fn restrict(a: &BTreeMap<String, String>, dims: &[String]) -> BTreeMap<String, S
     a.iter().filter(|(d, _)| dims.contains(d)).map(|(d, v)| (d.clone(), v.clone())).collect()
 }
 
-fn assignment_key(a: &BTreeMap<String, String>) -> String {
-    a.iter().map(|(d, v)| format!("{d}={v}")).collect::<Vec<_>>().join(",")
-}
-
 /// How an instance's variants are named: the variant alone for a stage's one variant dimension,
-/// else each with its dimension (`dim`, `v`); the seed always shows its name (`seed=2`), so a
-/// report can tell seeds from variants.
-pub fn variant_names(a: &BTreeMap<String, String>) -> Vec<(Option<&str>, &str)> {
-    match a.len() {
-        1 if !a.contains_key(SEED_DIMENSION) => a.values().map(|v| (None, v.as_str())).collect(),
-        _ => a.iter().map(|(d, v)| (Some(d.as_str()), v.as_str())).collect(),
+/// else each with its dimension (`dim`, `v`); the seed always with its name (`seed=2`), so a
+/// report can tell seeds from variants. By name, the seed as `seed`: a gathered input's label
+/// is in its consumer's key.
+pub fn variant_names(a: &BTreeMap<String, String>, seed: Option<u64>) -> Vec<(Option<&str>, String)> {
+    if seed.is_none() && a.len() == 1 {
+        return a.values().map(|v| (None, v.clone())).collect();
     }
+    let mut names: Vec<(Option<&str>, String)> = a.iter().map(|(d, v)| (Some(d.as_str()), v.clone())).collect();
+    if let Some(seed) = seed {
+        let at = names.partition_point(|(d, _)| d.is_some_and(|d| d < SEED_LABEL));
+        names.insert(at, (Some(SEED_LABEL), seed.to_string()));
+    }
+    names
 }
 
 /// `stage`, `stage[variant]` for one variant dimension, `stage[dim=v,...]` for several
 /// ([`variant_names`]).
-pub fn label(stage: &str, a: &BTreeMap<String, String>) -> String {
-    if a.is_empty() {
+pub fn label(stage: &str, a: &BTreeMap<String, String>, seed: Option<u64>) -> String {
+    if a.is_empty() && seed.is_none() {
         return stage.to_owned();
     }
-    let names: Vec<String> = variant_names(a).into_iter().map(|(d, v)| d.map_or_else(|| v.to_owned(), |d| format!("{d}={v}"))).collect();
+    let names: Vec<String> = variant_names(a, seed).into_iter().map(|(d, v)| d.map_or_else(|| v.clone(), |d| format!("{d}={v}"))).collect();
     format!("{stage}[{}]", names.join(","))
 }
 
@@ -255,11 +265,9 @@ impl Plan<'_> {
         let given: Vec<&str> = items.split(',').map(str::trim).filter(|i| !i.is_empty()).collect();
         let matches = |inst: &Instance| {
             given.iter().all(|item| match item.split_once('=') {
+                Some((d, v)) if d.trim() == SEED_LABEL && inst.seed.is_some() => inst.seed.is_some_and(|n| n.to_string() == v.trim()),
                 Some((d, v)) => inst.assignment.get(d.trim()).is_some_and(|x| x == v.trim()),
-                None => {
-                    let named: Vec<&String> = inst.assignment.iter().filter(|(d, _)| *d != SEED_DIMENSION).map(|(_, v)| v).collect();
-                    named.len() == 1 && named[0] == item
-                }
+                None => inst.assignment.len() == 1 && inst.assignment.values().next().is_some_and(|v| v == item),
             })
         };
         let of_stage = || self.instances.iter().enumerate().filter(|(_, i)| i.stage == s && i.shard.is_none());
@@ -292,6 +300,17 @@ impl Plan<'_> {
         Ok(keep)
     }
 
+    /// What instance `i` is, as the store's refs name it.
+    pub fn id(&self, i: usize) -> InstanceRef {
+        let inst = &self.instances[i];
+        InstanceRef {
+            stage: self.pipeline.stages[inst.stage].name.clone(),
+            variants: inst.assignment.clone(),
+            seed: inst.seed,
+            shard: inst.shard.as_ref().map(|(j, _)| *j),
+        }
+    }
+
     /// The producing instance of each of instance `i`'s single-artifact inputs, by slot.
     pub fn input_labels(&self, i: usize) -> BTreeMap<String, String> {
         let one = self.instances[i].inputs.iter().filter(|input| input.arity == Arity::One);
@@ -317,7 +336,11 @@ impl Plan<'_> {
         providers
             .map(|&p| {
                 let provider = &self.instances[p];
-                let id = InstanceId { stage: self.pipeline.stages[provider.stage].name.clone(), variant: provider.assignment.clone() };
+                let id = InstanceId {
+                    stage: self.pipeline.stages[provider.stage].name.clone(),
+                    variant: provider.assignment.clone(),
+                    seed: provider.seed,
+                };
                 (provider.label.clone(), serde_json::to_value(id).expect("an instance serialises"))
             })
             .collect()
@@ -363,7 +386,7 @@ impl Plan<'_> {
         let inst = &self.instances[i];
         let op = registry.get(&inst.operator).expect("validated operator");
         let config = rlmflow_stages::settings::result_settings(&inst.settings, op.non_result_keys(), op.tracked_keys());
-        let seed = inst.assignment.get(SEED_DIMENSION).map_or(self.pipeline.seed, |s| s.parse().expect("seeds are integers"));
+        let seed = inst.seed.unwrap_or(self.pipeline.seed);
         let platform = op.resources(&inst.settings).kernels.map(|k| self.platform.class(k));
         Ok(Preimage { operator: inst.operator.clone(), operator_version: op.spec().version, config, seed, inputs, platform })
     }
@@ -378,8 +401,8 @@ impl Plan<'_> {
                 // neither the stage's name nor the number of digits enters the key.
                 let label = match (input.arity, &self.instances[p].shard) {
                     (Arity::One, _) => String::new(),
-                    (Arity::All, Some(Part::Items(items))) => format!("{:020}..{:020}", items.start, items.end),
-                    (Arity::All, Some(Part::Share(share))) => format!("{:020}/{:020}", share.index, share.of),
+                    (Arity::All, Some((_, Part::Items(items)))) => format!("{:020}..{:020}", items.start, items.end),
+                    (Arity::All, Some((_, Part::Share(share)))) => format!("{:020}/{:020}", share.index, share.of),
                     (Arity::All, None) => self.instances[p].label.clone(),
                 };
                 inputs.push(InputDigest { slot: input.slot.to_owned(), label, digest: outputs[p]? });
@@ -411,7 +434,7 @@ pub enum Freshness {
 pub fn assess(plan: &Plan, registry: &Registry, store: Option<&Store>) -> anyhow::Result<Vec<Freshness>> {
     let last = match store {
         Some(s) => s.last_keys(&plan.pipeline.name)?,
-        None => BTreeMap::new(),
+        None => Default::default(),
     };
     let mut outputs: Vec<Option<Digest>> = vec![None; plan.instances.len()];
     let mut states = Vec::with_capacity(plan.instances.len());
@@ -427,7 +450,7 @@ pub fn assess(plan: &Plan, registry: &Registry, store: Option<&Store>) -> anyhow
                     None => {
                         let stage = &plan.pipeline.stages[inst.stage].name;
                         let resumes = registry.get(&inst.operator).expect("validated operator").resumes_from();
-                        let reasons = why(store, last.get(&inst.label), &key, &preimage, stage, resumes)?;
+                        let reasons = why(store, last.get(&plan.id(i), &inst.label).as_ref(), &key, &preimage, stage, resumes)?;
                         Freshness::Stale { key, reasons, preimage: Box::new(preimage) }
                     }
                 }
@@ -614,6 +637,30 @@ operator = "od"
     }
 
     #[test]
+    fn a_seed_is_a_number_of_its_own_and_labels_name_it_among_the_dimensions() {
+        let r = registry();
+        // `z` sorts after `seed`: labels (a gathered input's is in its consumer's key) and plan
+        // order take the dimensions by name, the seed as `seed`, as they did when it was one.
+        let text = SEEDS.replace("[stages.a]", "[stages.z]\nkind = \"a\"").replace("[stages.b]", "[stages.seed]\nkind = \"b\"");
+        let p = parse(Path::new("t.toml"), &text, &r).unwrap();
+        let plan = plan(&p);
+        let labels: Vec<&str> = plan.instances.iter().map(|i| i.label.as_str()).collect();
+        assert_eq!(labels, ["z[x]", "z[y]", "seed", "c[seed=1,z=x]", "c[seed=1,z=y]", "c[seed=2,z=x]", "c[seed=2,z=y]", "d"]);
+        let c = &plan.instances[4];
+        assert_eq!((c.seed, c.assignment.iter().collect::<Vec<_>>()), (Some(1), vec![(&"z".to_owned(), &"y".to_owned())]));
+        let expected = InstanceRef { stage: "c".into(), variants: c.assignment.clone(), seed: Some(1), shard: None };
+        assert_eq!(plan.id(4), expected);
+        assert_eq!(plan.instances_named("c[y]").unwrap(), [4, 6]);
+        assert_eq!(plan.instance_named("c[y,seed=2]").unwrap(), 6);
+        assert_eq!(plan.instance_named("c[seed=2,z=y]").unwrap(), 6);
+        // A stage named `seed` may vary only where labels would not name it beside the seed.
+        let varied = text.replace("kind = \"b\"\noperator = \"ob\"", "kind = \"b\"\noperator = \"ob\"\nvariants = { p = {}, q = {} }");
+        let e = parse(Path::new("t.toml"), &varied, &r).unwrap_err().to_string();
+        assert!(e.contains("stages.seed") && e.contains("may not have variants when [pipeline] seeds is set"), "{e}");
+        assert!(parse(Path::new("t.toml"), &varied.replace("seeds = [1, 2]\n", ""), &r).is_ok());
+    }
+
+    #[test]
     fn bad_seeds_are_config_errors() {
         let r = registry();
         for (seeds, expected) in
@@ -670,7 +717,7 @@ operator = "od"
         let parts: Vec<(i64, i64)> =
             plan.instances[..3].iter().map(|i| (i.settings["nested"]["a"].as_i64().unwrap(), i.settings["k"].as_i64().unwrap())).collect();
         assert_eq!(parts, [(0, 3), (3, 3), (6, 4)], "10 items in three parts");
-        assert_eq!(plan.instances[6].shard, Some(Part::Items(2..4)), "variant y has 4 items");
+        assert_eq!(plan.instances[6].shard.as_ref().map(|(_, p)| p), Some(&Part::Items(2..4)), "variant y has 4 items");
         let merge = &plan.instances[3];
         assert_eq!((merge.operator.as_str(), merge.inputs[0].slot, &merge.inputs[0].providers[..]), ("oj", "parts", &[0, 1, 2][..]));
         assert_eq!(plan.instances[9].inputs[0].providers, [3], "c[x] reads the merged a[x]");
@@ -747,7 +794,7 @@ operator = "od"
         let plan = plan(&p);
         let labels: Vec<&str> = plan.instances.iter().map(|i| i.label.as_str()).collect();
         assert_eq!(labels, ["a", "b", "c#0", "c#1", "c", "d"]);
-        assert_eq!(plan.instances[3].shard, Some(Part::Share(Share { index: 1, of: 2 })));
+        assert_eq!(plan.instances[3].shard, Some((1, Part::Share(Share { index: 1, of: 2 }))));
         assert_eq!((plan.instances[3].settings["k"].as_i64(), plan.instances[3].settings["nested"]["a"].as_i64()), (Some(1), Some(2)));
         let read: Vec<&[usize]> = plan.instances[2].inputs.iter().map(|i| &i.providers[..]).collect();
         assert_eq!(read, [&[0][..], &[1][..]], "each share reads the whole input");

@@ -92,16 +92,18 @@ impl Input {
     /// is its stage, with no variant.
     pub fn new(label: impl Into<String>, path: impl Into<PathBuf>) -> Input {
         let label = label.into();
-        Input { instance: InstanceId { stage: label.clone(), variant: BTreeMap::new() }, label, path: path.into() }
+        Input { instance: InstanceId { stage: label.clone(), ..Default::default() }, label, path: path.into() }
     }
 }
 
-/// A stage instance as data: its stage and, per variant dimension (the stage that declared the
-/// variants, or `seed`), the variant it takes.
+/// A stage instance as data: its stage, per variant dimension (the stage that declared the
+/// variants) the variant it takes, and its seed where it runs per seed.
 #[derive(Clone, Debug, Default, PartialEq, Eq, PartialOrd, Ord, serde::Serialize, serde::Deserialize)]
 pub struct InstanceId {
     pub stage: String,
     pub variant: BTreeMap<String, String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seed: Option<u64>,
 }
 
 /// The operator's view of one run of one stage instance.

@@ -13,9 +13,7 @@ fn hyperqueue(pipeline: &str, table: &str) -> String {
 /// Every instance's key and output digest, from the store's last run.
 fn keys_and_outputs(s: &Scratch) -> Vec<(String, String, String)> {
     let store = rlmflow_cache::Store::open_existing(&s.store()).unwrap().unwrap();
-    store
-        .last_keys("chain")
-        .unwrap()
+    rlmflow_test_support::cli::last_keys(&store, "chain")
         .into_iter()
         .map(|(label, key)| (label, key.to_string(), store.record(&key).unwrap().unwrap().output.to_string()))
         .collect()

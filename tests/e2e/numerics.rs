@@ -95,7 +95,7 @@ fn an_action_keyed_for_another_platform_refuses_to_run_here() {
     s.pipeline(PORTABLE);
     s.run();
     let store = rlmflow_cache::Store::open_existing(&s.store()).unwrap().unwrap();
-    let key = store.last_keys("kernels").unwrap()["source"];
+    let key = rlmflow_test_support::cli::last_keys(&store, "kernels")["source"];
     let mut request = store.request(&key).unwrap().unwrap();
     request.preimage.platform = Some("cpu/aarch64/portable".into());
     store.write_request(&request).unwrap();

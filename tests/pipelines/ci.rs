@@ -149,7 +149,7 @@ fn a_local_hyperqueue_cluster_gives_the_same_keys_and_bytes() {
     assert!(first.contains("\"executor\":\"hyperqueue (local cluster"), "{first}");
     let actions = |store: &Path| {
         let store = rlmflow_cache::Store::open_existing(store).unwrap().unwrap();
-        let keys = store.last_keys("ci").unwrap();
+        let keys = rlmflow_test_support::cli::last_keys(&store, "ci");
         keys.into_iter().map(|(label, key)| (label, key, store.record(&key).unwrap().unwrap().output)).collect::<Vec<_>>()
     };
     let (through_hq, locally) = (actions(&dir.join(".rlmflow")), actions(&run.store()));

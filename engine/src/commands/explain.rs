@@ -46,7 +46,7 @@ fn explain(registry: &Registry, file: &Path, set: &SetArg, stage: &str, arg: &St
     for i in plan.instances_named(stage)? {
         let inst = &plan.instances[i];
         let stage = &p.stages[inst.stage].name;
-        let last = last.get(&inst.label).copied();
+        let last = last.get(&plan.id(i), &inst.label);
         let mut changes = Vec::new();
         if let (Freshness::Pending(_), Some(s), Some(old)) = (&states[i], &store, last)
             && let Some(before) = crate::reason::previous_preimage(s, &old)?

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use rlmflow_cache::Digest;
+use rlmflow_cache::Refs;
 use rlmflow_stages::{Device, Registry};
 
 use super::{StoreArg, ran_store};
@@ -31,15 +31,16 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
     let plan = planned(&p, Some(&store), Device::Cpu)?;
     let selected = plan.select(&only)?;
     let states = assess(&plan, registry, Some(&store))?;
-    let keys: std::collections::BTreeMap<String, Digest> = states
+    let instances = states
         .iter()
         .enumerate()
         .filter(|&(i, _)| selected[i])
         .filter_map(|(i, s)| match s {
-            Freshness::Cached(r) => Some((plan.instances[i].label.clone(), r.key)),
+            Freshness::Cached(r) => Some((plan.id(i), r.key)),
             _ => None,
         })
         .collect();
+    let keys = Refs { instances, labels: Default::default() };
     let path = store.pin(&name, &keys)?;
     println!("pinned {} cached stage instances in {}", keys.len(), path.display());
     Ok(ExitCode::SUCCESS)

@@ -8,7 +8,7 @@ use rlmflow_stages::{Device, Registry};
 use serde_json::{Value, json};
 
 use super::{StoreArg, store_root};
-use crate::config::{self, SEED_DIMENSION};
+use crate::config;
 use crate::plan::{Freshness, Plan, assess};
 use crate::preflight::planned;
 
@@ -50,16 +50,13 @@ fn show(registry: &Registry, file: &Path, stage: &str, json: bool, arg: &StoreAr
 fn instance_json(plan: &Plan, i: usize, state: &Freshness, store: Option<&Store>) -> Value {
     let inst = &plan.instances[i];
     let stage = &plan.pipeline.stages[inst.stage];
-    let variants: serde_json::Map<String, Value> =
-        inst.assignment.iter().filter(|(d, _)| *d != SEED_DIMENSION).map(|(d, v)| (d.clone(), json!(v))).collect();
-    let seed = inst.assignment.get(SEED_DIMENSION).map(|s| s.parse::<u64>().expect("seeds are integers"));
     let mut out = json!({
         "label": inst.label,
         "stage": stage.name,
         "kind": stage.kind.name,
         "type": stage.kind.produces,
-        "variants": variants,
-        "seed": seed,
+        "variants": inst.assignment,
+        "seed": inst.seed,
     });
     let fields = match (state, store) {
         (Freshness::Cached(r), Some(s)) => json!({

@@ -11,7 +11,8 @@ use rlmflow_stages::claims::{Claim, Comparison, DEFAULT_LEVEL, Direction, Looks,
 use serde_json::{Map, Value};
 
 use super::checker::Checker;
-use super::{SEED_DIMENSION, Stage, suggest};
+use super::graph::Dims;
+use super::{SEED_LABEL, Stage, suggest};
 
 const CLAIM_KEYS: &[&str] = &["better", "than", "margin", "direction", "required", "paper"];
 /// The most instances one side of a claim may list.
@@ -31,7 +32,7 @@ impl Checker {
         &mut self,
         table: Option<&Value>,
         stages: &[Stage],
-        dims: &[Vec<String>],
+        dims: &[Dims],
         looks: Option<Looks>,
         registry: &Registry,
     ) -> Option<Spec> {
@@ -75,7 +76,7 @@ impl Checker {
         Some(Spec { level, looks, claims })
     }
 
-    fn claim(&mut self, name: &str, table: &Map<String, Value>, stages: &[Stage], dims: &[Vec<String>], registry: &Registry) -> Option<Claim> {
+    fn claim(&mut self, name: &str, table: &Map<String, Value>, stages: &[Stage], dims: &[Dims], registry: &Registry) -> Option<Claim> {
         let path = format!("claims.{name}");
         for key in table.keys().filter(|k| !CLAIM_KEYS.contains(&k.as_str())) {
             self.unknown_key(&format!("{path}.{key}"), key, CLAIM_KEYS);
@@ -143,7 +144,7 @@ impl Checker {
         key: &str,
         table: &Map<String, Value>,
         stages: &[Stage],
-        dims: &[Vec<String>],
+        dims: &[Dims],
         registry: &Registry,
     ) -> Option<Vec<Side>> {
         let path = format!("{claim}.{key}");
@@ -168,7 +169,7 @@ impl Checker {
     }
 
     /// One `STAGE[VARIANT].METRIC` (`STAGE.METRIC` for a stage without variants).
-    fn reference(&mut self, path: &str, text: &str, stages: &[Stage], dims: &[Vec<String>], registry: &Registry) -> Option<Side> {
+    fn reference(&mut self, path: &str, text: &str, stages: &[Stage], dims: &[Dims], registry: &Registry) -> Option<Side> {
         let line = self.line(path);
         let names: Vec<&str> = stages.iter().map(|s| s.name.as_str()).collect();
         let (stage_name, variant_text, metric) = match text.find('[') {
@@ -225,7 +226,7 @@ impl Checker {
             self.error(line, path, format!("`{text}`: `{stage_name}` has no metric `{metric}`"), Some(help));
             return None;
         }
-        let seeded = dims[s].iter().any(|d| d == SEED_DIMENSION);
+        let seeded = dims[s].seeded;
         Some(Side { metric: Metric { stage: stage.name.clone(), variant, path: metric.to_owned() }, seeded })
     }
 
@@ -236,12 +237,12 @@ impl Checker {
         path: &str,
         text: &str,
         stage: &Stage,
-        dims: &[String],
+        dims: &Dims,
         given: Option<&str>,
         stages: &[Stage],
     ) -> Option<BTreeMap<String, String>> {
         let line = self.line(path);
-        let dims: Vec<&str> = dims.iter().map(String::as_str).filter(|d| *d != SEED_DIMENSION).collect();
+        let dims: Vec<&str> = dims.variants.iter().map(String::as_str).collect();
         let values = |d: &str| -> Vec<&str> {
             stages.iter().find(|s| s.name == d).map(|s| s.variants.iter().filter_map(|v| v.name.as_deref()).collect()).unwrap_or_default()
         };
@@ -261,7 +262,7 @@ impl Checker {
                     return None;
                 }
             };
-            if dim == SEED_DIMENSION {
+            if dim == SEED_LABEL && !dims.contains(&dim) {
                 let msg = format!("`{text}`: a claim pools its instances' seeds, pairing them; leave `seed` out");
                 self.error(line, path, msg, None);
                 return None;

@@ -5,24 +5,24 @@ use std::collections::HashMap;
 use rlmflow_stages::Arity;
 
 use super::checker::Checker;
-use super::{SEED_DIMENSION, Stage};
+use super::Stage;
 
 impl Checker {
     /// Refuses, before any instance exists, a plan whose variants, seeds and shards would make
     /// more than `max` instances, naming the stage where the count passes it and its factors.
     pub(super) fn bounded(&mut self, stages: &[Stage], seeds: usize, max: u64) {
         let variants: HashMap<&str, u64> = stages.iter().map(|s| (s.name.as_str(), s.variants.len() as u64)).collect();
-        let size = |dim: &str| if dim == SEED_DIMENSION { seeds as u64 } else { variants[dim] };
         let mut total = 0u64;
         for (stage, dims) in stages.iter().zip(dimensions(stages, seeds > 0)) {
             let parts = 1 + stage.variants.iter().map(|v| v.shards.len() as u64).max().unwrap_or(0);
-            let count = dims.iter().fold(parts, |n, d| n.saturating_mul(size(d)));
+            let seeds = if dims.seeded { seeds as u64 } else { 1 };
+            let count = dims.variants.iter().fold(parts.saturating_mul(seeds), |n, d| n.saturating_mul(variants[d.as_str()]));
             total = total.saturating_add(count);
             if total > max {
-                let mut factors: Vec<String> = dims
-                    .iter()
-                    .map(|d| if d == SEED_DIMENSION { format!("{seeds} seeds") } else { format!("{} variants of `{d}`", size(d)) })
-                    .collect();
+                let mut factors: Vec<String> = dims.variants.iter().map(|d| format!("{} variants of `{d}`", variants[d.as_str()])).collect();
+                if dims.seeded {
+                    factors.push(format!("{seeds} seeds"));
+                }
                 if parts > 1 {
                     factors.push(format!("{} shards and their merge", parts - 1));
                 }
@@ -100,22 +100,28 @@ impl Checker {
     }
 }
 
-/// The variant dimensions each stage fans out on, sorted: its own variants, the seeds if it
-/// runs per seed, and those of its single inputs; it has one instance per combination. `stages`
-/// are in dependency order.
-pub fn dimensions(stages: &[Stage], seeded: bool) -> Vec<Vec<String>> {
-    let mut dims_of: Vec<Vec<String>> = Vec::with_capacity(stages.len());
+/// What a stage fans out on: the variant dimensions (the stages that declared the variants:
+/// its own and its single inputs', sorted) and whether it runs per seed (it does or one of its
+/// single inputs does); it has one instance per combination.
+#[derive(Clone, Debug, Default)]
+pub struct Dims {
+    pub variants: Vec<String>,
+    pub seeded: bool,
+}
+
+/// Each stage's [`Dims`]; `seeded`: the pipeline has seeds. `stages` are in dependency order.
+pub fn dimensions(stages: &[Stage], seeded: bool) -> Vec<Dims> {
+    let mut dims_of: Vec<Dims> = Vec::with_capacity(stages.len());
     for stage in stages {
         let own = stage.variants.len() > 1 || stage.variants[0].name.is_some();
-        let mut dims: Vec<String> = if own { vec![stage.name.clone()] } else { Vec::new() };
-        if stage.per_seed && seeded {
-            dims.push(SEED_DIMENSION.to_owned());
-        }
+        let mut dims = Dims { variants: if own { vec![stage.name.clone()] } else { Vec::new() }, seeded: stage.per_seed && seeded };
         for b in stage.bindings.iter().filter(|b| b.arity == Arity::One) {
-            dims.extend(dims_of[b.providers[0]].iter().cloned());
+            let upstream = &dims_of[b.providers[0]];
+            dims.variants.extend(upstream.variants.iter().cloned());
+            dims.seeded |= upstream.seeded;
         }
-        dims.sort();
-        dims.dedup();
+        dims.variants.sort();
+        dims.variants.dedup();
         dims_of.push(dims);
     }
     dims_of

@@ -33,10 +33,10 @@ pub fn entry(plan: &Plan, i: usize) -> Option<PathBuf> {
         return None;
     }
     let mut path = PathBuf::from(file_safe(&plan.pipeline.stages[inst.stage].name));
-    for (dimension, variant) in variant_names(&inst.assignment) {
+    for (dimension, variant) in variant_names(&inst.assignment, inst.seed) {
         path.push(match dimension {
-            Some(d) => format!("{}={}", file_safe(d), file_safe(variant)),
-            None => file_safe(variant),
+            Some(d) => format!("{}={}", file_safe(d), file_safe(&variant)),
+            None => file_safe(&variant),
         });
     }
     Some(path)

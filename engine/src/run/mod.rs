@@ -19,7 +19,7 @@ use std::sync::mpsc::{self, Sender};
 use std::time::Instant;
 
 use indicatif::ProgressBar;
-use rlmflow_cache::{ActionRecord, Digest, GitState, PlanEntry, RunPlan, Store, now_rfc3339, run_id};
+use rlmflow_cache::{ActionRecord, Digest, GitState, InstanceRef, PlanEntry, Refs, RunPlan, Store, now_rfc3339, run_id};
 use rlmflow_remote::Pulled;
 use rlmflow_stages::{Device, Registry};
 
@@ -94,7 +94,7 @@ struct Scheduler<'a> {
     plan_dirty: bool,
     events: EventLog,
     ui: Ui,
-    last: BTreeMap<String, Digest>,
+    last: Refs,
     /// Outputs re-hashed this run (`verify_inputs`).
     verified: BTreeSet<Digest>,
     dispatch: Box<dyn Dispatch>,
@@ -429,14 +429,9 @@ impl Scheduler<'_> {
         if !self.plan_dirty {
             return Ok(());
         }
-        let instances = (self.plan.instances.iter().zip(&self.instances))
-            .filter(|(_, x)| !matches!(x.state, State::Excluded))
-            .map(|(inst, x)| PlanEntry {
-                label: inst.label.clone(),
-                stage: self.plan.pipeline.stages[inst.stage].name.clone(),
-                assignment: inst.assignment.clone(),
-                key: x.key,
-            })
+        let instances = (self.plan.instances.iter().zip(&self.instances).enumerate())
+            .filter(|(_, (_, x))| !matches!(x.state, State::Excluded))
+            .map(|(i, (inst, x))| PlanEntry { label: inst.label.clone(), instance: self.plan.id(i), key: x.key })
             .collect();
         let overrides = self.plan.pipeline.overrides.iter().map(|o| o.shown()).collect();
         self.store.write_plan(&RunPlan {
@@ -447,8 +442,9 @@ impl Scheduler<'_> {
             git: self.git.clone().flatten(),
             instances,
         })?;
-        let resolved: BTreeMap<String, Digest> =
-            (self.plan.instances.iter().zip(&self.instances)).filter_map(|(inst, x)| x.key.map(|k| (inst.label.clone(), k))).collect();
+        let resolved: Vec<(InstanceRef, &str, Digest)> = (self.plan.instances.iter().zip(&self.instances).enumerate())
+            .filter_map(|(i, (inst, x))| x.key.map(|k| (self.plan.id(i), inst.label.as_str(), k)))
+            .collect();
         self.store.update_last_keys(&self.plan.pipeline.name, &resolved)?;
         self.plan_dirty = false;
         Ok(())

@@ -127,9 +127,9 @@ impl Scheduler<'_> {
                 };
                 self.instances[i].state = State::Failed;
                 self.instances[i].result = Some((Status::Failed, secs));
-                let previous = self.last.get(&self.plan.instances[i].label);
+                let previous = self.last.get(&self.plan.id(i), &self.plan.instances[i].label);
                 let store = self.store;
-                self.links.failed(i, || Ok(previous.map(|key| store.fresh(key)).transpose()?.flatten().map(|r| r.output)))?;
+                self.links.failed(i, || Ok(previous.map(|key| store.fresh(&key)).transpose()?.flatten().map(|r| r.output)))?;
                 let log = self.log_path(i);
                 self.events.write(Event::StageFinished(Finished {
                     key: Some(key),

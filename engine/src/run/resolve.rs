@@ -88,7 +88,7 @@ impl Scheduler<'_> {
                 Some(preimage) => preimage,
                 None => self.plan.preimage_with(i, self.registry, inputs)?,
             };
-            let reasons = why(Some(self.store), self.last.get(&inst.label), &key, &preimage, &stage.name, resumes)?;
+            let reasons = why(Some(self.store), self.last.get(&self.plan.id(i), &inst.label).as_ref(), &key, &preimage, &stage.name, resumes)?;
             self.ui.say(format!("  run      {}  ({})", inst.label, crate::ui::words(&reasons)));
             self.events.write(Event::StagePlanned { stage: inst.label.clone(), key, reasons })?;
             // The operator reads a snapshot of each tracked path, by the digest in its key.

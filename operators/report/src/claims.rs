@@ -100,9 +100,9 @@ fn values(measured: &[Measured], claim: &Claim, metric: &Metric) -> anyhow::Resu
         found = true;
         let value = measure::lookup(&m.metrics, &metric.path)
             .with_context(|| format!("claim `{}`: {} measures no `{}`", claim.name, m.label, metric.path))?;
-        match m.instance.seed() {
+        match m.instance.seed {
             Some(seed) => {
-                seeded.insert(seed.parse::<u64>().context("a seed")?, value);
+                seeded.insert(seed, value);
             }
             None => fixed = Some(value),
         }
@@ -119,7 +119,7 @@ fn contrast(measured: &[Measured], claim: &Claim) -> anyhow::Result<Option<Contr
     let sides = |metric: &Metric| -> Vec<&Measured> { measured.iter().filter(|m| reads(metric, m)).collect() };
     let (better, than) = (sides(&comparison.better), sides(&comparison.than));
     let pair = better.iter().find_map(|b| {
-        let t = than.iter().find(|t| t.instance.seed().is_none() || b.instance.seed().is_none() || t.instance.seed() == b.instance.seed())?;
+        let t = than.iter().find(|t| t.instance.seed.is_none() || b.instance.seed.is_none() || t.instance.seed == b.instance.seed)?;
         Some((*b, *t))
     });
     let Some((b, t)) = pair else { return Ok(None) };

@@ -30,7 +30,7 @@ mod study;
 use rlmflow_stages::{Context, Operator, OperatorSpec, Outcome, SettingError, Settings};
 use serde::{Deserialize, Serialize};
 
-pub use study::{Instance, SEED};
+pub use study::Instance;
 
 /// The `paper` operator.
 pub struct Paper;

@@ -83,10 +83,11 @@ mod tests {
 
     #[test]
     fn seeds_of_one_variant_share_a_row() {
-        let items: Vec<Instance> = [("clipcap", "a", "1"), ("clipcap", "a", "2"), ("clipcap", "b", "1")]
+        use crate::study::tests::seeded;
+        let items: Vec<Instance> = [("clipcap", "a", 1), ("clipcap", "a", 2), ("clipcap", "b", 1)]
             .iter()
-            .map(|(stage, encoder, seed)| crate::study::tests::id(stage, &[("pretrain", encoder), ("seed", seed)]))
-            .chain([crate::study::tests::id("pixels", &[("seed", "1")])])
+            .map(|&(stage, encoder, seed)| seeded(stage, &[("pretrain", encoder)], seed))
+            .chain([seeded("pixels", &[], 1)])
             .collect();
         let rows = rows(&items, |i| i);
         let shape: Vec<(String, usize)> = rows.iter().map(|(r, g)| (name(r), g.len())).collect();

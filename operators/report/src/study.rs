@@ -13,34 +13,30 @@ use serde_json::Value;
 
 use crate::paper::Method;
 
-/// The variant dimension the engine fans seeds out on.
-pub const SEED: &str = "seed";
-
-/// A stage instance as the engine names it (`rlmflow_stages::InstanceId`): its stage and, per
-/// variant dimension (the stage that declared the variants, or `seed`), its variant.
+/// A stage instance as the engine names it (`rlmflow_stages::InstanceId`): its stage, per
+/// variant dimension (the stage that declared the variants) its variant, and its seed.
 #[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub struct Instance {
     pub stage: String,
     pub assignment: BTreeMap<String, String>,
+    pub seed: Option<u64>,
 }
 
 impl From<&InstanceId> for Instance {
     fn from(id: &InstanceId) -> Instance {
-        Instance { stage: id.stage.clone(), assignment: id.variant.clone() }
+        Instance { stage: id.stage.clone(), assignment: id.variant.clone(), seed: id.seed }
     }
 }
 
 impl Instance {
-    /// The seed this instance ran with, when seeds fan out.
-    pub fn seed(&self) -> Option<&str> {
-        self.assignment.get(SEED).map(String::as_str)
-    }
-
     /// The instance with its seed left out: instances with the same row differ only in seed.
     pub fn row(&self) -> Instance {
-        let mut row = self.clone();
-        row.assignment.remove(SEED);
-        row
+        Instance { seed: None, ..self.clone() }
+    }
+
+    /// Whether it is one of several of its stage: it has variants or a seed.
+    fn varies(&self) -> bool {
+        !self.assignment.is_empty() || self.seed.is_some()
     }
 
     /// The variant part a table shows (`alpha4`, `captions=llm, pretrain=alpha4`), empty for none.
@@ -53,10 +49,8 @@ impl Instance {
     /// Whether `upstream` (an encoder) is the instance this one read: every dimension of the
     /// upstream has this one's value. A row, which has no seed, reads every seed of its encoder.
     pub fn reads(&self, upstream: &Instance) -> bool {
-        upstream.assignment.iter().all(|(d, v)| match d.as_str() {
-            SEED if self.seed().is_none() => true,
-            _ => self.assignment.get(d) == Some(v),
-        })
+        let seed = upstream.seed.is_none() || self.seed.is_none() || upstream.seed == self.seed;
+        seed && upstream.assignment.iter().all(|(d, v)| self.assignment.get(d) == Some(v))
     }
 }
 
@@ -189,9 +183,9 @@ impl Study {
 
     /// The encoder an instance read, if any.
     pub fn encoder_of(&self, instance: &Instance) -> Option<&EncoderRun> {
-        self.encoders.iter().filter(|e| !e.instance.assignment.is_empty()).find(|e| instance.reads(&e.instance)).or_else(|| {
+        self.encoders.iter().filter(|e| e.instance.varies()).find(|e| instance.reads(&e.instance)).or_else(|| {
             // A single unvaried encoder stage is read by every probe that reads one.
-            (self.encoders.len() == 1 && self.encoders[0].instance.assignment.is_empty()).then(|| &self.encoders[0])
+            (self.encoders.len() == 1 && !self.encoders[0].instance.varies()).then(|| &self.encoders[0])
         })
     }
 
@@ -222,7 +216,12 @@ pub(crate) mod tests {
 
     /// An instance of `stage` with these variants.
     pub fn id(stage: &str, variant: &[(&str, &str)]) -> Instance {
-        Instance { stage: stage.into(), assignment: variant.iter().map(|(d, v)| (d.to_string(), v.to_string())).collect() }
+        Instance { stage: stage.into(), assignment: variant.iter().map(|(d, v)| (d.to_string(), v.to_string())).collect(), seed: None }
+    }
+
+    /// The instance of `stage` with these variants and `seed`.
+    pub fn seeded(stage: &str, variant: &[(&str, &str)], seed: u64) -> Instance {
+        Instance { seed: Some(seed), ..id(stage, variant) }
     }
 
     #[test]
@@ -233,12 +232,13 @@ pub(crate) mod tests {
         assert_eq!(one.variant(), "alpha4");
         assert!(one.reads(&id("pretrain", &[("pretrain", "alpha4")])));
         assert!(!one.reads(&id("pretrain", &[("pretrain", "alpha1")])));
-        let two = id("clipcap", &[("pretrain", "alpha4"), ("seed", "2")]);
-        assert_eq!(two.seed(), Some("2"));
+        let two = seeded("clipcap", &[("pretrain", "alpha4")], 2);
         assert_eq!(two.row().variant(), "alpha4");
-        assert_eq!(two.row(), id("clipcap", &[("pretrain", "alpha4"), ("seed", "3")]).row());
-        assert!(two.reads(&id("pretrain", &[("pretrain", "alpha4"), ("seed", "2")])));
-        assert!(!two.reads(&id("pretrain", &[("pretrain", "alpha4"), ("seed", "3")])));
-        assert!(two.row().reads(&id("pretrain", &[("pretrain", "alpha4"), ("seed", "3")])));
+        assert_eq!(two.row(), seeded("clipcap", &[("pretrain", "alpha4")], 3).row());
+        assert!(two.reads(&seeded("pretrain", &[("pretrain", "alpha4")], 2)));
+        assert!(!two.reads(&seeded("pretrain", &[("pretrain", "alpha4")], 3)));
+        assert!(two.row().reads(&seeded("pretrain", &[("pretrain", "alpha4")], 3)));
+        // An encoder that varies by seed alone is told apart by it.
+        assert!(seeded("clipcap", &[], 2).reads(&seeded("pretrain", &[], 2)) && !seeded("clipcap", &[], 2).reads(&seeded("pretrain", &[], 3)));
     }
 }

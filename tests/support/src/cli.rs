@@ -18,11 +18,25 @@ pub fn run(exe: &Path, dir: &Path, args: &[&str]) -> (bool, String) {
     (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
 }
 
+/// The key each instance of `pipeline` had in its latest run, by the label the run printed:
+/// the store's refs (which name instances as data) read through the runs' plans, which give
+/// each instance's label.
+pub fn last_keys(store: &rlmflow_cache::Store, pipeline: &str) -> std::collections::BTreeMap<String, rlmflow_cache::Digest> {
+    let refs = store.last_keys(pipeline).unwrap();
+    let mut labels = std::collections::BTreeMap::new();
+    for run in store.runs().unwrap() {
+        let Some(plan) = store.plan(&run).unwrap().filter(|p| p.pipeline == pipeline) else { continue };
+        labels.extend(plan.instances.into_iter().map(|e| (e.instance, e.label)));
+    }
+    let named = refs.instances.iter().map(|(instance, key)| (labels.get(instance).unwrap_or_else(|| panic!("no run printed {instance:?}")).clone(), *key));
+    named.chain(refs.labels.clone()).collect()
+}
+
 /// The output digest of stage instance `label` of pipeline `pipeline` in the store at `store`,
 /// through the store's refs to its last run.
 pub fn output_digest(store: &Path, pipeline: &str, label: &str) -> rlmflow_cache::Digest {
     let store = open(store);
-    let key = store.last_keys(pipeline).unwrap()[label];
+    let key = last_keys(&store, pipeline)[label];
     store.record(&key).unwrap().unwrap().output
 }
 
