@@ -1,7 +1,9 @@
 //! What a run shows on a terminal: one line per event, a bar per running stage and per artifact
 //! moving to or from the remote cache; plain lines when stdout is not a terminal, nothing but the
-//! event log with `--json`. The one place where what the engine knows is put into words: an
-//! instance's record or why it would run (`inspect`), and what a check found (`checks`).
+//! event log with `--json`. Where a run, the status table and the reasons are put into words,
+//! an instance's record or why it would run (`inspect`), and what a check found (`checks`).
+//! Tables with renderings of their own (`compare`, `digests`, `dag`, `runs`) keep them beside
+//! their data; pull, push, gc, key and pin print a line each of their own.
 
 mod checks;
 mod inspect;
