@@ -1,6 +1,6 @@
 //! `rlmflow doctor`: asks the torch worker beside this binary (`rlmflow-torch doctor`) which
-//! devices the model stages can compute on, and why not CUDA where they cannot. `rlmflow` itself
-//! never loads libtorch.
+//! devices the model stages can compute on, and why not CUDA where they cannot; then lists the
+//! GPUs a local run places stages on. `rlmflow` itself never loads libtorch.
 
 use std::process::{Command, ExitCode};
 
@@ -26,5 +26,6 @@ fn run() -> anyhow::Result<ExitCode> {
             worker.display()
         );
     }
+    print!("{}", rlmflow_engine::gpus::inventory(None)?.lines());
     Ok(ExitCode::SUCCESS)
 }

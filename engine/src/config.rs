@@ -54,6 +54,9 @@ pub struct Pipeline {
     /// (`results/report/`); `None` for `results = ""`.
     pub results: Option<PathBuf>,
     pub executor: Executor,
+    /// `[pipeline] gpus` or `run --gpus`: the GPUs (by the driver's index) a local run places
+    /// stages on; `None`: every GPU it sees.
+    pub gpus: Option<Vec<usize>>,
     /// `[pipeline.hyperqueue]`, also used when `run --executor hyperqueue` overrides a local one.
     pub hyperqueue: HyperQueueSettings,
     /// `[pipeline] remote`, `remote_push`, `remote_timeout_s`: the remote cache, if any.
@@ -330,7 +333,7 @@ impl Checker {
         if !self.errors.is_empty() {
             return None;
         }
-        let Header { name, seed, seeds, seed_rule, cache, results, executor, hyperqueue, remote, .. } = header;
+        let Header { name, seed, seeds, seed_rule, cache, results, executor, gpus, hyperqueue, remote, .. } = header;
         Some(Pipeline {
             file: file.to_path_buf(),
             name,
@@ -341,6 +344,7 @@ impl Checker {
             cache,
             results,
             executor,
+            gpus,
             hyperqueue,
             remote,
             stages,

@@ -26,7 +26,7 @@ use rlmflow_stages::Registry;
 pub use crate::finding::Finding;
 use crate::plan::{Freshness, Plan, assess};
 use crate::protocol::{Message, PREFIX};
-use crate::run::{RunOptions, run};
+use crate::run::{Admitted, RunOptions, run};
 
 /// The instances `names` name (stages or labels, [`Plan::instances_named`]).
 fn named(plan: &Plan, names: &[String]) -> anyhow::Result<Vec<bool>> {
@@ -51,7 +51,8 @@ pub fn check(
     let targets = named(plan, stages)?;
     let upstream: Vec<bool> = wanted.iter().zip(&targets).map(|(w, t)| *w && !t).collect();
     if upstream.iter().any(|u| *u) {
-        let summary = run(plan, registry, store, &upstream, Vec::new(), opts)?;
+        let admitted = upstream.iter().map(|&selected| Admitted { selected, ..Default::default() }).collect();
+        let summary = run(plan, registry, store, admitted, opts)?;
         if summary.failed + summary.skipped > 0 {
             bail!("the stages {} need did not all finish; nothing was checked", stages.join(", "));
         }

@@ -42,6 +42,9 @@ pub enum Event {
         key: Digest,
         threads: usize,
         attempt: u32,
+        /// The GPU the run placed it on (`cuda:2`), where it places them.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        device: Option<String>,
     },
     /// What an operator reported while it ran (`epoch`, `resumed`, ...).
     OperatorEvent {

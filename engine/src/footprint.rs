@@ -14,6 +14,7 @@ use rlmflow_stages::numerics::Target;
 use rlmflow_stages::{Device, Footprint, InputOutlines, Outline, Registry};
 
 use crate::config::{ConfigError, Diagnostic};
+use crate::gpus::Gpu;
 use crate::plan::Plan;
 
 /// An instance's estimate and where it will run.
@@ -45,14 +46,15 @@ fn gib(bytes: u64) -> String {
 }
 
 /// The fit of each instance that will run (`runs[i]`), for the operators that estimate one;
-/// `device` is the run's `--device`. A device's memory is read only when an estimate needs it.
-pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> anyhow::Result<Vec<Option<Fit>>> {
+/// `device` is the run's `--device`, `gpus` those a local run places stages on (their memory
+/// as the inventory has it). A device's memory is read only when an estimate needs it.
+pub fn fits(plan: &Plan, registry: &Registry, device: Device, gpus: &[Gpu], runs: &[bool]) -> anyhow::Result<Vec<Option<Fit>>> {
     // Nothing to fit, so no outlines to derive (a run that reuses everything).
     if !runs.contains(&true) {
         return Ok(runs.iter().map(|_| None).collect());
     }
     let mut outlines: Vec<Outline> = Vec::with_capacity(plan.instances.len());
-    let mut capacity = Capacities::default();
+    let mut capacity = Capacities { read: BTreeMap::new(), gpus };
     let mut fits = Vec::with_capacity(plan.instances.len());
     for inst in &plan.instances {
         let op = registry.get(&inst.operator).expect("validated operator");
@@ -63,7 +65,7 @@ pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> 
             continue;
         }
         let resources = op.resources(&inst.settings);
-        let cuda = resources.needs_cuda || (resources.gpu && (matches!(device, Device::Cuda(_)) || crate::platform::cuda_present()));
+        let cuda = resources.needs_cuda || (resources.gpu && (matches!(device, Device::Cuda(_)) || !gpus.is_empty() || crate::platform::cuda_present()));
         // The device the stage names, else the run's, else the first.
         let index = match (resources.kernels.map(|k| k.device), device) {
             (Some(Device::Cuda(n)), _) | (_, Device::Cuda(n)) => n,
@@ -75,15 +77,19 @@ pub fn fits(plan: &Plan, registry: &Registry, device: Device, runs: &[bool]) -> 
     Ok(fits)
 }
 
-/// Device memories, read once each.
-#[derive(Default)]
-struct Capacities(BTreeMap<Target, Option<u64>>);
+/// Device memories, read once each: a GPU's from the inventory, where it holds one (its GPUs
+/// are of one model: the first stands for any), else from the driver.
+struct Capacities<'g> {
+    read: BTreeMap<Target, Option<u64>>,
+    gpus: &'g [Gpu],
+}
 
-impl Capacities {
+impl Capacities<'_> {
     fn of(&mut self, target: Target) -> Option<u64> {
-        *self.0.entry(target).or_insert_with(|| match target {
+        let gpus = self.gpus;
+        *self.read.entry(target).or_insert_with(|| match target {
             Target::Cpu => ram(),
-            Target::Cuda(n) => cuda_memory(n),
+            Target::Cuda(n) => gpus.iter().find(|g| g.index == n).or(gpus.first()).and_then(|g| g.memory).or_else(|| cuda_memory(n)),
         })
     }
 }

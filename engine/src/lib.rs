@@ -25,6 +25,7 @@ pub mod event;
 pub mod exec;
 mod finding;
 pub mod footprint;
+pub mod gpus;
 pub mod history;
 pub mod plan;
 pub mod platform;

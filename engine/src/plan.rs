@@ -54,6 +54,9 @@ pub struct Plan<'p> {
     pub platform: Platform,
 }
 
+/// An instance's variant per dimension, and its seed where it runs per seed.
+type Assignment = (BTreeMap<String, String>, Option<u64>);
+
 /// Every instance of `pipeline`, keyed for a run on this machine with the default `--device`.
 pub fn plan(pipeline: &Pipeline) -> Plan<'_> {
     plan_on(pipeline, Platform::detect(rlmflow_stages::Device::Cpu))
@@ -65,10 +68,10 @@ pub fn plan_on(pipeline: &Pipeline, platform: Platform) -> Plan<'_> {
     let dims_of = crate::config::dimensions(&pipeline.stages, !pipeline.seeds.is_empty());
     // The whole (not shard) instances of each stage so far, for inputs that gather them all.
     let mut whole_of: Vec<Vec<usize>> = vec![Vec::new(); pipeline.stages.len()];
-    let mut by_assignment: HashMap<(usize, BTreeMap<String, String>, Option<u64>), usize> = HashMap::new();
+    let mut by_assignment: HashMap<(usize, Assignment), usize> = HashMap::new();
     for (s, stage) in pipeline.stages.iter().enumerate() {
         let dims = &dims_of[s];
-        let mut assignments: Vec<(BTreeMap<String, String>, Option<u64>)> = vec![(BTreeMap::new(), None)];
+        let mut assignments: Vec<Assignment> = vec![(BTreeMap::new(), None)];
         // In label order, which is plan order: by name, the seed as `seed`.
         let mut axes: Vec<Option<&String>> = dims.variants.iter().map(Some).collect();
         if dims.seeded {
@@ -78,7 +81,7 @@ pub fn plan_on(pipeline: &Pipeline, platform: Platform) -> Plan<'_> {
         for axis in axes {
             assignments = assignments
                 .into_iter()
-                .flat_map(|(a, seed)| -> Vec<(BTreeMap<String, String>, Option<u64>)> {
+                .flat_map(|(a, seed)| -> Vec<Assignment> {
                     match axis {
                         None => pipeline.seeds.iter().map(|&n| (a.clone(), Some(n))).collect(),
                         Some(dim) => {
@@ -103,7 +106,7 @@ pub fn plan_on(pipeline: &Pipeline, platform: Platform) -> Plan<'_> {
                         Arity::One => {
                             let p = b.providers[0];
                             let seed = seed.filter(|_| dims_of[p].seeded);
-                            vec![by_assignment[&(p, restrict(&assignment, &dims_of[p].variants), seed)]]
+                            vec![by_assignment[&(p, (restrict(&assignment, &dims_of[p].variants), seed))]]
                         }
                         Arity::All => {
                             let mut all: Vec<usize> = b.providers.iter().flat_map(|&p| whole_of[p].iter().copied()).collect();
@@ -158,7 +161,7 @@ pub fn plan_on(pipeline: &Pipeline, platform: Platform) -> Plan<'_> {
                     }
                 }
             };
-            by_assignment.insert((s, assignment, seed), instances.len());
+            by_assignment.insert((s, (assignment, seed)), instances.len());
             whole_of[s].push(instances.len());
             instances.push(whole);
         }

@@ -9,6 +9,7 @@ use rlmflow_stages::{Device, Registry};
 
 use crate::config::{ConfigError, Diagnostic, Executor, Pipeline};
 use crate::dispatch::{Dispatch as _, Local};
+use crate::gpus::Gpu;
 use crate::footprint::{Fit, fits, refuse_oversized};
 use crate::plan::{Freshness, Plan, assess, plan_on};
 use crate::platform::Platform;
@@ -20,6 +21,8 @@ pub struct Preflight<'p> {
     pub store: Option<Store>,
     /// What it found of each of the plan's instances, in plan order.
     pub instances: Vec<Checked>,
+    /// The GPUs a local run places stages on (none for a cluster, which places them itself).
+    pub gpus: Vec<Gpu>,
 }
 
 /// What the preflight found of one instance.
@@ -43,15 +46,19 @@ impl<'p> Preflight<'p> {
     /// `only` names (all when empty).
     pub fn new(pipeline: &'p Pipeline, registry: &Registry, root: &Path, device: Device, only: &[String]) -> anyhow::Result<Preflight<'p>> {
         let store = Store::open_existing(root)?;
+        let gpus = match pipeline.executor {
+            Executor::Local => Local::new(device, pipeline.gpus.as_deref())?.gpus().unwrap_or_default(),
+            Executor::HyperQueue => Vec::new(),
+        };
         let plan = planned(pipeline, store.as_ref(), device)?;
         let selected = plan.select(only)?;
         let states = assess(&plan, registry, store.as_ref())?;
         let mut instances: Vec<Checked> = states.into_iter().zip(selected).map(|(state, selected)| Checked { state, selected, fit: None }).collect();
         let runs: Vec<bool> = instances.iter().map(Checked::runs).collect();
-        for (checked, fit) in instances.iter_mut().zip(fits(&plan, registry, device, &runs)?) {
+        for (checked, fit) in instances.iter_mut().zip(fits(&plan, registry, device, &gpus, &runs)?) {
             checked.fit = fit;
         }
-        Ok(Preflight { plan, store, instances })
+        Ok(Preflight { plan, store, instances, gpus })
     }
 
     /// Refuses, on the local executor, a run with an instance larger than this machine holds.
@@ -65,8 +72,8 @@ impl<'p> Preflight<'p> {
 
     /// Refuses, on the local executor, a run on `device` in which a stage that must run needs a
     /// CUDA device this machine does not have.
-    pub fn refuse_cuda_stages(&self, registry: &Registry, device: Device) -> anyhow::Result<()> {
-        if self.plan.pipeline.executor != Executor::Local || Local::new(device).cuda_possible() {
+    pub fn refuse_cuda_stages(&self, registry: &Registry) -> anyhow::Result<()> {
+        if self.plan.pipeline.executor != Executor::Local || !self.gpus.is_empty() {
             return Ok(());
         }
         refuse_cuda_stages(&self.plan, registry, &self.instances)

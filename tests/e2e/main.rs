@@ -7,6 +7,7 @@ mod claims;
 mod config_errors;
 mod digests;
 mod engine;
+mod gpus;
 mod harness;
 mod history;
 mod hyperqueue;

@@ -12,9 +12,10 @@ use std::time::Duration;
 
 use anyhow::bail;
 use rlmflow_stages::measure::Measures;
+use rlmflow_stages::numerics::Target;
 use rlmflow_stages::{
-    Catalog, Context, Device, Items, Kernels, Numerics, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError, Settings, Sharding, Slot,
-    StageKind,
+    Catalog, Context, Device, Footprint, InputOutlines, Items, Kernels, Numerics, Operator, OperatorSpec, Outcome, Registry, Resources, SettingError,
+    Settings, Sharding, Slot, StageKind,
 };
 use serde::{Deserialize, Serialize};
 
@@ -72,6 +73,9 @@ pub struct WriteTextSettings {
     pub gpu: bool,
     /// Says it cannot run without a CUDA device (as a torch stage with `device = "cuda"`).
     pub cuda: bool,
+    /// Its peak memory estimate in MiB (0: none), as a model operator makes one: what it holds
+    /// of a GPU the run places it on.
+    pub memory_mib: u64,
     /// Appends the process id to the text: the kind of bug `run --check-determinism` finds.
     pub nondeterministic: bool,
     /// Its bytes follow the numeric kernels, as a model operator's do: it appends every kernel
@@ -95,6 +99,7 @@ impl Default for WriteTextSettings {
             threads: 1,
             gpu: false,
             cuda: false,
+            memory_mib: 0,
             nondeterministic: false,
             numerics: None,
             from: String::new(),
@@ -104,7 +109,7 @@ impl Default for WriteTextSettings {
 }
 
 impl Settings for WriteTextSettings {
-    const NON_RESULT: &'static [&'static str] = &["threads", "step_ms", "gpu", "cuda"];
+    const NON_RESULT: &'static [&'static str] = &["threads", "step_ms", "gpu", "cuda", "memory_mib"];
     const TRACKED: &'static [&'static str] = &["from"];
     fn check_tracked(&self, key: &str, path: &std::path::Path) -> Result<(), SettingError> {
         match fs::read(path) {
@@ -131,6 +136,9 @@ impl Operator for WriteText {
         let device = if s.cuda { Device::Cuda(0) } else { Device::Cpu };
         Resources { threads: s.threads, gpu: s.gpu || s.cuda, needs_cuda: s.cuda, kernels: s.numerics.map(|numerics| Kernels { numerics, device }) }
     }
+    fn footprint(&self, s: &WriteTextSettings, _: &InputOutlines, _: Target) -> Option<Footprint> {
+        (s.memory_mib > 0).then_some(Footprint { parameters: 0, peak_bytes: s.memory_mib << 20, lower_with: "`memory_mib`" })
+    }
     /// A shard writes a range of the text's characters (each with every step).
     fn sharding(&self) -> Option<Sharding<WriteTextSettings>> {
         Some(Sharding {
@@ -148,7 +156,8 @@ impl Operator for WriteText {
     fn run(&self, s: &WriteTextSettings, ctx: &mut Context) -> anyhow::Result<Outcome> {
         let done_file = ctx.checkpoint_dir.join("steps-done");
         let start: u32 = fs::read_to_string(&done_file).ok().and_then(|t| t.trim().parse().ok()).unwrap_or(0);
-        trace(format!("start write-text {} from={start} threads={} out={}", ctx.stage, ctx.threads, ctx.output_dir.display()));
+        let gpu = std::env::var("CUDA_VISIBLE_DEVICES").unwrap_or_else(|_| "unset".into());
+        trace(format!("start write-text {} from={start} threads={} out={} gpu={gpu}", ctx.stage, ctx.threads, ctx.output_dir.display()));
         if s.panic {
             panic!("asked to panic");
         }

@@ -10,7 +10,6 @@ use rlmflow_stages::{Device, Registry};
 use super::{RemoteArg, SetArg, StoreArg, UsageError, store_root};
 use crate::config;
 use crate::event::{Event, Logged};
-use crate::plan::Freshness;
 use crate::preflight::Preflight;
 use crate::run::{RunOptions, run};
 use crate::ui::print_status;
@@ -32,6 +31,10 @@ pub(crate) struct Args {
     /// Where actions run, overriding `[pipeline] executor`: local or hyperqueue.
     #[arg(long, value_name = "EXECUTOR")]
     executor: Option<String>,
+    /// The GPUs a local run places model stages on, by the driver's index, overriding
+    /// `[pipeline] gpus` (default: every GPU it sees).
+    #[arg(long, value_name = "0,1", value_delimiter = ',')]
+    gpus: Option<Vec<usize>>,
     /// Print the JSON event log on stdout instead of progress.
     #[arg(long)]
     json: bool,
@@ -56,8 +59,11 @@ pub(crate) struct Args {
 }
 
 pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> {
-    let Args { pipeline, dry_run, only, jobs, executor, json, device, verify_inputs, check_determinism, set, store, remote } = args;
+    let Args { pipeline, dry_run, only, jobs, executor, gpus, json, device, verify_inputs, check_determinism, set, store, remote } = args;
     let mut p = set.load(&pipeline, registry)?;
+    if gpus.is_some() {
+        p.gpus = gpus;
+    }
     if let Some(name) = executor {
         p.executor = config::Executor::parse(&name)
             .with_context(|| format!("unknown executor `{name}` for --executor; valid: {}", config::Executor::NAMES.join(", ")))?;
@@ -71,6 +77,10 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
     if dry_run {
         let pre = Preflight::new(&p, registry, &root, device, &only)?;
         print_status(&pre.plan, &pre.instances, None, json);
+        let inventory = crate::gpus::inventory(p.gpus.as_deref())?;
+        if !json && p.executor == config::Executor::Local && !inventory.gpus.is_empty() {
+            print!("{}", inventory.lines());
+        }
         if let (Some(rule), false) = (p.seed_rule, json) {
             println!("  claims    at {} seeds now; a run adds seeds one at a time, up to {}, until every claim is decided", p.seeds.len(), rule.max);
         }
@@ -90,7 +100,7 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
     }
     if !check_determinism.is_empty() {
         let pre = Preflight::new(&p, registry, &root, device, &only)?;
-        pre.refuse_cuda_stages(registry, device)?;
+        pre.refuse_cuda_stages(registry)?;
         pre.refuse_oversized()?;
         let store = Store::open(&root)?;
         let same = crate::determinism::check(&pre.plan, registry, &store, &check_determinism, &opts, &mut |found| {
@@ -144,11 +154,9 @@ pub(crate) fn exec(args: Args, registry: &Registry) -> anyhow::Result<ExitCode> 
 /// Runs the instances of `only` (all when empty) and what they need; whether none failed.
 fn run_selected(p: &config::Pipeline, registry: &Registry, root: &std::path::Path, only: &[String], opts: &RunOptions) -> anyhow::Result<bool> {
     let pre = Preflight::new(p, registry, root, opts.device, only)?;
-    pre.refuse_cuda_stages(registry, opts.device)?;
+    pre.refuse_cuda_stages(registry)?;
     pre.refuse_oversized()?;
-    let (selected, known): (Vec<bool>, Vec<_>) =
-        pre.instances.into_iter().map(|c| (c.selected, if let Freshness::Cached(record) = c.state { Some(record) } else { None })).unzip();
     let store = Store::open(root)?;
-    let summary = run(&pre.plan, registry, &store, &selected, known, opts)?;
+    let summary = run(&pre.plan, registry, &store, pre.instances.into_iter().map(Into::into).collect(), opts)?;
     Ok(summary.failed == 0)
 }

@@ -19,6 +19,7 @@ pub(super) struct Header {
     pub cache: PathBuf,
     pub results: Option<PathBuf>,
     pub executor: Executor,
+    pub gpus: Option<Vec<usize>>,
     pub hyperqueue: HyperQueueSettings,
     pub remote: RemoteSettings,
 }
@@ -117,6 +118,7 @@ pub(super) const PIPELINE_KEYS: &[&str] = &[
     "cache",
     "results",
     "executor",
+    "gpus",
     "hyperqueue",
     "remote",
     "remote_push",
@@ -323,8 +325,19 @@ impl Checker {
                 Executor::Local
             }),
         };
+        let gpus = header.get("gpus").and_then(|value| {
+            let list: Option<Vec<usize>> = value.as_array().and_then(|items| items.iter().map(|v| v.as_u64().map(|n| n as usize)).collect());
+            let problem = match &list {
+                None => format!("must be a list of GPU indices, not {value}"),
+                Some(l) if l.is_empty() => "lists no GPU; leave it out to use every GPU".into(),
+                Some(l) if (1..l.len()).any(|i| l[..i].contains(&l[i])) => "lists a GPU twice".into(),
+                Some(_) => return list,
+            };
+            self.error(self.line("pipeline.gpus"), "pipeline.gpus", problem, Some("e.g. gpus = [0, 1] (as nvidia-smi numbers them)".into()));
+            None
+        });
         let hyperqueue = self.hyperqueue(file, header.get("hyperqueue"));
         let remote = self.remote(file, header);
-        Header { name, seed, seeds, seed_rule, max_instances, cache, results, executor, hyperqueue, remote }
+        Header { name, seed, seeds, seed_rule, max_instances, cache, results, executor, gpus, hyperqueue, remote }
     }
 }

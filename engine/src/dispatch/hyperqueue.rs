@@ -212,10 +212,6 @@ impl Dispatch for HyperQueue {
         Some(self.settings.cores())
     }
 
-    fn serialises_gpu(&self) -> bool {
-        false
-    }
-
     fn describe(&self) -> String {
         let HyperQueueSettings { workers, server_dir, .. } = &self.settings;
         let cluster = match server_dir {

@@ -9,18 +9,33 @@ use anyhow::Context as _;
 use rlmflow_stages::Device;
 
 use super::{Dispatch, Exit, Launch, Report, Reports, forward_lines};
+use crate::gpus::Gpu;
 
 pub struct Local {
-    /// Whether a stage that can use a GPU may get one here, so such stages run one at a time.
-    gpu: bool,
+    /// The GPUs a stage that can use one is placed on; empty where it may get none here (such
+    /// stages then share the CPUs like any other).
+    gpus: Vec<Gpu>,
+    /// Whether a stage's worker is shown its GPU alone (`CUDA_VISIBLE_DEVICES`): not where the
+    /// run names one device (`--device cuda:N`), which the worker then opens itself.
+    expose: bool,
 }
 
 impl Local {
-    /// A stage that can use a GPU gets one when the run names a CUDA device, or (`device =
-    /// "auto"`) when libtorch sees one, which needs the CUDA driver's device nodes. On a machine
-    /// without them such stages share the CPUs like any other.
-    pub fn new(device: Device) -> Local {
-        Local { gpu: device != Device::Cpu || crate::platform::cuda_present() }
+    /// With `--device cuda:N` that GPU; otherwise (a stage's own `device = "auto"` finds
+    /// CUDA where there is one) every GPU of the inventory (`gpus`: `[pipeline] gpus` or
+    /// `--gpus`), or where the driver's device nodes are but the driver lists none, one of
+    /// unknown memory.
+    pub fn new(device: Device, gpus: Option<&[usize]>) -> anyhow::Result<Local> {
+        let unknown = |index| Gpu { index, uuid: None, model: "unknown GPU".into(), memory: None };
+        if let Device::Cuda(n) = device {
+            let gpu = crate::gpus::inventory(None)?.gpus.into_iter().find(|g| g.index == n);
+            return Ok(Local { gpus: vec![gpu.unwrap_or_else(|| unknown(n))], expose: false });
+        }
+        let inventory = crate::gpus::inventory(gpus)?;
+        Ok(match inventory.gpus.is_empty() && crate::platform::cuda_present() {
+            true => Local { gpus: vec![unknown(0)], expose: false },
+            false => Local { gpus: inventory.gpus, expose: true },
+        })
     }
 }
 
@@ -32,6 +47,9 @@ impl Dispatch for Local {
         let log = Arc::new(Mutex::new(log));
         let mut cmd = Command::new(&launch.exe);
         cmd.args(&launch.args).stdin(Stdio::null()).stdout(Stdio::piped()).stderr(Stdio::piped());
+        if let Some(gpu) = launch.placed.as_ref().filter(|_| self.expose) {
+            cmd.envs(gpu.visible());
+        }
         die_with_parent(&mut cmd);
         let mut child = cmd.spawn().with_context(|| format!("starting {}", launch.exe.display()))?;
         let stdout = child.stdout.take().unwrap();
@@ -60,12 +78,12 @@ impl Dispatch for Local {
         Ok(())
     }
 
-    fn serialises_gpu(&self) -> bool {
-        self.gpu
+    fn gpus(&self) -> Option<Vec<Gpu>> {
+        Some(self.gpus.clone())
     }
 
     fn cuda_possible(&self) -> bool {
-        self.gpu
+        !self.gpus.is_empty()
     }
 
     fn describe(&self) -> String {
@@ -162,8 +180,12 @@ mod tests {
         std::fs::write(dev.join("nvidiactl"), "").unwrap();
         assert!(cuda_device_nodes(&dev));
         std::fs::remove_dir_all(&dev).unwrap();
-        assert!(Local::new(Device::Cuda(0)).serialises_gpu(), "a run that names CUDA shares one GPU");
-        assert_eq!(Local::new(Device::Cpu).serialises_gpu(), crate::platform::cuda_present());
+        let one = Local::new(Device::Cuda(0), None).unwrap();
+        assert_eq!(one.gpus().map(|g| g.len()), Some(1), "a run that names CUDA places on that GPU");
+        assert!(!one.expose, "its worker opens the device it names");
+        if std::env::var_os(crate::gpus::DECLARED).is_none() && !crate::platform::cuda_present() {
+            assert_eq!(Local::new(Device::Cpu, None).unwrap().gpus(), Some(Vec::new()), "no GPU here");
+        }
     }
 
     #[test]

@@ -10,6 +10,7 @@
 use std::path::PathBuf;
 use std::sync::Arc;
 
+use crate::gpus::Gpu;
 use crate::protocol::Message;
 
 #[cfg(feature = "python")]
@@ -37,6 +38,8 @@ pub struct Launch {
     pub label: String,
     pub threads: usize,
     pub gpu: bool,
+    /// The GPU the scheduler placed it on, where it places them.
+    pub placed: Option<Gpu>,
     /// Where the process's output that is not protocol goes (`runs/<id>/logs/<label>.log`).
     pub log: PathBuf,
     /// The stage's `timeout`: the process is stopped once it has run this long.
@@ -91,10 +94,11 @@ pub trait Dispatch {
         None
     }
 
-    /// Whether the executor must run at most one GPU stage at a time itself (locally it must;
-    /// a cluster schedules GPUs by resource request).
-    fn serialises_gpu(&self) -> bool {
-        true
+    /// The GPUs the scheduler places GPU stages on (locally: the machine's inventory, empty
+    /// where it has none); `None` where the backend places them itself (a cluster, by resource
+    /// request).
+    fn gpus(&self) -> Option<Vec<Gpu>> {
+        None
     }
 
     /// Whether an action may find a CUDA device where it runs. `false` only where it surely

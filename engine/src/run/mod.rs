@@ -27,7 +27,9 @@ use crate::config::{Executor, RemoteSettings};
 use crate::dispatch::{Dispatch, Launch, Local, Report};
 use crate::event::{Event, Finished, Status};
 use crate::history::Counts;
-use crate::plan::Plan;
+use crate::gpus::Gpu;
+use crate::plan::{Freshness, Plan};
+use crate::preflight::Checked;
 use crate::protocol::Message;
 use crate::ui::Ui;
 use budget::{Budget, Grant};
@@ -109,6 +111,10 @@ struct InstanceRun {
     state: State,
     /// Its record as the preflight found it fresh, until the run uses it.
     known: Option<Box<ActionRecord>>,
+    /// Its peak memory estimate, where its operator makes one: what it holds of a GPU.
+    estimate: Option<u64>,
+    /// The GPU its latest attempt was placed on (`cuda:2`).
+    device: Option<String>,
     /// Its key, once its inputs are known.
     key: Option<Digest>,
     /// How it ended, and its compute time: this run's when it ran, the original computation's
@@ -138,28 +144,38 @@ struct Running {
     outcome: Option<Message>,
 }
 
-/// Runs the plan; returns its summary. `known`: the records the preflight found fresh, by
-/// instance (empty: none), which the run uses without reading them again.
-pub fn run(
-    plan: &Plan,
-    registry: &Registry,
-    store: &Store,
-    selected: &[bool],
-    known: Vec<Option<Box<ActionRecord>>>,
-    opts: &RunOptions,
-) -> anyhow::Result<Counts> {
+/// What a run is told of one instance before it starts.
+#[derive(Default)]
+pub struct Admitted {
+    pub selected: bool,
+    /// Its record, where the preflight found it fresh: used without reading it again.
+    pub known: Option<Box<ActionRecord>>,
+    /// Its peak memory estimate, where its operator makes one: what it holds of a GPU.
+    pub estimate: Option<u64>,
+}
+
+impl From<Checked> for Admitted {
+    fn from(c: Checked) -> Admitted {
+        let known = if let Freshness::Cached(record) = c.state { Some(record) } else { None };
+        Admitted { selected: c.selected, known, estimate: c.fit.map(|f| f.footprint.peak_bytes) }
+    }
+}
+
+/// Runs the plan's instances `admitted` selects (by instance); returns its summary.
+pub fn run(plan: &Plan, registry: &Registry, store: &Store, admitted: Vec<Admitted>, opts: &RunOptions) -> anyhow::Result<Counts> {
     let _shared = store.lock_shared()?;
     store.sweep_tmp(None)?;
     // Before the run exists: a results directory that cannot be used stops it with nothing done.
     let links = plan.pipeline.results.as_deref().map(|dir| store.links(dir)).transpose()?;
     let run = run_id();
     let events = EventLog::create(&store.run_dir(&run), opts.json)?;
-    let mut known = known.into_iter();
-    let instances = selected
-        .iter()
-        .map(|&s| InstanceRun {
-            state: if s { State::Waiting } else { State::Excluded },
-            known: known.next().flatten(),
+    let instances = admitted
+        .into_iter()
+        .map(|a| InstanceRun {
+            state: if a.selected { State::Waiting } else { State::Excluded },
+            estimate: a.estimate,
+            device: None,
+            known: a.known,
             key: None,
             result: None,
             platform: None,
@@ -169,6 +185,10 @@ pub fn run(
         .collect();
     let ui = Ui::new(opts.json);
     let dispatch = dispatcher(plan, store, &run, opts.device, opts.remote.as_ref(), &ui)?;
+    let gpus = dispatch.gpus();
+    if let Some(gpus) = gpus.as_ref().filter(|g| g.len() > 1) {
+        ui.say(format!("  gpus     {}", gpus.iter().map(Gpu::describe).collect::<Vec<_>>().join(", ")));
+    }
     let mut scheduler = Scheduler {
         plan,
         registry,
@@ -179,7 +199,7 @@ pub fn run(
         git: None,
         instances,
         running: BTreeMap::new(),
-        budget: Budget::new(opts.jobs, dispatch.max_threads(), dispatch.serialises_gpu()),
+        budget: Budget::new(opts.jobs, dispatch.max_threads(), gpus),
         plan_dirty: true,
         events,
         last: store.last_keys(&plan.pipeline.name)?,
@@ -197,7 +217,7 @@ pub fn run(
 /// The pipeline's dispatcher. An existing HyperQueue server is checked here, before anything runs.
 fn dispatcher(plan: &Plan, store: &Store, run: &str, device: Device, remote: Option<&RemoteSettings>, ui: &Ui) -> anyhow::Result<Box<dyn Dispatch>> {
     match plan.pipeline.executor {
-        Executor::Local => Ok(Box::new(Local::new(device))),
+        Executor::Local => Ok(Box::new(Local::new(device, plan.pipeline.gpus.as_deref())?)),
         #[cfg(feature = "python")]
         Executor::HyperQueue => {
             let dir = store.run_dir(run).join("hyperqueue");
@@ -256,7 +276,8 @@ impl Scheduler<'_> {
             let i = self.start_order[k];
             let State::Ready { key } = self.instances[i].state else { continue };
             let op = self.registry.get(&self.plan.instances[i].operator).expect("validated operator");
-            let Some(grant) = self.budget.grant(&op.resources(&self.plan.instances[i].settings)) else { continue };
+            let wants = op.resources(&self.plan.instances[i].settings);
+            let Some(grant) = self.budget.grant(&wants, self.instances[i].estimate) else { continue };
             let exe = match crate::exec::executable(op) {
                 Ok(exe) => exe,
                 Err(e) => {
@@ -264,26 +285,29 @@ impl Scheduler<'_> {
                     continue;
                 }
             };
-            self.budget.take(grant);
+            self.budget.take(&grant);
             self.instances[i].state = State::Running { key };
             self.instances[i].attempts.started += 1;
             self.note_git_state();
             let label = self.plan.instances[i].label.clone();
             let (threads, attempt) = (grant.threads, self.instances[i].attempts.started);
-            self.events.write(Event::StageStarted { stage: label.clone(), key, threads, attempt })?;
+            let device = grant.placed.as_ref().map(|p| format!("cuda:{}", p.gpu.index));
+            self.events.write(Event::StageStarted { stage: label.clone(), key, threads, attempt, device: device.clone() })?;
+            self.instances[i].device = device;
             let bar = self.ui.bar(&label);
+            let launch = self.launch(i, exe, key, &grant);
             self.running.insert(i, Running { since: Instant::now(), grant, bar, outcome: None });
             let arrivals = arrivals.clone();
             let reports = Arc::new(move |report| {
                 let _ = arrivals.send((i, Arrival::Report(report)));
             });
-            self.dispatch.start(self.launch(i, exe, key, grant), reports)?;
+            self.dispatch.start(launch, reports)?;
         }
         Ok(())
     }
 
-    fn launch(&self, i: usize, exe: std::path::PathBuf, key: Digest, grant: Grant) -> Launch {
-        let Grant { threads, gpu } = grant;
+    fn launch(&self, i: usize, exe: std::path::PathBuf, key: Digest, grant: &Grant) -> Launch {
+        let (threads, gpu, placed) = (grant.threads, grant.gpu, grant.placed.as_ref().map(|p| p.gpu.clone()));
         let args = ["exec", &key.to_string(), "--store", &self.store.root().to_string_lossy(), "--threads", &threads.to_string()]
             .into_iter()
             .map(str::to_owned)
@@ -292,7 +316,7 @@ impl Scheduler<'_> {
         let (label, log, store, device) = (self.plan.instances[i].label.clone(), self.log_path(i), self.store.root().to_path_buf(), self.opts.device);
         let replace_remote = self.exchange.replaces(&key);
         let timeout = self.bounds(i).timeout_s.map(std::time::Duration::from_secs_f64);
-        Launch { exe, args, key, store, device, replace_remote, label, threads, gpu, log, timeout }
+        Launch { exe, args, key, store, device, replace_remote, label, threads, gpu, placed, log, timeout }
     }
 
     /// What a running instance's process or a pull reported.
@@ -319,7 +343,7 @@ impl Scheduler<'_> {
             Report::Message(message) => running.outcome = Some(message),
             Report::Exited(exit) => {
                 let running = self.running.remove(&i).unwrap();
-                self.budget.release(running.grant);
+                self.budget.release(&running.grant);
                 running.bar.finish_and_clear();
                 self.finish(i, exit, running.outcome, running.since.elapsed().as_secs_f64())?;
             }

@@ -71,7 +71,8 @@ impl Scheduler<'_> {
                 }))?;
                 let note = if reused { "computed by another run".to_owned() } else { record.summary.clone() };
                 let time = if started > 1 { format!("{total:.1}s in {started} attempts, {secs:.1}s the last") } else { format!("{secs:.1}s") };
-                self.ui.say(format!("  {:<8} {label}  {time}  {note}", status.as_str()));
+                let on = self.instances[i].device.as_ref().filter(|_| !reused).map_or(String::new(), |d| format!(" {d}"));
+                self.ui.say(format!("  {:<8} {label}  {time}{on}  {note}", status.as_str()));
                 self.exchange.push(&label, &record, &mut self.events)?;
             }
             Some(Message::CorruptInput { digest, files }) if code == Some(EXIT_CORRUPT_INPUT) && self.instances[i].recoveries < 2 => {
