@@ -124,3 +124,27 @@ fn gpus_restrict_the_inventory_and_name_what_is_there_when_wrong() {
     let out = run_on(&s, TWO, &[]);
     assert!(text(&out.stderr).contains("p.toml:3: pipeline.gpus: must be a list of GPU indices, not \"all\""), "{}", text(&out.stderr));
 }
+
+#[test]
+fn a_stage_out_of_memory_beside_others_is_retried_alone_and_says_so() {
+    let s = Scratch::new("oom");
+    s.pipeline(&format!("{}oom_once = true\n", gpu_stages(&["a", "b"], 20_000)).replace("text = \"a\"\nsteps = 2", "text = \"a\"\nsteps = 3"));
+    let events = events_of(&run_on(&s, "0:H100:81559", &["--jobs", "2"]));
+    // Both started on the one GPU; b (its `oom_once` is last in the file) ran out of memory.
+    let retry = events.of("stage_retry");
+    assert_eq!(retry.len(), 1, "{:?}", events.0);
+    assert_eq!(retry[0]["stage"], "b");
+    let error = retry[0]["error"].as_str().unwrap();
+    assert!(error.starts_with("CUDA out of memory") && error.ends_with("(out of memory on cuda:0, which it shared: retried alone on a GPU)"), "{error}");
+    // Its second attempt started with the GPU to itself: after a finished.
+    let seq: Vec<(String, String)> = events
+        .0
+        .iter()
+        .filter_map(|e| Some((e["event"].as_str()?.to_owned(), e["stage"].as_str()?.to_owned())))
+        .filter(|(name, _)| name == "stage_started" || name == "stage_finished")
+        .collect();
+    let second_b = seq.iter().rposition(|(name, stage)| name == "stage_started" && stage == "b").unwrap();
+    let a_done = seq.iter().position(|(name, stage)| name == "stage_finished" && stage == "a").unwrap();
+    assert!(a_done < second_b, "{seq:?}");
+    assert_eq!((events.status_of("a"), events.status_of("b")), ("ran".to_owned(), "ran".to_owned()));
+}

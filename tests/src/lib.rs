@@ -76,6 +76,8 @@ pub struct WriteTextSettings {
     /// Its peak memory estimate in MiB (0: none), as a model operator makes one: what it holds
     /// of a GPU the run places it on.
     pub memory_mib: u64,
+    /// Its first attempt fails as libtorch does when a GPU's memory runs out.
+    pub oom_once: bool,
     /// Appends the process id to the text: the kind of bug `run --check-determinism` finds.
     pub nondeterministic: bool,
     /// Its bytes follow the numeric kernels, as a model operator's do: it appends every kernel
@@ -100,6 +102,7 @@ impl Default for WriteTextSettings {
             gpu: false,
             cuda: false,
             memory_mib: 0,
+            oom_once: false,
             nondeterministic: false,
             numerics: None,
             from: String::new(),
@@ -109,7 +112,7 @@ impl Default for WriteTextSettings {
 }
 
 impl Settings for WriteTextSettings {
-    const NON_RESULT: &'static [&'static str] = &["threads", "step_ms", "gpu", "cuda", "memory_mib"];
+    const NON_RESULT: &'static [&'static str] = &["threads", "step_ms", "gpu", "cuda", "memory_mib", "oom_once"];
     const TRACKED: &'static [&'static str] = &["from"];
     fn check_tracked(&self, key: &str, path: &std::path::Path) -> Result<(), SettingError> {
         match fs::read(path) {
@@ -163,6 +166,11 @@ impl Operator for WriteText {
         }
         if s.fail {
             bail!("asked to fail");
+        }
+        let oomed = ctx.checkpoint_dir.join("oomed");
+        if s.oom_once && !oomed.exists() {
+            fs::write(&oomed, "")?;
+            bail!("CUDA out of memory. Tried to allocate 20.00 GiB (GPU 0; 79.19 GiB total capacity)");
         }
         if !s.fail_on.is_empty() {
             return Err(anyhow::Error::new(SettingError::new(s.fail_on.clone(), "is wrong for this data (a check only a run can make)"))

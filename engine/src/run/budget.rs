@@ -49,6 +49,13 @@ pub struct Placed {
     bytes: Option<u64>,
 }
 
+impl Placed {
+    /// Whether it holds its GPU by its estimate, so others may run beside it.
+    pub fn shares(&self) -> bool {
+        self.bytes.is_some()
+    }
+}
+
 impl Budget {
     pub fn new(jobs: usize, max_threads: Option<usize>, gpus: Option<Vec<Gpu>>) -> Budget {
         let gpus = gpus.map(|list| list.into_iter().map(|gpu| Slot { gpu, stages: 0, held: 0, whole: false }).collect());

@@ -113,8 +113,11 @@ struct InstanceRun {
     known: Option<Box<ActionRecord>>,
     /// Its peak memory estimate, where its operator makes one: what it holds of a GPU.
     estimate: Option<u64>,
-    /// The GPU its latest attempt was placed on (`cuda:2`).
+    /// The GPU its latest attempt was placed on (`cuda:2`), and whether it shared it.
     device: Option<String>,
+    packed: bool,
+    /// Ran out of GPU memory beside other stages: its next attempt holds a GPU alone.
+    alone: bool,
     /// Its key, once its inputs are known.
     key: Option<Digest>,
     /// How it ended, and its compute time: this run's when it ran, the original computation's
@@ -175,6 +178,8 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, admitted: Vec<Admitt
             state: if a.selected { State::Waiting } else { State::Excluded },
             estimate: a.estimate,
             device: None,
+            packed: false,
+            alone: false,
             known: a.known,
             key: None,
             result: None,
@@ -277,7 +282,9 @@ impl Scheduler<'_> {
             let State::Ready { key } = self.instances[i].state else { continue };
             let op = self.registry.get(&self.plan.instances[i].operator).expect("validated operator");
             let wants = op.resources(&self.plan.instances[i].settings);
-            let Some(grant) = self.budget.grant(&wants, self.instances[i].estimate) else { continue };
+            // Without its estimate a stage is given a GPU whole.
+            let estimate = self.instances[i].estimate.filter(|_| !self.instances[i].alone);
+            let Some(grant) = self.budget.grant(&wants, estimate) else { continue };
             let exe = match crate::exec::executable(op) {
                 Ok(exe) => exe,
                 Err(e) => {
@@ -294,6 +301,7 @@ impl Scheduler<'_> {
             let device = grant.placed.as_ref().map(|p| format!("cuda:{}", p.gpu.index));
             self.events.write(Event::StageStarted { stage: label.clone(), key, threads, attempt, device: device.clone() })?;
             self.instances[i].device = device;
+            self.instances[i].packed = grant.placed.as_ref().is_some_and(|p| p.shares());
             let bar = self.ui.bar(&label);
             let launch = self.launch(i, exe, key, &grant);
             self.running.insert(i, Running { since: Instant::now(), grant, bar, outcome: None });

@@ -113,6 +113,18 @@ impl Scheduler<'_> {
                 };
                 let bounds = self.bounds(i);
                 self.note_in_log(i, &format!("attempt {} ended after {secs:.1} s: {message}", self.instances[i].attempts.started));
+                // Out of memory where its estimate let others run beside it: once more, alone.
+                let run = &mut self.instances[i];
+                if run.packed && !run.alone && message.to_lowercase().contains("out of memory") {
+                    run.alone = true;
+                    run.attempts.earlier_s += secs;
+                    let (attempt, on) = (run.attempts.started, run.device.clone().unwrap_or_default());
+                    let error = format!("{message} (out of memory on {on}, which it shared: retried alone on a GPU)");
+                    self.events.write(Event::StageRetry { stage: label.clone(), key, attempt, error, log: self.log_path(i), duration_s: secs })?;
+                    self.ui.say(format!("  retry    {label}  out of memory on {on} beside other stages after {secs:.1}s; retried alone on a GPU"));
+                    self.instances[i].state = State::Ready { key };
+                    return Ok(());
+                }
                 if retryable && self.instances[i].attempts.started <= bounds.retries {
                     let attempt = self.instances[i].attempts.started;
                     self.instances[i].attempts.earlier_s += secs;
