@@ -22,6 +22,10 @@ pub struct HyperQueueSettings {
     pub retries: u32,
     /// Whether a stage that can use a GPU asks for one (the workers must have GPUs).
     pub gpus: bool,
+    /// The memory of the workers' GPUs (one model), in GiB: a stage with a memory estimate then
+    /// asks for the fraction of a GPU its estimate takes, so several share one; 0: a whole GPU
+    /// each.
+    pub gpu_memory_gib: f64,
     /// The store a task uses: `"shared"`, the run's own (on a filesystem every worker sees);
     /// `"temporary"`, a fresh one per task in the worker's temporary directory; or an absolute
     /// path, a store of each worker's own kept between tasks. Other than shared, inputs and
@@ -40,7 +44,7 @@ pub enum WorkerStore {
 
 impl Default for HyperQueueSettings {
     fn default() -> Self {
-        HyperQueueSettings { server_dir: None, workers: 1, cores: 0, retries: 1, gpus: false, worker_store: "shared".into() }
+        HyperQueueSettings { server_dir: None, workers: 1, cores: 0, retries: 1, gpus: false, gpu_memory_gib: 0.0, worker_store: "shared".into() }
     }
 }
 
@@ -55,6 +59,9 @@ impl HyperQueueSettings {
         }
         if self.retries > 100 {
             return Err(("retries", format!("must be in 0..=100, not {}", self.retries)));
+        }
+        if !(0.0..=4096.0).contains(&self.gpu_memory_gib) {
+            return Err(("gpu_memory_gib", format!("must be in 0..=4096 (0: a whole GPU per stage), not {}", self.gpu_memory_gib)));
         }
         self.worker_store()?;
         Ok(())
@@ -71,6 +78,17 @@ impl HyperQueueSettings {
                     "`{other}` is not valid; valid: \"shared\" (the run's store), \"temporary\" (one per task) or an absolute path on the workers"
                 ),
             )),
+        }
+    }
+
+    /// What a stage asks of `gpus/nvidia`: the share of a GPU its peak `estimate` takes within
+    /// the headroom, rounded up to a hundredth, where the GPUs' memory is declared; else, or
+    /// past one GPU, a whole one.
+    pub fn gpu_share(&self, estimate: Option<u64>) -> f64 {
+        let budget = self.gpu_memory_gib * (1u64 << 30) as f64 * rlmflow_stages::memory::HEADROOM;
+        match estimate.filter(|_| budget > 0.0) {
+            Some(bytes) => ((bytes as f64 / budget * 100.0).ceil() / 100.0).clamp(0.01, 1.0),
+            None => 1.0,
         }
     }
 
@@ -103,5 +121,24 @@ impl Checker {
             settings.server_dir = Some(std::path::absolute(&dir).unwrap_or(dir));
         }
         settings
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_stage_asks_for_the_share_of_a_gpu_its_estimate_takes() {
+        let on = |gib: f64| HyperQueueSettings { gpus: true, gpu_memory_gib: gib, ..Default::default() };
+        const GIB: u64 = 1 << 30;
+        // 80 GiB within the 90 % headroom is 72 GiB: 18 GiB a quarter, 20 GiB just over.
+        assert_eq!(on(80.0).gpu_share(Some(18 * GIB)), 0.25);
+        assert_eq!(on(80.0).gpu_share(Some(20 * GIB)), 0.28);
+        assert_eq!(on(80.0).gpu_share(Some(1)), 0.01, "at least a hundredth");
+        assert_eq!(on(80.0).gpu_share(Some(100 * GIB)), 1.0, "past one GPU: a whole one");
+        assert_eq!(on(80.0).gpu_share(None), 1.0, "no estimate: a whole one");
+        assert_eq!(on(0.0).gpu_share(Some(GIB)), 1.0, "memory not declared: a whole one");
+        assert_eq!(on(-1.0).check().unwrap_err().0, "gpu_memory_gib");
     }
 }

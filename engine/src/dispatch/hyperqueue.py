@@ -37,7 +37,8 @@ def submit(client, name, args, cwd, stdout, stderr, cpus, gpus, stdin=None):
 
     With `stdin` (a task with a store of its own), `stdout` and `stderr` are paths on the worker,
     kept there only if the task fails."""
-    resources = {"gpus/nvidia": gpus} if gpus else None
+    # A share of a GPU (0.25) or whole ones (1), as HyperQueue's fractional resources take them.
+    resources = {"gpus/nvidia": int(gpus) if gpus == int(gpus) else gpus} if gpus else None
     if stdin is not None:
         stdout, stderr = StdioDef.remove_if_finished(stdout), StdioDef.remove_if_finished(stderr)
     job = Job(name=name, max_fails=1)

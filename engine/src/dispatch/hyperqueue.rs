@@ -1,6 +1,7 @@
 //! HyperQueue tasks: each action is one task running the same `exec` command line, with a
 //! resource request from what its operator declares (threads -> cpus, a GPU -> `gpus/nvidia`
-//! when `gpus = true`). The client API and the local cluster come from the `hyperqueue` package
+//! when `gpus = true`: the share of one its memory estimate takes where `gpu_memory_gib`
+//! declares the workers' GPUs, else a whole one). The client API and the local cluster come from the `hyperqueue` package
 //! in the managed Python environment (`hyperqueue.py`).
 //!
 //! With `worker_store = "shared"` (the default) a task's stdout and stderr go to files under the
@@ -192,14 +193,19 @@ struct Task {
     dir: PathBuf,
     launch: Launch,
     retries: u32,
-    gpus: bool,
+    /// What a stage that can use a GPU asks of `gpus/nvidia` (0: none, the cluster has none).
+    gpu_share: f64,
     own: Option<OwnStores>,
 }
 
 impl Dispatch for HyperQueue {
     fn start(&mut self, launch: Launch, reports: Reports) -> anyhow::Result<()> {
         let client = self.client()?;
-        let task = Task { client, dir: self.dir.clone(), launch, retries: self.settings.retries, gpus: self.settings.gpus, own: self.own.clone() };
+        let gpu_share = match self.settings.gpus && launch.gpu {
+            true => self.settings.gpu_share(launch.estimate),
+            false => 0.0,
+        };
+        let task = Task { client, dir: self.dir.clone(), launch, retries: self.settings.retries, gpu_share, own: self.own.clone() };
         let log = Arc::new(Mutex::new(File::create(&task.launch.log).with_context(|| format!("creating {}", task.launch.log.display()))?));
         std::thread::spawn(move || {
             let exit = task.run(&reports, &log).unwrap_or_else(|e| Exit::Lost(format!("{e:#}")));
@@ -296,7 +302,7 @@ impl Task {
         };
         command.push(l.exe.to_string_lossy().into_owned());
         command.extend(args);
-        let gpus = u32::from(self.gpus && l.gpu);
+        let gpus = self.gpu_share;
         let [cwd, stdout, stderr] = [cwd, stdout, stderr].map(|p| p.to_string_lossy().into_owned());
         let stdin = stdin.map(|bytes| bytes.to_vec());
         let client = self.client.lock().unwrap();

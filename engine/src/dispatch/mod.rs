@@ -40,6 +40,8 @@ pub struct Launch {
     pub gpu: bool,
     /// The GPU the scheduler placed it on, where it places them.
     pub placed: Option<Gpu>,
+    /// Its peak memory estimate, where its operator makes one (a cluster asks for a GPU's share).
+    pub estimate: Option<u64>,
     /// Where the process's output that is not protocol goes (`runs/<id>/logs/<label>.log`).
     pub log: PathBuf,
     /// The stage's `timeout`: the process is stopped once it has run this long.

@@ -324,7 +324,8 @@ impl Scheduler<'_> {
         let (label, log, store, device) = (self.plan.instances[i].label.clone(), self.log_path(i), self.store.root().to_path_buf(), self.opts.device);
         let replace_remote = self.exchange.replaces(&key);
         let timeout = self.bounds(i).timeout_s.map(std::time::Duration::from_secs_f64);
-        Launch { exe, args, key, store, device, replace_remote, label, threads, gpu, placed, log, timeout }
+        let estimate = self.instances[i].estimate;
+        Launch { exe, args, key, store, device, replace_remote, label, threads, gpu, placed, estimate, log, timeout }
     }
 
     /// What a running instance's process or a pull reported.
