@@ -22,7 +22,11 @@ It runs, each part in its own processes, with the GPU's memory sampled by nvidia
    against docs/digests/ci.toml.digests, and the laptop model's step, portable against native.
    Its highway-env scenes come from DIR/ci-seeds, a file remote `--build-only` fills (the GPU
    machine has no network to make the Python environment highway-env runs in).
-7. Claims: examples/gpu-claims.toml cold into a fresh store on cuda (its placed scenes computed
+7. Packed: paper-smoke's model stages with the GPU held whole by each (its memory declared
+   unknown, `RLMFLOW_GPU_INVENTORY`), then packed onto it by their memory estimates, into two
+   fresh stores: every output digest must be equal; the peak memory against the sum of the
+   estimates, the wall time against the one-at-a-time run's.
+8. Claims: examples/gpu-claims.toml cold into a fresh store on cuda (its placed scenes computed
    on this machine's cores), adding seeds until every claim is decided: the verdicts with their
    seeds and intervals (`rlmflow claims --json`), and the wall time against the 8 minutes the
    profile is meant to fit.
@@ -162,11 +166,12 @@ def outputs(rlmflow, store, sets):
     return {line["stage"]: line.get("output") for line in map(json.loads, filter(str.strip, lines.splitlines()))}
 
 
-def pipeline(rlmflow, store, sets):
-    """Runs the pipeline with `sets` into `store`: seconds and the GPU's peak MiB."""
+def pipeline(rlmflow, store, sets, env=None):
+    """Runs the pipeline with `sets` into `store` (`env` added to the environment): seconds and
+    the GPU's peak MiB."""
     start = time.time()
     with MemorySampler() as memory:
-        run([rlmflow, "run", PIPELINE, "--cache", store, "--device", "cuda"] + overrides(sets), cwd=ROOT)
+        run([rlmflow, "run", PIPELINE, "--cache", store, "--device", "cuda"] + overrides(sets), cwd=ROOT, env={**os.environ, **(env or {})})
     return time.time() - start, memory.peak
 
 
@@ -289,6 +294,22 @@ def main():
         return f"{seconds:.0f} s", f"peak {peak} MiB (with the CUDA context) against the estimate {estimate_mib:.0f} MiB: {peak / estimate_mib:.2f}x"
 
     table.measure("memory: pretrain, batch 160 in chunks of 80", memory)
+
+    def packed():
+        model = run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader", "--id=0"]).strip()
+        alone = pipeline(rlmflow, scratch / "alone", CUDA, env={"RLMFLOW_GPU_INVENTORY": f"0:{model}"})
+        shared = pipeline(rlmflow, scratch / "packed", CUDA)
+        a, b = outputs(rlmflow, scratch / "alone", CUDA), outputs(rlmflow, scratch / "packed", CUDA)
+        same = a == b and None not in a.values()
+        dry = run([rlmflow, "run", PIPELINE, "--dry-run", "--json", "--cache", scratch / "estimates", "--device", "cuda"] + overrides(CUDA))
+        lines = [json.loads(line) for line in dry.splitlines() if line.strip()]
+        estimates = sum(line["memory"]["peak_bytes"] for line in lines if line.get("memory")) / 2**20
+        return (
+            f"{shared[0]:.0f} s packed / {alone[0]:.0f} s one at a time",
+            f"{'same bytes' if same else 'OTHER BYTES'} for {len(a)} instances; peak {shared[1]} MiB packed ({alone[1]} alone) against the estimates' sum {estimates:.0f} MiB; wall ratio {alone[0] / shared[0]:.2f}x",
+        )
+
+    table.measure("packed: paper-smoke's model stages on one GPU by their estimates, against one at a time", packed)
 
     def claims():
         store = scratch / "claims"

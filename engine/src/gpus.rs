@@ -2,11 +2,12 @@
 //! `CUDA_VISIBLE_DEVICES` leaves them, restricted by `[pipeline] gpus` / `--gpus`, and only
 //! those of the first one's model, whose numeric class the keys name (so where a stage lands
 //! never changes its bytes). `RLMFLOW_GPU_INVENTORY` declares the GPUs instead of the driver:
-//! how the tests give the scheduler a machine they do not have.
+//! how the tests give the scheduler a machine they do not have, and how the device check runs
+//! stages one at a time (a GPU of undeclared memory is held whole by each).
 
 use anyhow::bail;
 
-/// The variable that declares the inventory: `INDEX:MODEL:MIB` entries, comma-separated.
+/// The variable that declares the inventory: `INDEX:MODEL[:MIB]` entries, comma-separated.
 pub const DECLARED: &str = "RLMFLOW_GPU_INVENTORY";
 
 /// One GPU of this machine.
@@ -64,17 +65,20 @@ pub fn inventory(only: Option<&[usize]>) -> anyhow::Result<Inventory> {
     select(found, std::env::var("CUDA_VISIBLE_DEVICES").ok().as_deref(), only)
 }
 
-/// `INDEX:MODEL:MIB,...`.
+/// `INDEX:MODEL[:MIB],...`; without MIB the memory is unknown.
 fn declared(text: &str) -> anyhow::Result<Vec<Gpu>> {
     let entry = |item: &str| -> Option<Gpu> {
         let mut parts = item.trim().splitn(3, ':');
         let index = parts.next()?.parse().ok()?;
-        let model = parts.next()?.to_owned();
-        let mib: u64 = parts.next()?.parse().ok()?;
-        Some(Gpu { index, uuid: None, model, memory: Some(mib << 20) })
+        let model = parts.next().filter(|m| !m.is_empty())?.to_owned();
+        let memory = match parts.next() {
+            Some(mib) => Some(mib.parse::<u64>().ok()? << 20),
+            None => None,
+        };
+        Some(Gpu { index, uuid: None, model, memory })
     };
     let items = text.split(',').filter(|i| !i.trim().is_empty());
-    items.map(|item| entry(item).ok_or_else(|| anyhow::anyhow!("{DECLARED}: `{item}` is not INDEX:MODEL:MIB (e.g. `0:H100:81559`)"))).collect()
+    items.map(|item| entry(item).ok_or_else(|| anyhow::anyhow!("{DECLARED}: `{item}` is not INDEX:MODEL[:MIB] (e.g. `0:H100:81559`)"))).collect()
 }
 
 /// Every GPU `nvidia-smi` lists; none without it.
@@ -148,7 +152,9 @@ mod tests {
         assert_eq!(indices(&select(found.clone(), None, Some(&[2, 1])).unwrap()), [1, 2]);
         let e = select(found.clone(), Some("0,1"), Some(&[2])).unwrap_err().to_string();
         assert_eq!(e, "gpus: there is no GPU 2 here (this machine's, as CUDA_VISIBLE_DEVICES shows them: 0, 1)");
-        assert!(declared("0:H100").unwrap_err().to_string().contains("`0:H100` is not INDEX:MODEL:MIB"));
+        assert_eq!(declared("0:H100").unwrap()[0].memory, None, "memory undeclared: unknown");
+        assert!(declared("0:H100:80G").unwrap_err().to_string().contains("`0:H100:80G` is not INDEX:MODEL[:MIB]"));
+        assert!(declared("x:H100").is_err() && declared("0").is_err());
         let uuid = Gpu { uuid: Some("GPU-4f2a".into()), ..found[0].clone() };
         assert_eq!(uuid.visible()[0], ("CUDA_VISIBLE_DEVICES", "GPU-4f2a".to_owned()));
         assert_eq!(found[2].visible(), [("CUDA_VISIBLE_DEVICES", "2".to_owned()), ("CUDA_DEVICE_ORDER", "PCI_BUS_ID".to_owned())]);
