@@ -60,7 +60,11 @@ impl Inventory {
 pub fn inventory(only: Option<&[usize]>) -> anyhow::Result<Inventory> {
     let found = match std::env::var(DECLARED) {
         Ok(text) => declared(&text)?,
-        Err(_) => from_driver(),
+        Err(_) => {
+            // Read once a process: a run's preflight and its scheduler both ask.
+            static DRIVER: std::sync::OnceLock<Vec<Gpu>> = std::sync::OnceLock::new();
+            DRIVER.get_or_init(from_driver).clone()
+        }
     };
     select(found, std::env::var("CUDA_VISIBLE_DEVICES").ok().as_deref(), only)
 }
