@@ -70,8 +70,8 @@ impl<'p> Preflight<'p> {
         refuse_oversized(&self.plan, &fits)
     }
 
-    /// Refuses, on the local executor, a run on `device` in which a stage that must run needs a
-    /// CUDA device this machine does not have.
+    /// Refuses, on the local executor, a run in which a stage that must run needs a CUDA device
+    /// and the run has no GPU to place it on.
     pub fn refuse_cuda_stages(&self, registry: &Registry) -> anyhow::Result<()> {
         if self.plan.pipeline.executor != Executor::Local || !self.gpus.is_empty() {
             return Ok(());
