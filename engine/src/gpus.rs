@@ -30,10 +30,15 @@ impl Gpu {
         [("CUDA_VISIBLE_DEVICES", id), ("CUDA_DEVICE_ORDER", "PCI_BUS_ID".to_owned())]
     }
 
+    /// `cuda:2`, as a run names where a stage ran.
+    pub fn device(&self) -> String {
+        format!("cuda:{}", self.index)
+    }
+
     /// `cuda:2 (NVIDIA H100 80GB HBM3, 79.6 GiB)`.
     pub fn describe(&self) -> String {
         let memory = self.memory.map_or("memory unknown".to_owned(), |m| format!("{:.1} GiB", m as f64 / (1u64 << 30) as f64));
-        format!("cuda:{} ({}, {memory})", self.index, self.model)
+        format!("{} ({}, {memory})", self.device(), self.model)
     }
 }
 

@@ -32,7 +32,7 @@ use crate::plan::{Freshness, Plan};
 use crate::preflight::Checked;
 use crate::protocol::Message;
 use crate::ui::Ui;
-use budget::{Budget, Grant};
+use budget::{Budget, Grant, Placed};
 use event_log::EventLog;
 use exchange::{Exchange, PullEnd};
 use links::ResultsLinks;
@@ -113,9 +113,8 @@ struct InstanceRun {
     known: Option<Box<ActionRecord>>,
     /// Its peak memory estimate, where its operator makes one: what it holds of a GPU.
     estimate: Option<u64>,
-    /// The GPU its latest attempt was placed on (`cuda:2`), and whether it shared it.
-    device: Option<String>,
-    packed: bool,
+    /// Where its latest attempt was placed on a GPU.
+    placed: Option<Placed>,
     /// Ran out of GPU memory beside other stages: its next attempt holds a GPU alone.
     alone: bool,
     /// Its key, once its inputs are known.
@@ -177,8 +176,7 @@ pub fn run(plan: &Plan, registry: &Registry, store: &Store, admitted: Vec<Admitt
         .map(|a| InstanceRun {
             state: if a.selected { State::Waiting } else { State::Excluded },
             estimate: a.estimate,
-            device: None,
-            packed: false,
+            placed: None,
             alone: false,
             known: a.known,
             key: None,
@@ -298,10 +296,9 @@ impl Scheduler<'_> {
             self.note_git_state();
             let label = self.plan.instances[i].label.clone();
             let (threads, attempt) = (grant.threads, self.instances[i].attempts.started);
-            let device = grant.placed.as_ref().map(|p| format!("cuda:{}", p.gpu.index));
-            self.events.write(Event::StageStarted { stage: label.clone(), key, threads, attempt, device: device.clone() })?;
-            self.instances[i].device = device;
-            self.instances[i].packed = grant.placed.as_ref().is_some_and(|p| p.shares());
+            let device = grant.placed.as_ref().map(|p| p.gpu.device());
+            self.events.write(Event::StageStarted { stage: label.clone(), key, threads, attempt, device })?;
+            self.instances[i].placed = grant.placed.clone();
             let bar = self.ui.bar(&label);
             let launch = self.launch(i, exe, key, &grant);
             self.running.insert(i, Running { since: Instant::now(), grant, bar, outcome: None });

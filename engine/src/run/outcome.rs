@@ -71,7 +71,7 @@ impl Scheduler<'_> {
                 }))?;
                 let note = if reused { "computed by another run".to_owned() } else { record.summary.clone() };
                 let time = if started > 1 { format!("{total:.1}s in {started} attempts, {secs:.1}s the last") } else { format!("{secs:.1}s") };
-                let on = self.instances[i].device.as_ref().filter(|_| !reused).map_or(String::new(), |d| format!(" {d}"));
+                let on = self.instances[i].placed.as_ref().filter(|_| !reused).map_or(String::new(), |p| format!(" {}", p.gpu.device()));
                 self.ui.say(format!("  {:<8} {label}  {time}{on}  {note}", status.as_str()));
                 self.exchange.push(&label, &record, &mut self.events)?;
             }
@@ -115,10 +115,11 @@ impl Scheduler<'_> {
                 self.note_in_log(i, &format!("attempt {} ended after {secs:.1} s: {message}", self.instances[i].attempts.started));
                 // Out of memory where its estimate let others run beside it: once more, alone.
                 let run = &mut self.instances[i];
-                if run.packed && !run.alone && message.to_lowercase().contains("out of memory") {
+                let shared = run.placed.as_ref().filter(|p| p.shares());
+                if let Some(on) = shared.map(|p| p.gpu.device()).filter(|_| !run.alone && message.to_lowercase().contains("out of memory")) {
                     run.alone = true;
                     run.attempts.earlier_s += secs;
-                    let (attempt, on) = (run.attempts.started, run.device.clone().unwrap_or_default());
+                    let attempt = run.attempts.started;
                     let error = format!("{message} (out of memory on {on}, which it shared: retried alone on a GPU)");
                     self.events.write(Event::StageRetry { stage: label.clone(), key, attempt, error, log: self.log_path(i), duration_s: secs })?;
                     self.ui.say(format!("  retry    {label}  out of memory on {on} beside other stages after {secs:.1}s; retried alone on a GPU"));
